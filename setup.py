@@ -1,0 +1,42 @@
+"""ament_python package definition of aefabmap_ros (also a plain pip-installable package)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "aefabmap_ros"
+
+# Console scripts: every node and tool. Nodes are also runnable with `ros2 run aefabmap_ros <name>`.
+CONSOLE_SCRIPTS = [
+    "feature_node = aefabmap_ros.nodes.feature_node:main",
+    "quantizer_node = aefabmap_ros.nodes.quantizer_node:main",
+    "fabmap_node = aefabmap_ros.nodes.fabmap_node:main",
+    "aefabmap_pipeline = aefabmap_ros.nodes.pipeline:main",
+    "aefabmap_launch = aefabmap_ros.cli.launch:main",
+    "aefabmap_train = aefabmap_ros.cli.train:main",
+    "aefabmap_eval = aefabmap_ros.cli.evaluate:main",
+    "aefabmap_replay = aefabmap_ros.cli.replay:main",
+    "aefabmap_record = aefabmap_ros.cli.record:main",
+    "aefabmap_synth = aefabmap_ros.cli.synth:main",
+    "aefabmap_demo = aefabmap_ros.cli.demo:main",
+    "aefabmap_bench = aefabmap_ros.cli.bench:main",
+]
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="aefabmap_ros developers",
+    maintainer_email="aefabmap@example.org",
+    description="Online visual loop-closure detection for SLAM: AE-FABMAP for ROS 2 Jazzy.",
+    license="BSD-3-Clause",
+    entry_points={"console_scripts": CONSOLE_SCRIPTS},
+)

@@ -1,0 +1,37 @@
+"""Shared test fixtures: paths to the shared real data, skipping cleanly where it is absent."""
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+# `shared/` sits beside the checkout (CI: a clean clone with ../shared next to it).
+SHARED_DIR = REPO_ROOT.parent / "shared"
+
+
+def require_shared(*relative: str) -> Path:
+    """Path inside ../shared, or skip the calling test where it is absent (a user's fresh clone)."""
+    path = SHARED_DIR.joinpath(*relative)
+    if not path.exists():
+        pytest.skip(f"shared data not available: {path}")
+    return path
+
+
+@pytest.fixture
+def shared_dir() -> Path:
+    return require_shared()
+
+
+@pytest.fixture
+def rtabmap_dir() -> Path:
+    return require_shared("datasets", "rtabmap_samples")
+
+
+@pytest.fixture
+def kitti_dir() -> Path:
+    return require_shared("datasets", "kitti00_first300")
+
+
+@pytest.fixture
+def golden_dir() -> Path:
+    return require_shared("golden", "openfabmap_rtab")
