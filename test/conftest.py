@@ -1,8 +1,15 @@
 """Shared test fixtures: paths to the shared real data, skipping cleanly where it is absent."""
 
+import os
 from pathlib import Path
 
 import pytest
+
+# ROS 2 isolation for every test and subprocess: discovery stays on this machine, and each pytest
+# run gets its own domain so parallel runs (or a user's live robot) never see our test traffic.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # `shared/` sits beside the checkout (CI: a clean clone with ../shared next to it).

@@ -1,0 +1,255 @@
+"""rosbag2 bags (mcap and sqlite3) through `rosbags`, with no ROS installation needed.
+
+The suite's own message types are registered from the ``aefabmap_msgs/msg/*.msg`` files, so
+bags holding ``Features``, ``BagOfWords``, ``LoopClosure`` or ``PlacePosterior`` read and write
+like any standard type. Every failure a user can cause becomes a ``BagError`` naming the bag.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg
+from rosbags.typesys import get_typestore as _rosbags_typestore
+from rosbags.typesys.store import Typestore
+
+from aefabmap_ros.core.errors import BagError
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
+STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+MESSAGE_PACKAGE = "aefabmap_msgs"
+
+
+def _message_dir_candidates() -> list[Path]:
+    """Where the .msg files may live: the source tree (editable install), then installed prefixes."""
+    candidates = [Path(__file__).resolve().parents[2] / MESSAGE_PACKAGE / "msg"]
+    prefixes = [sys.prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
+    candidates += [Path(prefix) / "share" / MESSAGE_PACKAGE / "msg" for prefix in prefixes if prefix]
+    return candidates
+
+
+def find_message_dir() -> Path:
+    for candidate in _message_dir_candidates():
+        if any(candidate.glob("*.msg")):
+            return candidate
+    searched = ", ".join(str(c) for c in _message_dir_candidates())
+    raise BagError(f"cannot find the {MESSAGE_PACKAGE} .msg definitions (searched: {searched})")
+
+
+@cache
+def get_typestore() -> Typestore:
+    """The ROS 2 Jazzy type store with the aefabmap_msgs types registered."""
+    typestore = _rosbags_typestore(Stores.ROS2_JAZZY)
+    types: dict[str, Any] = {}
+    for msg_file in sorted(find_message_dir().glob("*.msg")):
+        types.update(get_types_from_msg(msg_file.read_text(), f"{MESSAGE_PACKAGE}/msg/{msg_file.stem}"))
+    typestore.register(types)
+    return typestore
+
+
+def _storage_plugin(storage: str) -> StoragePlugin:
+    try:
+        return STORAGES[storage]
+    except KeyError:
+        raise BagError(f"unknown bag storage {storage!r}; choose one of {sorted(STORAGES)}") from None
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time (rosbags or rclpy) -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def make_time(stamp_ns: int) -> Any:
+    time_type = get_typestore().types["builtin_interfaces/msg/Time"]
+    return time_type(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
+
+
+def make_header(stamp_ns: int, frame_id: str = "camera") -> Any:
+    header_type = get_typestore().types["std_msgs/msg/Header"]
+    return header_type(stamp=make_time(stamp_ns), frame_id=frame_id)
+
+
+def make_image_message(image: np.ndarray, stamp_ns: int, frame_id: str = "camera") -> Any:
+    """A rosbags ``sensor_msgs/Image`` from a mono8 (H, W) or bgr8 (H, W, 3) uint8 array."""
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise BagError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
+    height, width = image.shape[:2]
+    channels = 1 if image.ndim == 2 else 3
+    image_type = get_typestore().types[IMAGE_TYPE]
+    return image_type(
+        header=make_header(stamp_ns, frame_id),
+        height=height,
+        width=width,
+        encoding="mono8" if channels == 1 else "bgr8",
+        is_bigendian=0,
+        step=width * channels,
+        data=np.ascontiguousarray(image).reshape(-1),
+    )
+
+
+def _replace_path(tmp_path: Path, path: Path, overwrite: bool) -> None:
+    if path.exists():
+        if not overwrite:
+            shutil.rmtree(tmp_path, ignore_errors=True)
+            raise BagError(f"output bag already exists: {path} (remove it or pass overwrite)")
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    os.replace(tmp_path, path)
+
+
+class BagWriter:
+    """Writes messages to a new bag, atomically: it appears at ``path`` only once closed cleanly.
+
+    Use as a context manager; ``write`` takes rosbags message objects or already serialized CDR.
+    """
+
+    def __init__(self, path: Path, storage: str = "mcap", overwrite: bool = False) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise BagError(f"output bag already exists: {self.path} (remove it or pass overwrite)")
+        if not self.path.parent.is_dir():
+            raise BagError(f"output folder does not exist: {self.path.parent}")
+        self._overwrite = overwrite
+        self._tmp_path = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        shutil.rmtree(self._tmp_path, ignore_errors=True)
+        self._writer = Writer(self._tmp_path, version=9, storage_plugin=_storage_plugin(storage))
+        self._connections: dict[str, Any] = {}
+        self._typestore = get_typestore()
+
+    def __enter__(self) -> BagWriter:
+        try:
+            self._writer.open()
+        except Exception as exc:  # rosbags raises several unrelated types for unwritable paths
+            raise BagError(f"cannot create bag {self.path}: {exc}") from exc
+        return self
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        if topic not in self._connections:
+            self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=self._typestore)
+
+    def write(self, topic: str, timestamp_ns: int, message: Any) -> None:
+        connection = self._connections.get(topic)
+        if connection is None:
+            raise BagError(f"topic {topic!r} was not added to bag {self.path}")
+        data = message if isinstance(message, bytes | memoryview) else self._typestore.serialize_cdr(
+            message, connection.msgtype
+        )
+        self._writer.write(connection, int(timestamp_ns), data)
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self._writer.close()
+        if exc_type is None:
+            _replace_path(self._tmp_path, self.path, self._overwrite)
+        else:
+            shutil.rmtree(self._tmp_path, ignore_errors=True)
+
+
+def write_image_bag(
+    path: Path,
+    topic: str,
+    frames: Iterable[tuple[int, np.ndarray]],
+    storage: str = "mcap",
+    frame_id: str = "camera",
+    overwrite: bool = False,
+) -> int:
+    """Write ``(stamp_ns, image)`` frames as ``sensor_msgs/Image``; returns the number written."""
+    count = 0
+    with BagWriter(path, storage=storage, overwrite=overwrite) as writer:
+        writer.add_topic(topic, IMAGE_TYPE)
+        for stamp_ns, image in frames:
+            writer.write(topic, stamp_ns, make_image_message(image, stamp_ns, frame_id))
+            count += 1
+    return count
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One deserialized message: bag log time, header stamp (log time where there is none)."""
+
+    topic: str
+    msgtype: str
+    log_time_ns: int
+    stamp_ns: int
+    message: Any
+    raw: bytes
+
+
+def _open_reader(path: Path) -> Reader:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag does not exist: {path}")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as exc:  # rosbags' errors for corrupt metadata/storage vary by plugin
+        raise BagError(f"cannot open bag {path}: {exc}") from exc
+    return reader
+
+
+def list_topics(path: Path) -> dict[str, str]:
+    """Topic name -> message type of every connection in the bag."""
+    reader = _open_reader(path)
+    try:
+        return {connection.topic: connection.msgtype for connection in reader.connections}
+    finally:
+        reader.close()
+
+
+def read_messages(
+    path: Path, topics: Iterable[str], start_ns: int | None = None, stop_ns: int | None = None
+) -> Iterator[BagMessage]:
+    """Deserialized messages of ``topics`` in log-time order; a missing topic is a ``BagError``."""
+    wanted = list(topics)
+    reader = _open_reader(path)
+    typestore = get_typestore()
+    try:
+        available = {connection.topic for connection in reader.connections}
+        missing = [topic for topic in wanted if topic not in available]
+        if missing:
+            raise BagError(
+                f"topic(s) {missing} not in bag {path}; it has: {sorted(available) or 'no topics'}"
+            )
+        connections = [c for c in reader.connections if c.topic in wanted]
+        try:
+            for connection, log_time_ns, raw in reader.messages(connections, start=start_ns, stop=stop_ns):
+                message = typestore.deserialize_cdr(raw, connection.msgtype)
+                header = getattr(message, "header", None)
+                stamp_ns = stamp_to_ns(header.stamp) if header is not None else 0
+                yield BagMessage(
+                    topic=connection.topic,
+                    msgtype=connection.msgtype,
+                    log_time_ns=int(log_time_ns),
+                    stamp_ns=stamp_ns or int(log_time_ns),
+                    message=message,
+                    raw=bytes(raw),
+                )
+        except BagError:
+            raise
+        except Exception as exc:  # truncated chunks, bad CDR: name the bag, never a bare traceback
+            raise BagError(f"bag {path} is corrupt or unreadable: {exc}") from exc
+    finally:
+        reader.close()
+
+
+def require_image_topic(path: Path, topic: str) -> str:
+    """The message type of ``topic``, which must be an Image or CompressedImage topic of the bag."""
+    topics = list_topics(path)
+    if topic not in topics:
+        image_topics = sorted(t for t, kind in topics.items() if kind in IMAGE_TYPES)
+        raise BagError(f"topic {topic!r} not in bag {path}; its image topics: {image_topics or 'none'}")
+    if topics[topic] not in IMAGE_TYPES:
+        raise BagError(f"topic {topic!r} in bag {path} is {topics[topic]}, not an image type {IMAGE_TYPES}")
+    return topics[topic]

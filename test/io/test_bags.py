@@ -1,0 +1,117 @@
+"""rosbags round trips of sensor_msgs/Image and the suite's own message types, mcap and sqlite3."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.core.errors import BagError
+from aefabmap_ros.io import bags
+
+
+def _frames(count: int) -> list[tuple[int, np.ndarray]]:
+    rng = np.random.default_rng(0)
+    return [(1_000_000_000 + i * 100_000_000, rng.integers(0, 255, (12, 16), dtype=np.uint8)) for i in range(count)]
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_image_bag_round_trip(tmp_path: Path, storage: str) -> None:
+    frames = _frames(5)
+    path = tmp_path / "images"
+    assert bags.write_image_bag(path, "/cam/image", frames, storage=storage) == 5
+    assert bags.list_topics(path) == {"/cam/image": bags.IMAGE_TYPE}
+    read = list(bags.read_messages(path, ["/cam/image"]))
+    assert [m.stamp_ns for m in read] == [stamp for stamp, _ in frames]
+    for message, (_, image) in zip(read, frames, strict=True):
+        assert message.message.encoding == "mono8"
+        np.testing.assert_array_equal(np.asarray(message.message.data).reshape(12, 16), image)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
+    types = bags.get_typestore().types
+    loop = types["aefabmap_msgs/msg/LoopClosure"](
+        header=bags.make_header(5_000_000_123, "cam"),
+        query_id=42,
+        query_place_id=7,
+        matched_place_id=7,
+        matched_stamp=bags.make_time(1_000_000_456),
+        probability=0.995,
+        log_likelihood=-12.5,
+    )
+    features = types["aefabmap_msgs/msg/Features"](
+        header=bags.make_header(5_000_000_123, "cam"),
+        descriptor_type="sift",
+        image_width=640,
+        image_height=480,
+        x=np.array([1.5, 2.5], np.float32),
+        y=np.array([3.0, 4.0], np.float32),
+        size=np.array([2.0, 3.0], np.float32),
+        angle=np.array([10.0, 20.0], np.float32),
+        response=np.array([0.1, 0.2], np.float32),
+        descriptor_length=3,
+        float_descriptors=np.arange(6, dtype=np.float32),
+        binary_descriptors=np.zeros(0, np.uint8),
+    )
+    path = tmp_path / "out"
+    with bags.BagWriter(path, storage=storage) as writer:
+        writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
+        writer.add_topic("/aefabmap/features", "aefabmap_msgs/msg/Features")
+        writer.add_topic("/image", bags.IMAGE_TYPE)
+        writer.write("/loop_closures", 5_000_000_123, loop)
+        writer.write("/aefabmap/features", 5_000_000_123, features)
+        writer.write("/image", 5_000_000_123, bags.make_image_message(np.zeros((4, 4, 3), np.uint8), 5_000_000_123))
+    read = {m.topic: m.message for m in bags.read_messages(path, ["/loop_closures", "/aefabmap/features", "/image"])}
+    got_loop = read["/loop_closures"]
+    assert (got_loop.query_id, got_loop.matched_place_id, got_loop.probability) == (42, 7, 0.995)
+    assert bags.stamp_to_ns(got_loop.matched_stamp) == 1_000_000_456
+    assert got_loop.header.frame_id == "cam"
+    got_features = read["/aefabmap/features"]
+    np.testing.assert_array_equal(got_features.float_descriptors, np.arange(6, dtype=np.float32))
+    np.testing.assert_array_equal(got_features.x, [1.5, 2.5])
+    assert got_features.descriptor_type == "sift"
+    assert read["/image"].encoding == "bgr8"
+
+
+def test_writer_is_atomic_on_error(tmp_path: Path) -> None:
+    path = tmp_path / "bag"
+    with pytest.raises(RuntimeError), bags.BagWriter(path) as writer:
+        writer.add_topic("/image", bags.IMAGE_TYPE)
+        raise RuntimeError("interrupted")
+    assert not path.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_refuses_existing_output(tmp_path: Path) -> None:
+    bags.write_image_bag(tmp_path / "bag", "/image", _frames(1))
+    with pytest.raises(BagError, match="already exists"):
+        bags.write_image_bag(tmp_path / "bag", "/image", _frames(1))
+    assert bags.write_image_bag(tmp_path / "bag", "/image", _frames(2), overwrite=True) == 2
+
+
+def test_missing_bag_and_topic(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="does not exist"):
+        bags.list_topics(tmp_path / "nope")
+    bags.write_image_bag(tmp_path / "bag", "/image", _frames(1))
+    with pytest.raises(BagError, match=r"'/camera' not in bag .* image topics: \['/image'\]"):
+        bags.require_image_topic(tmp_path / "bag", "/camera")
+    with pytest.raises(BagError, match="not in bag"):
+        list(bags.read_messages(tmp_path / "bag", ["/other"]))
+
+
+def test_corrupt_bag(tmp_path: Path) -> None:
+    path = tmp_path / "bag"
+    bags.write_image_bag(path, "/image", _frames(20))
+    mcap_file = next(path.glob("*.mcap"))
+    data = mcap_file.read_bytes()
+    mcap_file.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError, match="bag"):
+        list(bags.read_messages(path, ["/image"]))
+    (path / "metadata.yaml").write_text("not: [valid")
+    with pytest.raises(BagError, match="cannot open bag"):
+        bags.list_topics(path)
+
+
+def test_unknown_storage(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="unknown bag storage 'zip'"):
+        bags.BagWriter(tmp_path / "bag", storage="zip")
