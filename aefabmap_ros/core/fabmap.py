@@ -1,0 +1,677 @@
+"""FAB-MAP 1 (exact reference) and FAB-MAP 2 (inverted index), with openFABMAP's semantics.
+
+Observation model (Cummins & Newman; openFABMAP ``InferBinary::PzqGzpqL``): for word q with
+tree parent p, query state z_q, parent state z_p and place L,
+
+    p(z_q | z_p, L) = sum_s p(e_q = s | L) * p(z_q | e_q = s, z_p)
+    p(z_q | e_q, z_p) ∝ p(z_q | e_q) p(z_q | z_p) / p(z_q)       (normalised over z_q)
+    p(e_q = 1 | L)   = Bayes on the detector model (PzGe, PzGNe) with prior p(z_q)
+
+and log p(Z | L) = sum_q log p(z_q | z_p(q), L). A root word is its own parent.
+
+FAB-MAP 1 evaluates that sum over all V words for every place (O(V) per place).
+FAB-MAP 2 stores, per word, the log-ratio of a place having versus not having the word in the
+four (z_q, z_p) cases (openFABMAP's d1..d4), so a place's score relative to an empty place is
+``sum_{q in L} d1[q]`` (its *default*, computed when it is added) plus corrections only for
+words the query observed (d3 / d4) and unobserved children of observed words (d2), found
+through an inverted index word -> places. The difference between any two places is exactly
+FAB-MAP 1's.
+
+New place: "sampled" = log of the mean likelihood of the training samples, scored through the
+same machinery (FAB-MAP 2: in the relative scale; openFABMAP's FAB-MAP 2 averages over ALL
+samples); "meanfield" = the likelihood of a place whose word-existence probabilities are the
+marginals p(z_q) (in FAB-MAP 2's relative scale: minus the empty place's log-likelihood).
+
+Posterior over {new, places}: uniform prior or openFABMAP's motion model, then smoothing
+p <- s p + (1 - s) / n with n the number of hypotheses.
+
+Places are stored sparsely (their word ids); memory grows with the number of stored words.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.special import logsumexp
+
+from aefabmap_ros.core.chowliu import ChowLiuTree, binarize_bow
+from aefabmap_ros.core.errors import ConfigError, DataError
+
+NEW_PLACE_MODELS = ("sampled", "meanfield")
+ADD_POLICIES = ("all", "new_only")
+METHODS = ("fabmap2", "fabmap1", "fabmaplut")
+
+
+@dataclass(frozen=True)
+class FabMapConfig:
+    """FAB-MAP parameters (openFABMAP names in brackets) and the online recognizer's policies."""
+
+    p_z_given_e: float = field(
+        default=0.39, metadata={"description": "Detector model p(z=1 | e=1) [PzGe], in (0, 1)."}
+    )
+    p_z_given_not_e: float = field(
+        default=0.0,
+        metadata={"description": "Detector model p(z=1 | e=0) [PzGNe], in [0, p_z_given_e)."},
+    )
+    new_place_model: str = field(
+        default="sampled",
+        metadata={
+            "description": "New-place likelihood: 'sampled' (mean over the training samples) or "
+            "'meanfield' (place with word-existence probabilities equal to the marginals)."
+        },
+    )
+    motion_model: bool = field(
+        default=False,
+        metadata={"description": "Use openFABMAP's motion-model prior (spreads the last posterior to neighbours)."},
+    )
+    p_new: float = field(
+        default=0.9, metadata={"description": "Motion model: prior weight of the new-place hypothesis [Pnew]."}
+    )
+    motion_bias: float = field(
+        default=0.5,
+        metadata={"description": "Motion model: forward bias in [0, 1]; 0.5 spreads evenly [mBias]."},
+    )
+    smoothing: float = field(
+        default=0.99,
+        metadata={"description": "Posterior smoothing s in (0, 1]: p <- s p + (1 - s) / n [sFactor]."},
+    )
+    match_threshold: float = field(
+        default=0.99,
+        metadata={"description": "A query matches a known place when that place's posterior exceeds this."},
+    )
+    add_policy: str = field(
+        default="all",
+        metadata={
+            "description": "'all': every (key)frame becomes a place (openFABMAP 'All'); "
+            "'new_only': only frames not matched to a known place."
+        },
+    )
+    exclude_recent_frames: int = field(
+        default=0,
+        metadata={
+            "description": "Places created from the last N frames are not hypotheses of the posterior "
+            "(0 = none excluded)."
+        },
+    )
+    exclude_recent_seconds: float = field(
+        default=0.0,
+        metadata={
+            "description": "Places stamped less than this many seconds before the query are not "
+            "hypotheses of the posterior (0 = off)."
+        },
+    )
+    keyframe_min_frames: int = field(
+        default=1,
+        metadata={
+            "description": "A frame can become a place only if at least this many frames passed since "
+            "the last added place (1 = any frame)."
+        },
+    )
+    keyframe_max_overlap: float = field(
+        default=1.0,
+        metadata={
+            "description": "A frame becomes a place only if the Jaccard overlap of its words with the "
+            "last added place is at most this (1.0 = always), unless keyframe_max_frames forces it."
+        },
+    )
+    keyframe_max_frames: int = field(
+        default=0,
+        metadata={
+            "description": "Force a place once this many frames passed since the last added place, "
+            "whatever the overlap (0 = never force)."
+        },
+    )
+    top_k: int = field(
+        default=5, metadata={"description": "Number of best place candidates reported per query."}
+    )
+
+    def __post_init__(self) -> None:
+        def bad(name: str, rule: str) -> ConfigError:
+            return ConfigError(f"FabMapConfig.{name} = {getattr(self, name)!r}: must be {rule}")
+
+        kinds: dict[str, tuple[type, ...]] = {"float": (float, int), "int": (int,), "str": (str,), "bool": (bool,)}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            expected = kinds[str(f.type)]
+            if not isinstance(value, expected) or (bool not in expected and isinstance(value, bool)):
+                raise bad(f.name, f"of type {f.type}")
+        if not 0.0 < self.p_z_given_e < 1.0:
+            raise bad("p_z_given_e", "in (0, 1)")
+        if not 0.0 <= self.p_z_given_not_e < self.p_z_given_e:
+            raise bad("p_z_given_not_e", f"in [0, p_z_given_e = {self.p_z_given_e})")
+        if self.new_place_model not in NEW_PLACE_MODELS:
+            raise bad("new_place_model", f"one of {NEW_PLACE_MODELS}")
+        if not 0.0 < self.p_new < 1.0:
+            raise bad("p_new", "in (0, 1)")
+        if not 0.0 <= self.motion_bias <= 1.0:
+            raise bad("motion_bias", "in [0, 1]")
+        if not 0.0 < self.smoothing <= 1.0:
+            raise bad("smoothing", "in (0, 1]")
+        if not 0.0 <= self.match_threshold <= 1.0:
+            raise bad("match_threshold", "in [0, 1]")
+        if self.add_policy not in ADD_POLICIES:
+            raise bad("add_policy", f"one of {ADD_POLICIES}")
+        if self.exclude_recent_frames < 0:
+            raise bad("exclude_recent_frames", ">= 0")
+        if not (np.isfinite(self.exclude_recent_seconds) and self.exclude_recent_seconds >= 0.0):
+            raise bad("exclude_recent_seconds", "finite and >= 0")
+        if self.keyframe_min_frames < 1:
+            raise bad("keyframe_min_frames", ">= 1")
+        if not 0.0 <= self.keyframe_max_overlap <= 1.0:
+            raise bad("keyframe_max_overlap", "in [0, 1]")
+        if self.keyframe_max_frames < 0:
+            raise bad("keyframe_max_frames", ">= 0")
+        if self.top_k < 0:
+            raise bad("top_k", ">= 0")
+
+
+# --------------------------------------------------------------------------------------------
+# Per-word model tables
+
+
+def _detector(z: int, e: int, p_z_given_e: float, p_z_given_not_e: float) -> float:
+    """p(z_q = z | e_q = e) of the detector model (openFABMAP PzqGeq)."""
+    p = p_z_given_e if e else p_z_given_not_e
+    return p if z else 1.0 - p
+
+
+class FabMapModel:
+    """Log-probability tables of one Chow-Liu tree and detector model, shared by all FAB-MAP variants."""
+
+    def __init__(self, tree: ChowLiuTree, p_z_given_e: float = 0.39, p_z_given_not_e: float = 0.0) -> None:
+        if not 0.0 < p_z_given_e < 1.0 or not 0.0 <= p_z_given_not_e < p_z_given_e:
+            raise ConfigError(
+                f"detector model needs 0 <= p_z_given_not_e < p_z_given_e < 1, got "
+                f"p_z_given_e={p_z_given_e!r}, p_z_given_not_e={p_z_given_not_e!r}"
+            )
+        self.tree = tree
+        self.vocabulary_size = tree.vocabulary_size
+        self.parent = tree.parent
+        marginal = tree.marginal
+        cond = {1: tree.p_given_parent_present, 0: tree.p_given_parent_absent}
+
+        def p_z(q_state: int) -> np.ndarray:
+            return marginal if q_state else 1.0 - marginal
+
+        def p_z_given_parent(q_state: int, parent_state: int) -> np.ndarray:
+            return cond[parent_state] if q_state else 1.0 - cond[parent_state]
+
+        # p(e_q = 1 | L_q) for a place that has (1) or lacks (0) word q (openFABMAP PeqGLzq).
+        p_e_given_l = {}
+        for lq in (0, 1):
+            alpha = _detector(lq, 1, p_z_given_e, p_z_given_not_e) * marginal
+            beta = _detector(lq, 0, p_z_given_e, p_z_given_not_e) * (1.0 - marginal)
+            p_e_given_l[lq] = alpha / (alpha + beta)
+
+        # log p(z_q | z_p, L) indexed [q, z_q, z_p, L_q]; the last L index 2 = mean-field new place.
+        table = np.empty((self.vocabulary_size, 2, 2, 3), dtype=np.float64)
+        for zq in (0, 1):
+            for zp in (0, 1):
+                given_e = {}
+                for e in (0, 1):
+                    alpha = p_z(zq) * _detector(1 - zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(
+                        1 - zq, zp
+                    )
+                    beta = p_z(1 - zq) * _detector(zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(zq, zp)
+                    given_e[e] = beta / (alpha + beta)
+                for lq in (0, 1):
+                    pe = p_e_given_l[lq]
+                    table[:, zq, zp, lq] = np.log((1.0 - pe) * given_e[0] + pe * given_e[1])
+                table[:, zq, zp, 2] = np.log((1.0 - marginal) * given_e[0] + marginal * given_e[1])
+        table.flags.writeable = False
+        self.log_table = table  # (V, 2, 2, 3)
+
+        # FAB-MAP 2 log-ratios "place has q" vs "place lacks q" (openFABMAP d1..d4).
+        ratio = table[:, :, :, 1] - table[:, :, :, 0]  # (V, z_q, z_p)
+        self.d1 = ratio[:, 0, 0].copy()
+        self.d2 = ratio[:, 0, 1] - self.d1
+        self.d3 = ratio[:, 1, 0] - self.d1
+        self.d4 = ratio[:, 1, 1] - self.d1
+        # Mean-field new place minus empty place, and both absolute, for words in state (0, 0).
+        self._new_minus_empty = table[:, :, :, 2] - table[:, :, :, 0]
+        self._new_minus_empty_00_sum = float(self._new_minus_empty[:, 0, 0].sum())
+        self._new_absolute_00_sum = float(table[:, 0, 0, 2].sum())
+
+        # Children lists (CSR) without the self-loop of roots.
+        words = np.arange(self.vocabulary_size)
+        non_root = self.parent != words
+        order = np.argsort(self.parent[non_root], kind="stable")
+        self._children = words[non_root][order]
+        self._children_ptr = np.zeros(self.vocabulary_size + 1, dtype=np.int64)
+        np.cumsum(np.bincount(self.parent[non_root], minlength=self.vocabulary_size), out=self._children_ptr[1:])
+
+    # -- query decomposition ---------------------------------------------------------------
+
+    def check_word_ids(self, word_ids: np.ndarray | Sequence[int]) -> np.ndarray:
+        """Validate and normalise word ids: (K,) sorted unique int64 in [0, V); raises DataError."""
+        return as_word_ids(word_ids, self.vocabulary_size)
+
+    def query_state(self, word_ids: np.ndarray) -> QueryState:
+        """Words whose (z_q, z_p) state differs from (0, 0) and their FAB-MAP 2 corrections."""
+        observed = word_ids
+        present = np.zeros(self.vocabulary_size, dtype=bool)
+        present[observed] = True
+        parent_observed = present[self.parent[observed]]
+        starts = self._children_ptr[observed]
+        lengths = self._children_ptr[observed + 1] - starts
+        total = int(lengths.sum())
+        if total:
+            offsets = np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
+            children = self._children[offsets + np.arange(total)]
+            children = np.sort(children[~present[children]])
+        else:
+            children = np.zeros(0, dtype=np.int64)
+        weights_observed = np.where(parent_observed, self.d4[observed], self.d3[observed])
+        return QueryState(
+            observed=observed,
+            parent_observed=parent_observed,
+            unobserved_children=children,
+            touched=np.concatenate([observed, children]),
+            corrections=np.concatenate([weights_observed, self.d2[children]]),
+        )
+
+    def meanfield_log_likelihood(self, state: QueryState, relative: bool) -> float:
+        """Mean-field new-place log-likelihood; relative=True: minus the empty place's (FAB-MAP 2 scale)."""
+        zq = np.concatenate([np.ones(state.observed.size, dtype=np.int64),
+                             np.zeros(state.unobserved_children.size, dtype=np.int64)])
+        zp = np.concatenate([state.parent_observed.astype(np.int64),
+                             np.ones(state.unobserved_children.size, dtype=np.int64)])
+        q = state.touched
+        if relative:
+            terms = self._new_minus_empty
+            return self._new_minus_empty_00_sum + float(np.sum(terms[q, zq, zp] - terms[q, 0, 0]))
+        table = self.log_table
+        return self._new_absolute_00_sum + float(np.sum(table[q, zq, zp, 2] - table[q, 0, 0, 2]))
+
+    def exact_log_likelihood(self, query_present: np.ndarray, place_present: np.ndarray) -> float:
+        """FAB-MAP 1: absolute log p(Z | L), summing all V words ((V,) bool vectors)."""
+        zq = query_present.astype(np.int64)
+        zp = zq[self.parent]
+        lq = place_present.astype(np.int64)
+        return float(self.log_table[np.arange(self.vocabulary_size), zq, zp, lq].sum())
+
+
+@dataclass(frozen=True)
+class QueryState:
+    """A query decomposed for FAB-MAP 2 (all arrays int64 word ids or float64 weights)."""
+
+    observed: np.ndarray  # (K,) observed words
+    parent_observed: np.ndarray  # (K,) bool: the parent of each observed word is observed
+    unobserved_children: np.ndarray  # (C,) unobserved words whose parent is observed
+    touched: np.ndarray  # (K + C,) observed then unobserved children
+    corrections: np.ndarray  # (K + C,) FAB-MAP 2 correction of a place holding each touched word
+
+
+def as_word_ids(word_ids: np.ndarray | Sequence[int], vocabulary_size: int) -> np.ndarray:
+    """(K,) sorted unique int64 word ids in [0, vocabulary_size); raises DataError naming the bad value."""
+    array = np.asarray(word_ids)
+    if array.ndim != 1:
+        raise DataError(f"word ids must be a 1-D array, got shape {array.shape}")
+    if array.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not np.issubdtype(array.dtype, np.integer):
+        raise DataError(f"word ids must be integers, got dtype {array.dtype}")
+    ids = array.astype(np.int64)
+    low, high = int(ids.min()), int(ids.max())
+    if low < 0 or high >= vocabulary_size:
+        bad = low if low < 0 else high
+        raise DataError(f"word id {bad} out of range for a vocabulary of {vocabulary_size} words")
+    if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):
+        ids = np.unique(ids)
+    return ids
+
+
+def rows_to_word_ids(
+    observations: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray], vocabulary_size: int
+) -> list[np.ndarray]:
+    """(N, V) bag-of-words (dense/sparse, value > 0 = present) or a list of word-id arrays -> word-id arrays."""
+    if isinstance(observations, (np.ndarray, sp.spmatrix, sp.sparray)):
+        shape = observations.shape
+        if len(shape) != 2:
+            raise DataError(f"observations must be (N, V), got shape {shape}")
+        if shape[1] != vocabulary_size:
+            raise DataError(
+                f"observations have {shape[1]} words per row but the vocabulary has {vocabulary_size}"
+            )
+        present = binarize_bow(observations)
+        return [present.indices[present.indptr[i] : present.indptr[i + 1]].astype(np.int64)
+                for i in range(present.shape[0])]
+    return [as_word_ids(row, vocabulary_size) for row in observations]
+
+
+# --------------------------------------------------------------------------------------------
+# Sparse place storage and inverted index
+
+
+class _Growable:
+    """A 1-D numpy buffer with amortised O(1) append (capacity doubling)."""
+
+    def __init__(self, dtype: np.dtype | type, capacity: int = 16) -> None:
+        self._data = np.empty(max(capacity, 1), dtype=dtype)
+        self._size = 0
+
+    def __len__(self) -> int:
+        return self._size
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self._size + values.size
+        if need > self._data.size:
+            grown = np.empty(max(need, 2 * self._data.size), dtype=self._data.dtype)
+            grown[: self._size] = self._data[: self._size]
+            self._data = grown
+        self._data[self._size : need] = values
+        self._size = need
+
+    def view(self) -> np.ndarray:
+        return self._data[: self._size]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._data.nbytes)
+
+
+class InvertedIndex:
+    """Places as word lists (CSR) + word -> places postings + each place's FAB-MAP 2 default.
+
+    Memory is proportional to the number of stored (place, word) pairs: int32 word ids, int32
+    postings (amortised doubling), one float64 default per place.
+    """
+
+    def __init__(self, model: FabMapModel) -> None:
+        self._model = model
+        vocabulary_size = model.vocabulary_size
+        self._word_data = _Growable(np.int32, 1024)
+        self._word_ptr = _Growable(np.int64, 64)
+        self._word_ptr.extend(np.zeros(1, dtype=np.int64))
+        self._defaults = _Growable(np.float64, 64)
+        self._postings: list[_Growable | None] = [None] * vocabulary_size
+
+    @property
+    def num_places(self) -> int:
+        return len(self._defaults)
+
+    @property
+    def defaults(self) -> np.ndarray:
+        """(P,) float64 sum of d1 over each place's words (its score against a query without words)."""
+        return self._defaults.view()
+
+    def place_words(self, index: int) -> np.ndarray:
+        ptr = self._word_ptr.view()
+        return self._word_data.view()[ptr[index] : ptr[index + 1]].astype(np.int64)
+
+    def word_csr(self) -> tuple[np.ndarray, np.ndarray]:
+        """(indptr (P + 1,) int64, indices int32) of all places' words."""
+        return self._word_ptr.view().copy(), self._word_data.view().copy()
+
+    def add(self, word_ids: np.ndarray) -> int:
+        """Append one place (validated sorted unique word ids); returns its index."""
+        index = self.num_places
+        self.add_many(np.array([0, word_ids.size], dtype=np.int64), word_ids)
+        return index
+
+    def add_many(self, indptr: np.ndarray, indices: np.ndarray) -> None:
+        """Append places given as CSR rows (indices sorted unique per row, in range) in one vectorised pass."""
+        n_new = indptr.size - 1
+        first = self.num_places
+        indices = np.asarray(indices, dtype=np.int64)
+        counts = np.diff(indptr)
+        place_of = np.repeat(np.arange(first, first + n_new, dtype=np.int64), counts)
+        defaults = np.bincount(place_of - first, weights=self._model.d1[indices], minlength=n_new)
+        self._defaults.extend(defaults.astype(np.float64))
+        self._word_data.extend(indices.astype(np.int32))
+        self._word_ptr.extend(self._word_ptr.view()[-1] + np.cumsum(counts))
+        if indices.size == 0:
+            return
+        order = np.argsort(indices, kind="stable")  # stable: places stay in increasing order per word
+        sorted_words = indices[order]
+        sorted_places = place_of[order].astype(np.int32)
+        words, starts = np.unique(sorted_words, return_index=True)
+        ends = np.append(starts[1:], sorted_words.size)
+        for word, start, end in zip(words.tolist(), starts.tolist(), ends.tolist(), strict=True):
+            posting = self._postings[word]
+            if posting is None:
+                posting = self._postings[word] = _Growable(np.int32, 2 * (end - start))
+            posting.extend(sorted_places[start:end])
+
+    def scores(self, state: QueryState) -> np.ndarray:
+        """(P,) float64 FAB-MAP 2 log-likelihood of every place relative to an empty place."""
+        scores = self._defaults.view().copy()
+        postings = self._postings
+        for word, weight in zip(state.touched.tolist(), state.corrections.tolist(), strict=True):
+            posting = postings[word]
+            if posting is not None:
+                # A place occurs at most once per posting, so a fancy-indexed add is exact.
+                scores[posting.view()] += weight
+        return scores
+
+    @property
+    def nbytes(self) -> int:
+        postings = sum(p.nbytes for p in self._postings if p is not None)
+        return self._word_data.nbytes + self._word_ptr.nbytes + self._defaults.nbytes + postings
+
+
+# --------------------------------------------------------------------------------------------
+# FAB-MAP 2 and FAB-MAP 1 engines (offline and online share them)
+
+
+class FabMap2:
+    """FAB-MAP 2: places in an inverted index; scores relative to an empty place."""
+
+    method = "fabmap2"
+
+    def __init__(
+        self,
+        model: FabMapModel,
+        new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
+        new_place_model: str = "sampled",
+    ) -> None:
+        if new_place_model not in NEW_PLACE_MODELS:
+            raise ConfigError(f"new_place_model = {new_place_model!r}: must be one of {NEW_PLACE_MODELS}")
+        self.model = model
+        self.new_place_model = new_place_model
+        self.places = InvertedIndex(model)
+        self.samples = InvertedIndex(model)
+        if new_place_samples is not None:
+            rows = rows_to_word_ids(new_place_samples, model.vocabulary_size)
+            lengths = np.array([r.size for r in rows], dtype=np.int64)
+            indptr = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+            indices = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+            self.samples.add_many(indptr, indices)
+        if new_place_model == "sampled" and self.samples.num_places == 0:
+            raise DataError("the 'sampled' new-place model needs at least one new-place sample")
+
+    @property
+    def num_places(self) -> int:
+        return self.places.num_places
+
+    def add(self, word_ids: np.ndarray) -> int:
+        return self.places.add(word_ids)
+
+    def place_log_likelihoods(self, state: QueryState) -> np.ndarray:
+        return self.places.scores(state)
+
+    def sample_log_likelihoods(self, state: QueryState) -> np.ndarray:
+        return self.samples.scores(state)
+
+    def new_place_log_likelihood(self, state: QueryState, exclude_sample: int | None = None) -> float:
+        if self.new_place_model == "meanfield":
+            return self.model.meanfield_log_likelihood(state, relative=True)
+        return _log_mean_exp(self.sample_log_likelihoods(state), exclude_sample)
+
+    def log_likelihoods(self, word_ids: np.ndarray, exclude_sample: int | None = None) -> tuple[float, np.ndarray]:
+        """(new-place log-likelihood, (P,) place log-likelihoods) of validated word ids."""
+        state = self.model.query_state(word_ids)
+        return self.new_place_log_likelihood(state, exclude_sample), self.place_log_likelihoods(state)
+
+
+class FabMap1(FabMap2):
+    """FAB-MAP 1: exact O(V) sum per place (absolute log-likelihoods); the reference for FAB-MAP 2."""
+
+    method = "fabmap1"
+
+    def _exact(self, index: InvertedIndex, word_ids: np.ndarray) -> np.ndarray:
+        query = np.zeros(self.model.vocabulary_size, dtype=bool)
+        query[word_ids] = True
+        place = np.zeros(self.model.vocabulary_size, dtype=bool)
+        out = np.empty(index.num_places)
+        for i in range(index.num_places):
+            place[:] = False
+            place[index.place_words(i)] = True
+            out[i] = self.model.exact_log_likelihood(query, place)
+        return out
+
+    def log_likelihoods(self, word_ids: np.ndarray, exclude_sample: int | None = None) -> tuple[float, np.ndarray]:
+        places = self._exact(self.places, word_ids)
+        if self.new_place_model == "meanfield":
+            new = self.model.meanfield_log_likelihood(self.model.query_state(word_ids), relative=False)
+        else:
+            new = _log_mean_exp(self._exact(self.samples, word_ids), exclude_sample)
+        return new, places
+
+
+class FabMapLUT(FabMap1):
+    """openFABMAP's FabMapLUT: FAB-MAP 1 with each log term truncated to ``precision`` decimals.
+
+    openFABMAP stores ``-(int)(log p * 10^precision)`` per (word, z_q, z_p, L_q) and sums those
+    integers, so every term is truncated toward zero; its mean-field new place stays exact.
+    """
+
+    method = "fabmaplut"
+
+    def __init__(
+        self,
+        model: FabMapModel,
+        new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
+        new_place_model: str = "meanfield",
+        precision: int = 6,
+    ) -> None:
+        super().__init__(model, new_place_samples, new_place_model)
+        scale = 10.0**precision
+        self._lut = np.trunc(model.log_table[:, :, :, :2] * scale) / scale  # (V, 2, 2, 2)
+
+    def _exact(self, index: InvertedIndex, word_ids: np.ndarray) -> np.ndarray:
+        zq = np.zeros(self.model.vocabulary_size, dtype=np.int64)
+        zq[word_ids] = 1
+        words = np.arange(self.model.vocabulary_size)
+        terms = self._lut[words, zq, zq[self.model.parent]]  # (V, 2): place lacks / has the word
+        out = np.empty(index.num_places)
+        for i in range(index.num_places):
+            has = np.zeros(self.model.vocabulary_size, dtype=np.int64)
+            has[index.place_words(i)] = 1
+            out[i] = float(terms[words, has].sum())
+        return out
+
+
+def _log_mean_exp(log_values: np.ndarray, exclude: int | None) -> float:
+    if exclude is not None:
+        if not 0 <= exclude < log_values.size:
+            raise DataError(f"exclude_sample {exclude} out of range for {log_values.size} samples")
+        if log_values.size == 1:
+            raise DataError("cannot exclude the only new-place sample")
+        log_values = np.delete(log_values, exclude)
+    return float(logsumexp(log_values) - np.log(log_values.size))
+
+
+# --------------------------------------------------------------------------------------------
+# Posterior
+
+
+def motion_log_prior(previous: np.ndarray | None, num_places: int, p_new: float, motion_bias: float) -> np.ndarray:
+    """(1 + num_places,) log prior of [new, place 0..] from the previous posterior, as openFABMAP.
+
+    ``previous`` is the last smoothed posterior over [new, place 0 .. P-1]. openFABMAP's
+    ``normaliseDistribution``: new gets log(Pnew); place i (hypothesis i + 1) gets
+    log((2 (1 - b) prev[i] + prev[i + 1] + 2 b prev[i + 2]) / 3) in hypothesis indices, the ends
+    reflecting onto themselves; places created since (and all places while the previous posterior
+    had fewer than 3 hypotheses) get log-prior 0. These weights are not normalised (as openFABMAP).
+    """
+    log_prior = np.zeros(num_places + 1)
+    log_prior[0] = np.log(p_new)
+    if previous is None or previous.size <= 2:
+        return log_prior
+    n_prev = previous.size
+    hyp = np.arange(1, n_prev)  # hypothesis indices with a previous value
+    left = previous[np.maximum(hyp - 1, 1)]
+    right = previous[np.minimum(hyp + 1, n_prev - 1)]
+    mass = (2.0 * (1.0 - motion_bias) * left + previous[hyp] + 2.0 * motion_bias * right) / 3.0
+    with np.errstate(divide="ignore"):
+        log_prior[1:n_prev] = np.log(np.maximum(mass, np.finfo(np.float64).tiny))
+    return log_prior
+
+
+def posterior(log_likelihoods: np.ndarray, log_prior: np.ndarray | None, smoothing: float) -> np.ndarray:
+    """Smoothed posterior over hypotheses from log-likelihoods (+ log prior; None = uniform)."""
+    scores = log_likelihoods if log_prior is None else log_likelihoods + log_prior
+    p = np.exp(scores - logsumexp(scores))
+    return smoothing * p + (1.0 - smoothing) / p.size
+
+
+# --------------------------------------------------------------------------------------------
+# Offline score matrices (openFABMAP "All" policy)
+
+
+@dataclass(frozen=True)
+class ScoreMatrices:
+    """openFABMAP golden layout: row i = query i; [i, j < i] place j; [i, i] new place; above: 0 / NaN."""
+
+    probabilities: np.ndarray  # (N, N)
+    log_likelihoods: np.ndarray  # (N, N)
+
+
+def make_engine(
+    tree: ChowLiuTree,
+    new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
+    config: FabMapConfig,
+    method: str = "fabmap2",
+) -> FabMap2:
+    if method not in METHODS:
+        raise ConfigError(f"method = {method!r}: must be one of {METHODS}")
+    model = FabMapModel(tree, config.p_z_given_e, config.p_z_given_not_e)
+    engine_class = {"fabmap2": FabMap2, "fabmap1": FabMap1, "fabmaplut": FabMapLUT}[method]
+    samples = new_place_samples if config.new_place_model == "sampled" else None
+    return engine_class(model, samples, config.new_place_model)
+
+
+def fabmap_score_matrices(
+    observations: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray],
+    tree: ChowLiuTree,
+    new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
+    config: FabMapConfig,
+    method: str = "fabmap2",
+    exclude_samples: Sequence[int] | None = None,
+) -> ScoreMatrices:
+    """Run FAB-MAP over a sequence like openFABMAP's golden run: query i vs places 0..i-1, then add it.
+
+    ``method``: "fabmap2" (inverted index, log-likelihoods relative to an empty place), "fabmap1"
+    (exact O(V) per place, absolute) or "fabmaplut" (openFABMAP's 6-decimal look-up-table FAB-MAP 1).
+
+    ``exclude_samples[i]`` (optional, -1 = none) is the index of a new-place sample that *is*
+    query i, left out of query i's sample mean (samples are identified by index, not by content).
+    Only the likelihood and posterior parts of ``config`` apply (no exclusion window, keyframes, ...).
+    """
+    engine = make_engine(tree, new_place_samples, config, method)
+    rows = rows_to_word_ids(observations, tree.vocabulary_size)
+    n = len(rows)
+    if exclude_samples is not None and len(exclude_samples) != n:
+        raise DataError(f"exclude_samples has {len(exclude_samples)} entries for {n} observations")
+    probabilities = np.zeros((n, n))
+    log_likelihoods = np.full((n, n), np.nan)
+    previous: np.ndarray | None = None
+    for i, words in enumerate(rows):
+        exclude = None if exclude_samples is None or exclude_samples[i] < 0 else int(exclude_samples[i])
+        new_ll, place_ll = engine.log_likelihoods(words, exclude)
+        hypotheses = np.concatenate([[new_ll], place_ll])
+        log_prior = (
+            motion_log_prior(previous, i, config.p_new, config.motion_bias) if config.motion_model else None
+        )
+        p = posterior(hypotheses, log_prior, config.smoothing)
+        previous = p
+        probabilities[i, :i] = p[1:]
+        probabilities[i, i] = p[0]
+        log_likelihoods[i, :i] = place_ll
+        log_likelihoods[i, i] = new_ll
+        engine.add(words)
+    return ScoreMatrices(probabilities=probabilities, log_likelihoods=log_likelihoods)
