@@ -1,0 +1,331 @@
+"""Online place recognition with FAB-MAP 2: data association, place policies, map persistence.
+
+One :class:`PlaceRecognizer` per camera. Every call of :meth:`PlaceRecognizer.process` is one
+frame and gets the next query id (0, 1, 2, ...), also frames without words. Per frame:
+
+1. FAB-MAP 2 log-likelihoods of every stored place and of the new place.
+2. Hypotheses: "new" plus the stored places except the recent ones: places created from the
+   last ``exclude_recent_frames`` frames (query_id - place's frame <= N) or stamped less than
+   ``exclude_recent_seconds`` before the query. Excluded places are not hypotheses at all (they
+   get no probability mass, the posterior sums to one over the remaining hypotheses).
+3. Prior: uniform, or openFABMAP's motion model from the previous frame's posterior (see
+   :func:`aefabmap_ros.core.fabmap.motion_log_prior`; excluded places count as probability 0
+   there). Smoothing p <- s p + (1 - s) / n over the n hypotheses.
+4. Data association: the frame matches the best place when its posterior exceeds
+   ``match_threshold``; that place is the loop closure.
+5. Place addition: policy "all" adds every frame, "new_only" only unmatched frames; in both
+   cases only keyframes are added: at least ``keyframe_min_frames`` frames after the last added
+   place and a Jaccard word overlap with it of at most ``keyframe_max_overlap``, or, when
+   ``keyframe_max_frames`` > 0, once that many frames have passed (whatever the overlap).
+
+Place ids are 0, 1, 2, ... in the order places are added (so with policy "all" and default
+keyframing, place id == query id, as in openFABMAP's golden run).
+
+New-place samples that are the query itself: pass ``exclude_sample=<sample index>`` to
+:meth:`PlaceRecognizer.process` (identity by index, not by comparing word sets).
+
+The map (places' words, stamps, frames, counters, last posterior) is saved atomically as an
+``.npz`` tied to the model's vocabulary id.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
+from aefabmap_ros.core.fabmap import (
+    FabMapConfig,
+    InvertedIndex,
+    as_word_ids,
+    make_engine,
+    motion_log_prior,
+    posterior,
+)
+
+MAP_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A known place as a hypothesis for the query."""
+
+    place_id: int
+    stamp_ns: int  # stamp of the frame the place was created from
+    probability: float
+    log_likelihood: float  # FAB-MAP 2 scale: relative to a place without words
+
+
+@dataclass(frozen=True)
+class Recognition:
+    """The outcome of one frame."""
+
+    query_id: int
+    stamp_ns: int
+    assigned_place_id: int  # matched place, else the place created from this frame, else -1
+    is_new_place: bool  # no known place exceeded the match threshold
+    new_place_probability: float
+    candidates: tuple[Candidate, ...]  # top-K places by posterior, best first
+    loop_closure: Candidate | None  # the matched place, if any
+    added_place_id: int = -1  # place created from this frame, -1 if none (policy / keyframing)
+    new_place_log_likelihood: float = 0.0
+
+
+def jaccard(a: np.ndarray, b: np.ndarray) -> float:
+    """|a ∩ b| / |a ∪ b| of two sorted unique word-id arrays; 1.0 for two empty sets."""
+    union = a.size + b.size
+    if union == 0:
+        return 1.0
+    common = np.intersect1d(a, b, assume_unique=True).size
+    return common / (union - common)
+
+
+class PlaceRecognizer:
+    """FAB-MAP 2 place recognizer over a growing map of places (see module doc for the policies)."""
+
+    def __init__(
+        self,
+        tree: ChowLiuTree,
+        new_place_samples: sp.csr_matrix | None,
+        config: FabMapConfig,
+        vocabulary_id: str,
+    ) -> None:
+        if not isinstance(vocabulary_id, str) or not vocabulary_id:
+            raise DataError(f"vocabulary_id must be a non-empty string, got {vocabulary_id!r}")
+        self.config = config
+        self.vocabulary_id = vocabulary_id
+        self._engine = make_engine(tree, new_place_samples, config, "fabmap2")
+        self._reset()
+
+    def _reset(self) -> None:
+        self._engine.places = InvertedIndex(self._engine.model)
+        self._place_stamps_ns: list[int] = []
+        self._place_frames: list[int] = []
+        self._next_query_id = 0
+        self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
+
+    # -- read-only views ----------------------------------------------------------------------
+
+    @property
+    def vocabulary_size(self) -> int:
+        return self._engine.model.vocabulary_size
+
+    @property
+    def num_places(self) -> int:
+        return self._engine.num_places
+
+    @property
+    def num_queries(self) -> int:
+        return self._next_query_id
+
+    def place_words(self, place_id: int) -> np.ndarray:
+        if not 0 <= place_id < self.num_places:
+            raise DataError(f"place id {place_id} out of range [0, {self.num_places})")
+        return self._engine.places.place_words(place_id)
+
+    def place_stamp_ns(self, place_id: int) -> int:
+        if not 0 <= place_id < self.num_places:
+            raise DataError(f"place id {place_id} out of range [0, {self.num_places})")
+        return self._place_stamps_ns[place_id]
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes held by the place index (word lists, postings, defaults)."""
+        return self._engine.places.nbytes + 16 * self.num_places
+
+    # -- processing ---------------------------------------------------------------------------
+
+    def process(self, word_ids: np.ndarray, stamp_ns: int, exclude_sample: int | None = None) -> Recognition:
+        """Recognise one frame (sorted unique word ids; unsorted/duplicates are normalised).
+
+        Raises DataError for ids outside [0, V), non-integer ids or a non-integer stamp.
+        """
+        if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer):
+            raise DataError(f"stamp_ns must be an integer (nanoseconds), got {stamp_ns!r}")
+        stamp_ns = int(stamp_ns)
+        words = as_word_ids(word_ids, self.vocabulary_size)
+        query_id = self._next_query_id
+        self._next_query_id += 1
+
+        new_ll, place_ll = self._engine.log_likelihoods(words, exclude_sample)
+        included = np.flatnonzero(self._included(query_id, stamp_ns))
+        hypotheses = np.concatenate([[new_ll], place_ll[included]])
+        log_prior = None
+        if self.config.motion_model:
+            full_prior = motion_log_prior(
+                self._previous_posterior, self.num_places, self.config.p_new, self.config.motion_bias
+            )
+            log_prior = full_prior[np.concatenate([[0], included + 1])]
+        p = posterior(hypotheses, log_prior, self.config.smoothing)
+        previous = np.zeros(self.num_places + 1)
+        previous[0] = p[0]
+        previous[included + 1] = p[1:]
+        self._previous_posterior = previous
+
+        place_p = p[1:]
+        order = np.lexsort((included, -place_p))  # best first, ties: older place first
+        candidates = tuple(
+            Candidate(
+                place_id=int(included[k]),
+                stamp_ns=self._place_stamps_ns[int(included[k])],
+                probability=float(place_p[k]),
+                log_likelihood=float(place_ll[included[k]]),
+            )
+            for k in order[: self.config.top_k]
+        )
+        loop_closure = None
+        if order.size and place_p[order[0]] > self.config.match_threshold:
+            best = int(order[0])
+            loop_closure = Candidate(
+                place_id=int(included[best]),
+                stamp_ns=self._place_stamps_ns[int(included[best])],
+                probability=float(place_p[best]),
+                log_likelihood=float(place_ll[included[best]]),
+            )
+
+        added = -1
+        wants_place = self.config.add_policy == "all" or loop_closure is None
+        if wants_place and self._is_keyframe(words, query_id):
+            added = self._engine.add(words)
+            self._place_stamps_ns.append(stamp_ns)
+            self._place_frames.append(query_id)
+        assigned = loop_closure.place_id if loop_closure is not None else added
+        return Recognition(
+            query_id=query_id,
+            stamp_ns=stamp_ns,
+            assigned_place_id=assigned,
+            is_new_place=loop_closure is None,
+            new_place_probability=float(p[0]),
+            candidates=candidates,
+            loop_closure=loop_closure,
+            added_place_id=added,
+            new_place_log_likelihood=float(new_ll),
+        )
+
+    def _included(self, query_id: int, stamp_ns: int) -> np.ndarray:
+        """(P,) bool: places that are hypotheses for this query (not too recent)."""
+        frames = np.asarray(self._place_frames, dtype=np.int64)
+        keep = np.ones(frames.size, dtype=bool)
+        if self.config.exclude_recent_frames > 0:
+            keep &= query_id - frames > self.config.exclude_recent_frames
+        if self.config.exclude_recent_seconds > 0.0:
+            stamps = np.asarray(self._place_stamps_ns, dtype=np.int64)
+            window_ns = self.config.exclude_recent_seconds * 1e9
+            keep &= (stamp_ns - stamps) >= window_ns
+        return keep
+
+    def _is_keyframe(self, words: np.ndarray, query_id: int) -> bool:
+        if not self._place_frames:
+            return True
+        since = query_id - self._place_frames[-1]
+        if since < self.config.keyframe_min_frames:
+            return False
+        if self.config.keyframe_max_frames > 0 and since >= self.config.keyframe_max_frames:
+            return True
+        return jaccard(words, self._engine.places.place_words(self.num_places - 1)) <= self.config.keyframe_max_overlap
+
+    # -- persistence --------------------------------------------------------------------------
+
+    def save_map(self, path: Path) -> None:
+        """Write the map atomically (temporary file in the same directory, then os.replace)."""
+        path = Path(path)
+        indptr, indices = self._engine.places.word_csr()
+        arrays = {
+            "format_version": np.array(MAP_FORMAT_VERSION, dtype=np.int64),
+            "vocabulary_id": np.array(self.vocabulary_id),
+            "vocabulary_size": np.array(self.vocabulary_size, dtype=np.int64),
+            "word_indptr": indptr,
+            "word_indices": indices,
+            "place_stamps_ns": np.asarray(self._place_stamps_ns, dtype=np.int64),
+            "place_frames": np.asarray(self._place_frames, dtype=np.int64),
+            "next_query_id": np.array(self._next_query_id, dtype=np.int64),
+            "previous_posterior": (
+                np.zeros(0) if self._previous_posterior is None else self._previous_posterior
+            ),
+            "has_previous_posterior": np.array(self._previous_posterior is not None),
+            "config_json": np.array(json.dumps(asdict(self.config), sort_keys=True)),
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                np.savez(handle, **arrays)  # type: ignore[arg-type]
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.replace(tmp_name, path)
+        except BaseException:
+            Path(tmp_name).unlink(missing_ok=True)
+            raise
+
+    def load_map(self, path: Path) -> None:
+        """Replace the map by the one saved at ``path``.
+
+        Raises VocabularyMismatchError (naming both ids) if it belongs to another vocabulary,
+        ModelError if it is missing, corrupt or of another format version.
+        """
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except FileNotFoundError as error:
+            raise ModelError(f"map file not found: {path}") from error
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+            raise ModelError(f"cannot read map file {path}: {error}") from error
+        state = self._validated_state(path, arrays)
+        self._reset()
+        self._engine.places.add_many(state["word_indptr"], state["word_indices"])
+        self._place_stamps_ns = state["place_stamps_ns"].tolist()
+        self._place_frames = state["place_frames"].tolist()
+        self._next_query_id = int(state["next_query_id"])
+        self._previous_posterior = state["previous_posterior"] if bool(state["has_previous_posterior"]) else None
+
+    def _validated_state(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        required = (
+            "format_version", "vocabulary_id", "vocabulary_size", "word_indptr", "word_indices",
+            "place_stamps_ns", "place_frames", "next_query_id", "previous_posterior", "has_previous_posterior",
+        )
+        missing = [key for key in required if key not in arrays]
+        if missing:
+            raise ModelError(f"map file {path} is not a place map (missing {missing})")
+        version = int(arrays["format_version"])
+        if version != MAP_FORMAT_VERSION:
+            raise ModelError(f"map file {path} has format version {version}, expected {MAP_FORMAT_VERSION}")
+        map_vocabulary_id = str(arrays["vocabulary_id"])
+        if map_vocabulary_id != self.vocabulary_id:
+            raise VocabularyMismatchError(
+                f"map file {path} belongs to vocabulary {map_vocabulary_id!r}, "
+                f"but the loaded model is vocabulary {self.vocabulary_id!r}"
+            )
+        if int(arrays["vocabulary_size"]) != self.vocabulary_size:
+            raise VocabularyMismatchError(
+                f"map file {path} has {int(arrays['vocabulary_size'])} words, the model {self.vocabulary_size}"
+            )
+        indptr = arrays["word_indptr"].astype(np.int64)
+        indices = arrays["word_indices"].astype(np.int64)
+        n_places = indptr.size - 1
+        stamps, frames = arrays["place_stamps_ns"], arrays["place_frames"]
+        previous = arrays["previous_posterior"].astype(np.float64)
+        problems = []
+        if n_places < 0 or indptr[0] != 0 or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size:
+            problems.append("inconsistent word_indptr")
+        elif indices.size and (indices.min() < 0 or indices.max() >= self.vocabulary_size):
+            problems.append("word ids out of range")
+        elif any(np.any(np.diff(indices[a:b]) <= 0) for a, b in zip(indptr[:-1], indptr[1:], strict=True)):
+            problems.append("word ids not sorted unique per place")
+        if stamps.shape != (max(n_places, 0),) or frames.shape != (max(n_places, 0),):
+            problems.append("stamps/frames do not match the number of places")
+        if bool(arrays["has_previous_posterior"]) and previous.size > max(n_places, 0) + 1:
+            problems.append("previous posterior longer than the map")
+        if problems:
+            raise ModelError(f"corrupt map file {path}: {'; '.join(problems)}")
+        arrays = dict(arrays)
+        arrays["word_indptr"], arrays["word_indices"], arrays["previous_posterior"] = indptr, indices, previous
+        return arrays
