@@ -88,6 +88,15 @@ def jaccard(a: np.ndarray, b: np.ndarray) -> float:
     return common / (union - common)
 
 
+def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
+    """True if some CSR row's indices are not strictly increasing (vectorised over all rows)."""
+    not_increasing = np.diff(indices) <= 0
+    crossings = indptr[1:-1] - 1  # diff positions that compare the last of a row with the next row
+    crossings = crossings[(crossings >= 0) & (crossings < not_increasing.size)]
+    not_increasing[crossings] = False
+    return bool(np.any(not_increasing))
+
+
 class PlaceRecognizer:
     """FAB-MAP 2 place recognizer over a growing map of places (see module doc for the policies)."""
 
@@ -318,7 +327,7 @@ class PlaceRecognizer:
             problems.append("inconsistent word_indptr")
         elif indices.size and (indices.min() < 0 or indices.max() >= self.vocabulary_size):
             problems.append("word ids out of range")
-        elif any(np.any(np.diff(indices[a:b]) <= 0) for a, b in zip(indptr[:-1], indptr[1:], strict=True)):
+        elif _unsorted_within_rows(indptr, indices):
             problems.append("word ids not sorted unique per place")
         if stamps.shape != (max(n_places, 0),) or frames.shape != (max(n_places, 0),):
             problems.append("stamps/frames do not match the number of places")
