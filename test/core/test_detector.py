@@ -1,0 +1,168 @@
+"""PlaceRecognizer: golden posteriors online, policies, exclusion windows, map persistence."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.detector import PlaceRecognizer, jaccard
+from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
+from aefabmap_ros.core.fabmap import FabMapConfig, fabmap_score_matrices
+
+V = 40
+
+
+def _tree(seed: int = 0) -> ChowLiuTree:
+    rng = np.random.default_rng(seed)
+    parent = np.array([0] + [int(rng.integers(0, q)) for q in range(1, V)])
+    probs = rng.uniform(0.05, 0.6, size=(3, V))
+    probs[1:, 0] = probs[0, 0]
+    return ChowLiuTree(parent, probs[0], probs[1], probs[2])
+
+
+def _frames(n: int, seed: int = 1) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [np.flatnonzero(rng.random(V) < 0.25) for _ in range(n)]
+
+
+SAMPLES = sp.csr_matrix(np.random.default_rng(9).random((15, V)) < 0.25)
+
+
+@pytest.mark.parametrize("motion", [False, True])
+def test_online_matches_offline_all_policy(motion):
+    config = FabMapConfig(motion_model=motion, top_k=100)
+    frames = _frames(12)
+    frames.append(frames[3])
+    offline = fabmap_score_matrices(frames, _tree(), SAMPLES, config)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a")
+    for i, words in enumerate(frames):
+        result = recognizer.process(words, stamp_ns=1_000 * i)
+        assert result.query_id == i and result.added_place_id == i
+        assert result.new_place_probability == pytest.approx(offline.probabilities[i, i], abs=1e-12)
+        for c in result.candidates:
+            assert c.probability == pytest.approx(offline.probabilities[i, c.place_id], abs=1e-12)
+            assert c.log_likelihood == pytest.approx(offline.log_likelihoods[i, c.place_id], abs=1e-9)
+            assert c.stamp_ns == 1_000 * c.place_id
+        assert len(result.candidates) == i
+    assert result.candidates[0].place_id == 3
+
+
+def test_golden_sequence_online(golden_dir):
+    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+
+    tree = read_chow_liu_tree(golden_dir / "tree.yml")
+    train = sp.csr_matrix(read_bow(golden_dir / "bowtrain.yml"))
+    test = read_bow(golden_dir / "bowtest.yml")
+    golden_p = np.loadtxt(golden_dir / "fabmap2_sampled_motion.probabilities.txt")
+    recognizer = PlaceRecognizer(tree, train, FabMapConfig(motion_model=True, top_k=3), "golden")
+    for i, row in enumerate(test):
+        result = recognizer.process(np.flatnonzero(row > 0).astype(np.uint32), stamp_ns=i)
+        assert result.new_place_probability == pytest.approx(golden_p[i, i], abs=1e-5)
+        for c in result.candidates:
+            assert c.probability == pytest.approx(golden_p[i, c.place_id], abs=1e-5)
+        if result.loop_closure is not None:
+            assert result.loop_closure.probability > 0.99
+            assert not result.is_new_place
+            assert result.assigned_place_id == result.loop_closure.place_id
+    assert recognizer.num_places == 84
+
+
+def test_revisit_is_detected_and_new_only_policy_does_not_add_it():
+    frames = _frames(10)
+    config = FabMapConfig(add_policy="new_only", match_threshold=0.5)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
+    results = [recognizer.process(f, i) for i, f in enumerate(frames)]
+    new = [r for r in results if r.is_new_place]
+    assert recognizer.num_places == len(new) >= 2
+    assert [r.added_place_id for r in new] == list(range(len(new)))
+    assert all(r.added_place_id == -1 and r.assigned_place_id == r.loop_closure.place_id
+               for r in results if r.loop_closure is not None)
+    last = new[-1]
+    revisit = recognizer.process(frames[last.query_id], 99)
+    assert revisit.loop_closure is not None and revisit.loop_closure.place_id == last.added_place_id
+    assert revisit.added_place_id == -1 and revisit.query_id == 10
+    assert recognizer.num_places == len(new)
+    assert sum(c.probability for c in revisit.candidates) + revisit.new_place_probability <= 1.0 + 1e-12
+
+
+def test_recent_places_are_excluded_by_frames_and_seconds():
+    frames = _frames(6)
+    by_frames = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(exclude_recent_frames=2, top_k=10), "v")
+    for i, f in enumerate(frames):
+        r = by_frames.process(f, i * 10**9)
+    assert [c.place_id for c in sorted(r.candidates, key=lambda c: c.place_id)] == [0, 1, 2]
+    total = r.new_place_probability + sum(c.probability for c in r.candidates)
+    assert total == pytest.approx(1.0)
+    by_seconds = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(exclude_recent_seconds=2.5, top_k=10), "v")
+    for i, f in enumerate(frames):
+        r = by_seconds.process(f, i * 10**9)
+    assert sorted(c.place_id for c in r.candidates) == [0, 1, 2]
+    revisit = by_seconds.process(frames[5], 6 * 10**9)  # place 5 is only 1 s old: excluded
+    assert 5 not in [c.place_id for c in revisit.candidates]
+
+
+def test_keyframe_policy():
+    base = np.arange(10)
+    config = FabMapConfig(keyframe_max_overlap=0.5, keyframe_max_frames=4)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
+    added = [recognizer.process(base, i).added_place_id for i in range(6)]
+    assert added == [0, -1, -1, -1, 1, -1]  # same view: only forced every 4 frames
+    changed = recognizer.process(np.arange(20, 30), 6)
+    assert changed.added_place_id == 2
+    spaced = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(keyframe_min_frames=3), "v")
+    assert [spaced.process(np.array([i]), i).added_place_id for i in range(7)] == [0, -1, -1, 1, -1, -1, 2]
+    assert jaccard(np.array([1, 2]), np.array([2, 3])) == pytest.approx(1 / 3)
+    assert jaccard(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)) == 1.0
+
+
+def test_empty_frames_keep_their_index_and_errors():
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
+    assert recognizer.process(np.zeros(0, dtype=np.uint32), 0).query_id == 0
+    assert recognizer.process(np.array([3, 1, 1]), 1).added_place_id == 1  # normalised to [1, 3]
+    np.testing.assert_array_equal(recognizer.place_words(1), [1, 3])
+    with pytest.raises(DataError, match=f"word id {V} out of range"):
+        recognizer.process(np.array([V]), 2)
+    with pytest.raises(DataError, match="stamp_ns must be an integer"):
+        recognizer.process(np.array([1]), 2.5)  # type: ignore[arg-type]
+    with pytest.raises(DataError, match="vocabulary_id"):
+        PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "")
+    with pytest.raises(DataError, match="place id 7 out of range"):
+        recognizer.place_words(7)
+    assert recognizer.num_queries == 2
+
+
+def test_map_round_trip_and_refusals(tmp_path):
+    config = FabMapConfig(motion_model=True, top_k=4)
+    frames = _frames(8)
+    first = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a")
+    for i, f in enumerate(frames[:5]):
+        first.process(f, 10 * i)
+    path = tmp_path / "maps" / "map.npz"
+    first.save_map(path)
+    assert [p.name for p in path.parent.iterdir()] == ["map.npz"]  # no temp file left behind
+    second = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a")
+    second.load_map(path)
+    assert second.num_places == 5 and second.num_queries == 5
+    for i, f in enumerate(frames[5:], start=5):
+        a, b = first.process(f, 10 * i), second.process(f, 10 * i)
+        assert a == b
+    other = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-b")
+    with pytest.raises(VocabularyMismatchError, match=r"'vocab-a'.*'vocab-b'"):
+        other.load_map(path)
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(ModelError, match="cannot read map file"):
+        second.load_map(corrupt)
+    with pytest.raises(ModelError, match="map file not found"):
+        second.load_map(tmp_path / "missing.npz")
+    np.savez(tmp_path / "foreign.npz", x=np.zeros(3))
+    with pytest.raises(ModelError, match="not a place map"):
+        second.load_map(tmp_path / "foreign.npz")
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["word_indices"] = arrays["word_indices"].copy()
+    arrays["word_indices"][0] = V + 5
+    np.savez(tmp_path / "bad_ids.npz", **arrays)
+    with pytest.raises(ModelError, match="word ids out of range"):
+        second.load_map(tmp_path / "bad_ids.npz")
+    assert second.num_places == 8  # a refused map leaves the current one untouched
