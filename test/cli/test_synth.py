@@ -1,0 +1,95 @@
+"""aefabmap_synth CLI: files written, their contents, bags, and the error paths."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from aefabmap_ros.cli.synth import main
+from aefabmap_ros.core.ground_truth import read_kitti_poses
+
+SMALL = ["--frames", "12", "--width", "96", "--height", "72"]
+
+
+def test_writes_folder_sequences(tmp_path, capsys):
+    assert main(["--out", str(tmp_path), "--kind", "both", *SMALL]) == 0
+    assert "frames/s" in capsys.readouterr().out
+    for name, seed in (("train", 1_000_003), ("test", 0)):
+        directory = tmp_path / name
+        pngs = sorted((directory / "images").glob("*.png"))
+        assert [p.name for p in pngs[:2]] == ["000000.png", "000001.png"] and len(pngs) == 12
+        image = cv2.imread(str(pngs[0]), cv2.IMREAD_UNCHANGED)
+        assert image is not None
+        assert image.shape == (72, 96) and image.dtype == np.uint8
+        assert read_kitti_poses(directory / "poses.txt").shape == (12, 3, 4)
+        times = np.loadtxt(directory / "times.txt")
+        np.testing.assert_allclose(times, np.arange(12) * 0.1, atol=1e-9)
+        with np.load(directory / "loop_gt.npz") as data:
+            assert data["gt"].shape == (12, 12) and data["gt"].dtype == np.uint8
+        config = json.loads((directory / "synth_config.json").read_text())
+        assert config["seed"] == seed and config["num_frames"] == 12
+        calib = (directory / "calib.txt").read_text().split()
+        assert calib[0] == "P0:" and len(calib) == 13
+        assert not (directory / "bag").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["test", "train"]  # no temporary leftovers
+    train = cv2.imread(str(tmp_path / "train" / "images" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    test = cv2.imread(str(tmp_path / "test" / "images" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert train is not None and test is not None
+    assert np.abs(train.astype(int) - test.astype(int)).mean() > 10  # different towns
+
+
+def test_writes_mcap_bag(tmp_path):
+    bags = pytest.importorskip("aefabmap_ros.io.bags")
+    assert main(["--out", str(tmp_path), "--kind", "test", "--format", "both", "--topic", "/cam", *SMALL]) == 0
+    directory = tmp_path / "test"
+    messages = list(bags.read_messages(directory / "bag", ["/cam"]))
+    assert len(messages) == 12
+    first = messages[0].message
+    assert (first.height, first.width, first.encoding) == (72, 96, "mono8")
+    png = cv2.imread(str(directory / "images" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(np.asarray(first.data).reshape(72, 96), png)
+    stamps = [m.stamp_ns for m in messages]
+    assert stamps == sorted(stamps) and stamps[1] - stamps[0] == 100_000_000
+
+
+def test_mcap_only_writes_no_pngs(tmp_path):
+    pytest.importorskip("aefabmap_ros.io.bags")
+    assert main(["--out", str(tmp_path), "--kind", "train", "--format", "mcap", *SMALL]) == 0
+    assert (tmp_path / "train" / "bag").is_dir()
+    assert not (tmp_path / "train" / "images").exists()
+
+
+def test_existing_sequence_needs_overwrite(tmp_path, capsys):
+    assert main(["--out", str(tmp_path), "--kind", "test", *SMALL]) == 0
+    assert main(["--out", str(tmp_path), "--kind", "test", *SMALL]) == 1
+    assert "already exists (use --overwrite" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path), "--kind", "test", "--overwrite", "--frames", "11", *SMALL[2:]]) == 0
+    assert len(list((tmp_path / "test" / "images").glob("*.png"))) == 11
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--frames", "0"], "num_frames must be > 0, got 0"),
+        (["--width", "4"], "width and height must be >= 16"),
+        (["--kind", "validation"], "invalid choice: 'validation'"),
+        (["--frames", "many"], "invalid int value: 'many'"),
+    ],
+)
+def test_bad_arguments(tmp_path, capsys, args, message):
+    assert main(["--out", str(tmp_path / "out"), *args]) == 1
+    err = capsys.readouterr().err
+    assert "ERROR: " in err and message in err
+
+
+def test_missing_out_is_an_error(capsys):
+    assert main(["--kind", "test"]) == 1
+    assert "ERROR: the following arguments are required: --out" in capsys.readouterr().err
+
+
+def test_unwritable_out(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    assert main(["--out", str(blocker / "sub"), *SMALL]) == 1
+    assert "ERROR: cannot create output directory" in capsys.readouterr().err
