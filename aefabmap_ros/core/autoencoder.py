@@ -39,6 +39,7 @@ import io
 import json
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,6 +190,8 @@ class AutoencoderQuantizer:
         self.binary = binary
         self.descriptor_dim = descriptor_dim
         self.alpha = alpha
+        # Filled by training: seconds per stage, word usage on the training set.
+        self.training_info: dict[str, float] = {}
 
     @property
     def size(self) -> int:
@@ -283,9 +286,11 @@ def train_autoencoder_quantizer(
                                              or pairs.max() >= n):
         raise DataError(f"pairs must be (M, 2) row indices in [0, {n}), got shape {pairs.shape}")
     rows = as_float_rows(descriptors, binary)
+    clock = _StageClock()
     with _torch_settings(options.num_threads):
         pca = fit_pca(_subsample(rows, 200_000, options.seed), options.pca_dim, options.pca_per_component)
         x_all = pca.transform_scaled(rows)
+        clock.lap("pca_s")
         checkpoint = _Checkpoint(work_dir, _fingerprint(options, descriptors, pairs))
         torch.manual_seed(options.seed)
         model = ConvAutoencoder(options.pca_dim, options.embedding_dim)
@@ -293,19 +298,46 @@ def train_autoencoder_quantizer(
             : min(n, options.max_train_descriptors)])
         _pretrain(model, x_all, train_idx, pairs, options, checkpoint, progress)
         model.eval()
+        clock.lap("pretrain_s")
         z_all = _embed(model, x_all)
+        clock.lap("embed_s")
         centres = kmeans(z_all, options.size, options.seed, options.kmeans_iterations)
+        clock.lap("kmeans_s")
         if options.refine:
             centres = _refine(model, centres, x_all, train_idx, options, checkpoint, progress)
             z_all = _embed(model, x_all)
             centres = reseed_empty(z_all, centres, np.random.default_rng([options.seed, 3]))
+            clock.lap("refine_s")
         model.eval()
         labels, _ = nearest(centres, z_all)
         fallback = _nearest_rows(rows, z_all, centres)
         means = cluster_means(rows, labels, options.size, fallback)
         centroids = np.packbits(means >= 0.5, axis=1).astype(np.float32) if binary else means
+        clock.lap("centroids_s")
         checkpoint.finish()
-    return AutoencoderQuantizer(pca, model, centres, centroids, binary, descriptors.shape[1], options.alpha)
+    quantizer = AutoencoderQuantizer(pca, model, centres, centroids, binary, descriptors.shape[1], options.alpha)
+    counts = np.bincount(labels, minlength=options.size)
+    quantizer.training_info = {
+        **clock.seconds,
+        "descriptors": float(n),
+        "ae_train_descriptors": float(train_idx.size),
+        "empty_words": float(np.sum(counts == 0)),
+        "largest_word_fraction": float(counts.max() / max(1, n)),
+    }
+    return quantizer
+
+
+class _StageClock:
+    """Wall-clock seconds per training stage (reported by the benchmark and kept as provenance)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = now - self._last
+        self._last = now
 
 
 def _nearest_rows(rows: np.ndarray, z: np.ndarray, centres: np.ndarray) -> np.ndarray:

@@ -1,0 +1,160 @@
+"""Benchmark of features and vocabularies: extraction per image, training per stage, quantization.
+
+    bench_vocab                 # ~300k SIFT descriptors (kitti00_first300) -> 1000 words, AE and k-means
+    bench_vocab --quick         # a seconds-long smoke run on a few images
+    bench_vocab --images DIR    # your own images (png/jpg, searched recursively)
+
+Prints one figure per line, ``name: value unit``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from aefabmap_ros.core.errors import AefabmapError
+from aefabmap_ros.core.features import FeatureConfig, extract_features
+from aefabmap_ros.core.vocabulary import VocabularyConfig, train_vocabulary, word_usage
+
+DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="bench_vocab", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (few images, small vocabulary)")
+    parser.add_argument("--images", type=Path, action="append",
+                        help="image folder to train on (repeatable); default: kitti00_first300 from ../shared")
+    parser.add_argument("--size", type=int, default=None, help="vocabulary size (default 1000; --quick 50)")
+    parser.add_argument("--epochs", type=int, default=None, help="autoencoder epochs (default: config default)")
+    parser.add_argument("--max-images", type=int, default=None, help="use at most this many training images")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return parser.parse_args(argv)
+
+
+def _image_paths(folders: list[Path]) -> list[Path]:
+    paths: list[Path] = []
+    for folder in folders:
+        if not folder.is_dir():
+            raise AefabmapError(f"image folder {folder} does not exist")
+        paths += sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if not paths:
+        raise AefabmapError(f"no .png/.jpg images in {', '.join(map(str, folders))}")
+    return paths
+
+
+def _synthetic_images(count: int, shape: tuple[int, int] = (480, 640)) -> list[np.ndarray]:
+    """Textured test images for machines without the shared data."""
+    rng = np.random.default_rng(0)
+    images = []
+    for _ in range(count):
+        image = np.zeros(shape, np.uint8)
+        for _ in range(150):
+            x, y = int(rng.integers(0, shape[1])), int(rng.integers(0, shape[0]))
+            cv2.circle(image, (x, y), int(rng.integers(3, 25)), int(rng.integers(40, 255)), -1)
+        images.append(cv2.GaussianBlur(image, (3, 3), 0))
+    return images
+
+
+def _load_gray(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise AefabmapError(f"cannot read image {path}")
+    return image
+
+
+def _median_ms(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up (lazy init, caches)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1000.0)
+
+
+def _report(name: str, value: float, unit: str) -> None:
+    print(f"{name}: {value:.3f} {unit}", flush=True)
+
+
+def _extraction(image: np.ndarray, config: FeatureConfig) -> Callable[[], object]:
+    return lambda: extract_features(image, config)
+
+
+def bench_extraction(images: list[np.ndarray], repeats: int) -> None:
+    """Feature extraction per 640x480 image, SIFT and ORB."""
+    resized = [cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA) for image in images]
+    for kind in ("sift", "orb"):
+        config = FeatureConfig(type=kind)
+        per_image = [_median_ms(_extraction(image, config), repeats) for image in resized]
+        count = np.mean([len(extract_features(im, config)) for im in resized])
+        _report(f"extract_{kind}_640x480_ms", float(np.mean(per_image)), f"ms/image ({count:.0f} keypoints)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        return _run(args)
+    except AefabmapError as error:
+        print(f"ERROR: {error}", file=sys.stderr)
+        return 1
+
+
+def _run(args: argparse.Namespace) -> int:
+    size = args.size or (50 if args.quick else 1000)
+    folders = args.images or [DEFAULT_DATASETS / "kitti00_first300" / "image_0"]
+    max_images = args.max_images or (6 if args.quick else None)
+    if args.images is None and not folders[0].is_dir():
+        print(f"(no {folders[0]}: using synthetic images)", flush=True)
+        images = _synthetic_images(max_images or 40)
+    else:
+        images = [_load_gray(p) for p in _image_paths(folders)[:max_images]]
+    bench_extraction(images[:3] if args.quick else images[:10], repeats=1 if args.quick else 3)
+
+    start = time.perf_counter()
+    features = [extract_features(image, FeatureConfig()) for image in images]
+    descriptors = np.concatenate([f.descriptors for f in features])
+    _report("training_images", len(images), "images")
+    _report("training_descriptors", descriptors.shape[0], "SIFT descriptors")
+    _report("stage_extract_s", time.perf_counter() - start, "s")
+
+    overrides: dict[str, object] = {"num_threads": args.threads}
+    if args.epochs is not None:
+        overrides["ae_epochs"] = args.epochs
+    elif args.quick:
+        overrides.update(ae_epochs=1, ae_max_train_descriptors=3000)
+    ae_config = VocabularyConfig(kind="autoencoder", size=size, **overrides)  # type: ignore[arg-type]
+    start = time.perf_counter()
+    ae = train_vocabulary(descriptors, ae_config, progress=not args.no_progress)
+    _report("train_autoencoder_total_s", time.perf_counter() - start, f"s ({size} words)")
+    for stage, seconds in getattr(ae, "training_info", {}).items():
+        if stage.endswith("_s"):
+            _report(f"  ae_stage_{stage}", seconds, "s")
+    start = time.perf_counter()
+    km = train_vocabulary(descriptors, VocabularyConfig(kind="kmeans", size=size, seed=0))
+    _report("train_kmeans_total_s", time.perf_counter() - start, f"s ({size} words)")
+
+    for name, quantizer in (("autoencoder", ae), ("kmeans", km)):
+        usage = word_usage(quantizer, descriptors)
+        _report(f"{name}_words_used", float(np.mean(usage > 0) * 100), "%")
+        _report(f"{name}_largest_word", float(usage.max() / usage.sum() * 100), "% of descriptors")
+
+    rows = np.random.default_rng(0).choice(descriptors.shape[0], 1000, replace=descriptors.shape[0] < 1000)
+    batch = descriptors[rows]
+    repeats = 5 if args.quick else 30
+    ae_ms = _median_ms(lambda: ae.quantize(batch), repeats)
+    km_ms = _median_ms(lambda: km.quantize(batch), repeats)
+    _report("quantize_1000_autoencoder_ms", ae_ms, "ms")
+    _report("quantize_1000_kmeans_ms", km_ms, "ms")
+    _report("quantize_ratio_ae_over_kmeans", ae_ms / km_ms, "x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
