@@ -592,7 +592,8 @@ def _ground_texture(
     asphalt += rng.normal(0, 9.0, size=(height_px, width_px)).astype(np.float32)
     image = np.repeat(np.clip(asphalt, 0, 255)[:, :, None], 3, axis=2).astype(np.uint8)
     half_street, sidewalk = config.street_width_m / 2, min(2.0, config.street_width_m / 4)
-    paving = _tinted(rng, (150, 150, 150), 20)
+    grey = int(rng.integers(130, 171))
+    paving = _tinted(rng, (grey, grey, grey), 6)  # concrete: grey with a faint tint
     for column in range(_GRID_COLUMNS):
         for row in range(_GRID_ROWS):
             x0, y0 = column * pitch_m + half_street - sidewalk, row * pitch_m + half_street - sidewalk
@@ -604,8 +605,8 @@ def _ground_texture(
                 cv2.line(image, px(x0, gy), px(x1, gy), (110, 110, 110), 1)
             cv2.rectangle(image, px(x0, y1), px(x1, y0), (60, 60, 60), max(1, int(0.15 * ppm)))
     mark, line_px = (215, 215, 215), max(1, int(0.12 * ppm))
-    # Dashed centre lines between intersections (dashes 2 m long every 4 m).
-    dashes = [d for d in np.arange(half_street + 1.0, pitch_m - half_street - 2.0, 4.0)]
+    # Dashed centre lines between intersections (dashes 2 m long every 4 m), clear of the zebra crossings.
+    dashes = list(np.arange(half_street + 3.0, pitch_m - half_street - 4.99, 4.0))
     for k in range(_GRID_COLUMNS + 1):
         for block in range(_GRID_ROWS):
             for d in dashes:
