@@ -241,6 +241,25 @@ class PlaceRecognizer:
             return True
         return jaccard(words, self._engine.places.place_words(self.num_places - 1)) <= self.config.keyframe_max_overlap
 
+    def add_places(self, places: sp.csr_matrix, stamps_ns: np.ndarray) -> None:
+        """Bulk-add places without recognising them (e.g. a map built offline): (P, V) binary rows.
+
+        Each place counts as one processed frame (its query id is its frame).
+        """
+        matrix = sp.csr_matrix(places)
+        if matrix.ndim != 2 or matrix.shape[1] != self.vocabulary_size:
+            raise DataError(f"places have shape {matrix.shape}, expected (P, {self.vocabulary_size})")
+        stamps = np.asarray(stamps_ns)
+        if stamps.shape != (matrix.shape[0],) or not np.issubdtype(stamps.dtype, np.integer):
+            raise DataError(f"stamps_ns must be ({matrix.shape[0]},) integers, got {stamps.shape} {stamps.dtype}")
+        matrix = sp.csr_matrix(matrix > 0)
+        matrix.sort_indices()
+        self._engine.places.add_many(matrix.indptr.astype(np.int64), matrix.indices)
+        first = self._next_query_id
+        self._place_frames.extend(range(first, first + matrix.shape[0]))
+        self._place_stamps_ns.extend(int(t) for t in stamps)
+        self._next_query_id += matrix.shape[0]
+
     # -- persistence --------------------------------------------------------------------------
 
     def save_map(self, path: Path) -> None:

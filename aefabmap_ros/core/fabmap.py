@@ -373,14 +373,22 @@ class _Growable:
         return int(self._data.nbytes)
 
 
+# All 256 bytes as bits (256, 8): row b = the bits of b, least significant first.
+_BYTE_BITS = ((np.arange(256)[:, None] >> np.arange(8)[None, :]) & 1).astype(np.float64)
+
+
 class InvertedIndex:
     """Places as word lists (CSR) + word -> places postings + each place's FAB-MAP 2 default.
 
-    Memory is proportional to the number of stored (place, word) pairs: int32 word ids, int32
-    postings (amortised doubling), one float64 default per place.
+    Frequent words (training marginal >= ``dense_min_marginal``, at most ``max_dense_words``)
+    are kept as bits instead of postings: a place holds one bit per frequent word, packed 8 to a
+    group, and a query adds, per byte column, a 256-entry table of its corrections (one lookup per
+    place per 8 frequent words instead of one scattered add per place holding each word). Memory
+    is proportional to the number of stored (place, word) pairs: int32 word ids, int32 postings
+    (amortised doubling), one float64 default and ``max_dense_words / 8`` bytes per place.
     """
 
-    def __init__(self, model: FabMapModel) -> None:
+    def __init__(self, model: FabMapModel, dense_min_marginal: float = 0.15, max_dense_words: int = 1024) -> None:
         self._model = model
         vocabulary_size = model.vocabulary_size
         self._word_data = _Growable(np.int32, 1024)
@@ -388,6 +396,13 @@ class InvertedIndex:
         self._word_ptr.extend(np.zeros(1, dtype=np.int64))
         self._defaults = _Growable(np.float64, 64)
         self._postings: list[_Growable | None] = [None] * vocabulary_size
+        marginal = model.tree.marginal
+        by_frequency = np.argsort(-marginal, kind="stable")
+        dense = by_frequency[marginal[by_frequency] >= dense_min_marginal][:max_dense_words]
+        self._dense_slot = np.full(vocabulary_size, -1, dtype=np.int64)  # word -> bit slot, -1 = posting
+        self._dense_slot[dense] = np.arange(dense.size)
+        # int16, not uint8: numpy's take() with uint8 indices is several times slower.
+        self._dense_groups = [_Growable(np.int16, 64) for _ in range((dense.size + 7) // 8)]
 
     @property
     def num_places(self) -> int:
@@ -423,6 +438,19 @@ class InvertedIndex:
         self._defaults.extend(defaults.astype(np.float64))
         self._word_data.extend(indices.astype(np.int32))
         self._word_ptr.extend(self._word_ptr.view()[-1] + np.cumsum(counts))
+        slots = self._dense_slot[indices]
+        if self._dense_groups:
+            bits = np.zeros((n_new, len(self._dense_groups)), dtype=np.int16)
+            dense = slots >= 0
+            np.bitwise_or.at(
+                bits,
+                (place_of[dense] - first, slots[dense] // 8),
+                (1 << (slots[dense] % 8)).astype(np.int16),
+            )
+            for group, column in zip(self._dense_groups, bits.T, strict=True):
+                group.extend(column)
+        sparse = slots < 0
+        indices, place_of = indices[sparse], place_of[sparse]
         if indices.size == 0:
             return
         order = np.argsort(indices, kind="stable")  # stable: places stay in increasing order per word
@@ -439,8 +467,21 @@ class InvertedIndex:
     def scores(self, state: QueryState) -> np.ndarray:
         """(P,) float64 FAB-MAP 2 log-likelihood of every place relative to an empty place."""
         scores = self._defaults.view().copy()
+        slots = self._dense_slot[state.touched]
+        dense = slots >= 0
+        if np.any(dense):
+            weights = np.zeros(8 * len(self._dense_groups))
+            weights[slots[dense]] = state.corrections[dense]
+            # tables[g, b]: sum of the corrections of the frequent words whose bits are set in byte b of group g.
+            group_weights = weights.reshape(-1, 8)
+            tables = group_weights @ _BYTE_BITS.T
+            looked_up = np.empty_like(scores)
+            for g in np.flatnonzero(np.any(group_weights != 0, axis=1)).tolist():
+                np.take(tables[g], self._dense_groups[g].view(), out=looked_up)
+                scores += looked_up
         postings = self._postings
-        for word, weight in zip(state.touched.tolist(), state.corrections.tolist(), strict=True):
+        sparse = ~dense
+        for word, weight in zip(state.touched[sparse].tolist(), state.corrections[sparse].tolist(), strict=True):
             posting = postings[word]
             if posting is not None:
                 # A place occurs at most once per posting, so a fancy-indexed add is exact.
@@ -450,7 +491,8 @@ class InvertedIndex:
     @property
     def nbytes(self) -> int:
         postings = sum(p.nbytes for p in self._postings if p is not None)
-        return self._word_data.nbytes + self._word_ptr.nbytes + self._defaults.nbytes + postings
+        bits = sum(g.nbytes for g in self._dense_groups)
+        return self._word_data.nbytes + self._word_ptr.nbytes + self._defaults.nbytes + postings + bits
 
 
 # --------------------------------------------------------------------------------------------

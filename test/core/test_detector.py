@@ -166,3 +166,21 @@ def test_map_round_trip_and_refusals(tmp_path):
     with pytest.raises(ModelError, match="word ids out of range"):
         second.load_map(tmp_path / "bad_ids.npz")
     assert second.num_places == 8  # a refused map leaves the current one untouched
+
+
+def test_bulk_added_places_equal_processed_ones():
+    frames = _frames(6)
+    processed = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
+    for i, f in enumerate(frames[:5]):
+        processed.process(f, i)
+    bulk = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
+    rows = np.zeros((5, V), dtype=bool)
+    for i, f in enumerate(frames[:5]):
+        rows[i, f] = True
+    bulk.add_places(sp.csr_matrix(rows), np.arange(5, dtype=np.int64))
+    a, b = processed.process(frames[5], 5), bulk.process(frames[5], 5)
+    assert a.candidates == b.candidates and a.query_id == b.query_id == 5
+    with pytest.raises(DataError, match="expected"):
+        bulk.add_places(sp.csr_matrix((2, V + 1)), np.arange(2))
+    with pytest.raises(DataError, match="stamps_ns"):
+        bulk.add_places(sp.csr_matrix((2, V)), np.arange(3))
