@@ -44,6 +44,7 @@ from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import (
     FabMapConfig,
+    GrowableArray,
     InvertedIndex,
     as_word_ids,
     make_engine,
@@ -116,8 +117,8 @@ class PlaceRecognizer:
 
     def _reset(self) -> None:
         self._engine.places = InvertedIndex(self._engine.model)
-        self._place_stamps_ns: list[int] = []
-        self._place_frames: list[int] = []
+        self._place_stamps_ns = GrowableArray(np.int64, 64)  # (P,) stamp of each place's frame
+        self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
 
@@ -143,7 +144,7 @@ class PlaceRecognizer:
     def place_stamp_ns(self, place_id: int) -> int:
         if not 0 <= place_id < self.num_places:
             raise DataError(f"place id {place_id} out of range [0, {self.num_places})")
-        return self._place_stamps_ns[place_id]
+        return int(self._place_stamps_ns.view()[place_id])
 
     @property
     def memory_bytes(self) -> int:
@@ -184,7 +185,7 @@ class PlaceRecognizer:
         candidates = tuple(
             Candidate(
                 place_id=int(included[k]),
-                stamp_ns=self._place_stamps_ns[int(included[k])],
+                stamp_ns=int(self._place_stamps_ns.view()[included[k]]),
                 probability=float(place_p[k]),
                 log_likelihood=float(place_ll[included[k]]),
             )
@@ -195,7 +196,7 @@ class PlaceRecognizer:
             best = int(order[0])
             loop_closure = Candidate(
                 place_id=int(included[best]),
-                stamp_ns=self._place_stamps_ns[int(included[best])],
+                stamp_ns=int(self._place_stamps_ns.view()[included[best]]),
                 probability=float(place_p[best]),
                 log_likelihood=float(place_ll[included[best]]),
             )
@@ -204,8 +205,8 @@ class PlaceRecognizer:
         wants_place = self.config.add_policy == "all" or loop_closure is None
         if wants_place and self._is_keyframe(words, query_id):
             added = self._engine.add(words)
-            self._place_stamps_ns.append(stamp_ns)
-            self._place_frames.append(query_id)
+            self._place_stamps_ns.extend(np.array([stamp_ns], dtype=np.int64))
+            self._place_frames.extend(np.array([query_id], dtype=np.int64))
         assigned = loop_closure.place_id if loop_closure is not None else added
         return Recognition(
             query_id=query_id,
@@ -221,20 +222,20 @@ class PlaceRecognizer:
 
     def _included(self, query_id: int, stamp_ns: int) -> np.ndarray:
         """(P,) bool: places that are hypotheses for this query (not too recent)."""
-        frames = np.asarray(self._place_frames, dtype=np.int64)
+        frames = self._place_frames.view()
         keep = np.ones(frames.size, dtype=bool)
         if self.config.exclude_recent_frames > 0:
             keep &= query_id - frames > self.config.exclude_recent_frames
         if self.config.exclude_recent_seconds > 0.0:
-            stamps = np.asarray(self._place_stamps_ns, dtype=np.int64)
+            stamps = self._place_stamps_ns.view()
             window_ns = self.config.exclude_recent_seconds * 1e9
             keep &= (stamp_ns - stamps) >= window_ns
         return keep
 
     def _is_keyframe(self, words: np.ndarray, query_id: int) -> bool:
-        if not self._place_frames:
+        if len(self._place_frames) == 0:
             return True
-        since = query_id - self._place_frames[-1]
+        since = query_id - int(self._place_frames.view()[-1])
         if since < self.config.keyframe_min_frames:
             return False
         if self.config.keyframe_max_frames > 0 and since >= self.config.keyframe_max_frames:
@@ -256,8 +257,8 @@ class PlaceRecognizer:
         matrix.sort_indices()
         self._engine.places.add_many(matrix.indptr.astype(np.int64), matrix.indices)
         first = self._next_query_id
-        self._place_frames.extend(range(first, first + matrix.shape[0]))
-        self._place_stamps_ns.extend(int(t) for t in stamps)
+        self._place_frames.extend(np.arange(first, first + matrix.shape[0], dtype=np.int64))
+        self._place_stamps_ns.extend(stamps.astype(np.int64))
         self._next_query_id += matrix.shape[0]
 
     # -- persistence --------------------------------------------------------------------------
@@ -272,8 +273,8 @@ class PlaceRecognizer:
             "vocabulary_size": np.array(self.vocabulary_size, dtype=np.int64),
             "word_indptr": indptr,
             "word_indices": indices,
-            "place_stamps_ns": np.asarray(self._place_stamps_ns, dtype=np.int64),
-            "place_frames": np.asarray(self._place_frames, dtype=np.int64),
+            "place_stamps_ns": self._place_stamps_ns.view().copy(),
+            "place_frames": self._place_frames.view().copy(),
             "next_query_id": np.array(self._next_query_id, dtype=np.int64),
             "previous_posterior": (
                 np.zeros(0) if self._previous_posterior is None else self._previous_posterior
@@ -310,8 +311,8 @@ class PlaceRecognizer:
         state = self._validated_state(path, arrays)
         self._reset()
         self._engine.places.add_many(state["word_indptr"], state["word_indices"])
-        self._place_stamps_ns = state["place_stamps_ns"].tolist()
-        self._place_frames = state["place_frames"].tolist()
+        self._place_stamps_ns.extend(state["place_stamps_ns"].astype(np.int64))
+        self._place_frames.extend(state["place_frames"].astype(np.int64))
         self._next_query_id = int(state["next_query_id"])
         self._previous_posterior = state["previous_posterior"] if bool(state["has_previous_posterior"]) else None
 

@@ -346,7 +346,7 @@ def rows_to_word_ids(
 # Sparse place storage and inverted index
 
 
-class _Growable:
+class GrowableArray:
     """A 1-D numpy buffer with amortised O(1) append (capacity doubling)."""
 
     def __init__(self, dtype: np.dtype | type, capacity: int = 16) -> None:
@@ -391,18 +391,18 @@ class InvertedIndex:
     def __init__(self, model: FabMapModel, dense_min_marginal: float = 0.15, max_dense_words: int = 1024) -> None:
         self._model = model
         vocabulary_size = model.vocabulary_size
-        self._word_data = _Growable(np.int32, 1024)
-        self._word_ptr = _Growable(np.int64, 64)
+        self._word_data = GrowableArray(np.int32, 1024)
+        self._word_ptr = GrowableArray(np.int64, 64)
         self._word_ptr.extend(np.zeros(1, dtype=np.int64))
-        self._defaults = _Growable(np.float64, 64)
-        self._postings: list[_Growable | None] = [None] * vocabulary_size
+        self._defaults = GrowableArray(np.float64, 64)
+        self._postings: list[GrowableArray | None] = [None] * vocabulary_size
         marginal = model.tree.marginal
         by_frequency = np.argsort(-marginal, kind="stable")
         dense = by_frequency[marginal[by_frequency] >= dense_min_marginal][:max_dense_words]
         self._dense_slot = np.full(vocabulary_size, -1, dtype=np.int64)  # word -> bit slot, -1 = posting
         self._dense_slot[dense] = np.arange(dense.size)
         # int16, not uint8: numpy's take() with uint8 indices is several times slower.
-        self._dense_groups = [_Growable(np.int16, 64) for _ in range((dense.size + 7) // 8)]
+        self._dense_groups = [GrowableArray(np.int16, 64) for _ in range((dense.size + 7) // 8)]
 
     @property
     def num_places(self) -> int:
@@ -461,7 +461,7 @@ class InvertedIndex:
         for word, start, end in zip(words.tolist(), starts.tolist(), ends.tolist(), strict=True):
             posting = self._postings[word]
             if posting is None:
-                posting = self._postings[word] = _Growable(np.int32, 2 * (end - start))
+                posting = self._postings[word] = GrowableArray(np.int32, 2 * (end - start))
             posting.extend(sorted_places[start:end])
 
     def scores(self, state: QueryState) -> np.ndarray:
