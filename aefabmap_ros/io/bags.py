@@ -208,6 +208,15 @@ def list_topics(path: Path) -> dict[str, str]:
         reader.close()
 
 
+def message_count(path: Path, topic: str) -> int:
+    """Number of messages on ``topic``, from the bag's metadata (nothing is deserialized)."""
+    reader = _open_reader(path)
+    try:
+        return sum(connection.msgcount for connection in reader.connections if connection.topic == topic)
+    finally:
+        reader.close()
+
+
 def read_messages(
     path: Path, topics: Iterable[str], start_ns: int | None = None, stop_ns: int | None = None
 ) -> Iterator[BagMessage]:

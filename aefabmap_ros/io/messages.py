@@ -3,7 +3,6 @@
 Sequence fields of rclpy messages are ``array.array``; filling them from raw bytes keeps the
 conversion O(bytes) instead of a Python loop per element. Incoming messages are validated here,
 so nodes get a ``DataError`` naming what is inconsistent rather than a crash deep in the core.
-The image helpers are duck-typed and accept rclpy and rosbags messages alike.
 """
 
 from __future__ import annotations
@@ -19,7 +18,6 @@ from std_msgs.msg import Header
 from aefabmap_ros.core import features as core_features
 from aefabmap_ros.core.detector import Candidate, Recognition
 from aefabmap_ros.core.errors import DataError, VocabularyMismatchError
-from aefabmap_ros.core.images import decode_compressed, image_to_gray
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
 
@@ -44,18 +42,6 @@ def time_to_ns(stamp: Any) -> int:
 
 def copy_header(header: Any) -> Header:
     return Header(stamp=Time(sec=header.stamp.sec, nanosec=header.stamp.nanosec), frame_id=header.frame_id)
-
-
-# ---------------------------------------------------------------------------------------- images
-
-
-def image_message_to_gray(message: Any) -> np.ndarray:
-    """``sensor_msgs/Image`` or ``CompressedImage`` (rclpy or rosbags) -> (H, W) uint8."""
-    if hasattr(message, "encoding"):
-        return image_to_gray(
-            bytes(message.data), message.encoding, int(message.height), int(message.width), int(message.step)
-        )
-    return decode_compressed(bytes(message.data), str(getattr(message, "format", "")))
 
 
 # -------------------------------------------------------------------------------------- features

@@ -1,0 +1,120 @@
+"""aefabmap_record: write the suite's outputs (or any topics) to a rosbag2 bag that Foxglove opens.
+
+Subscriptions are raw, so messages are stored as the CDR bytes that arrived, never re-encoded.
+The bag appears at its path only when recording ends cleanly (Ctrl-C, --duration or --idle-timeout).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.io import bags
+
+# The suite's topics and their types; other topics' types are discovered from the graph.
+KNOWN_TYPES = {
+    "loop_closures": "aefabmap_msgs/msg/LoopClosure",
+    "place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
+    "aefabmap/words": "aefabmap_msgs/msg/BagOfWords",
+    "aefabmap/features": "aefabmap_msgs/msg/Features",
+}
+DEFAULT_TOPICS = ("loop_closures", "place_posteriors")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aefabmap_record", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("output", type=Path, help="bag directory to create")
+    parser.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS),
+                        help=f"topics to record (default: {' '.join(DEFAULT_TOPICS)})")
+    parser.add_argument("--storage", choices=sorted(bags.STORAGES), default="mcap")
+    parser.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = no limit)")
+    parser.add_argument("--idle-timeout", type=float, default=0.0,
+                        help="stop once nothing arrived for this many seconds after the first message (0 = never)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    return parser
+
+
+def _normalise(topic: str) -> str:
+    return topic.lstrip("/")
+
+
+def _resolve_type(node: Any, topic: str, timeout_s: float = 5.0) -> str:
+    known = KNOWN_TYPES.get(_normalise(topic))
+    if known is not None:
+        return known
+    import rclpy
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for name, types in node.get_topic_names_and_types():
+            if _normalise(name) == _normalise(topic) and types:
+                return str(types[0])
+        rclpy.spin_once(node, timeout_sec=0.1)
+    raise ConfigError(f"cannot find the type of topic {topic!r}: nothing publishes it")
+
+
+def _message_class(msgtype: str) -> Any:
+    package, _, name = msgtype.split("/")
+    module = __import__(f"{package}.msg", fromlist=[name])
+    return getattr(module, name)
+
+
+def record(args: argparse.Namespace) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    node = rclpy.create_node("aefabmap_record")
+    counts: dict[str, int] = {}
+    last_arrival = [0.0]
+    try:
+        with bags.BagWriter(args.output, storage=args.storage, overwrite=args.overwrite) as writer:
+            for topic in args.topics:
+                msgtype = _resolve_type(node, topic)
+                writer.add_topic(topic, msgtype)
+                counts[topic] = 0
+
+                def on_message(data: bytes, topic: str = topic) -> None:
+                    writer.write(topic, time.time_ns(), data)
+                    counts[topic] += 1
+                    last_arrival[0] = time.monotonic()
+
+                node.create_subscription(_message_class(msgtype), topic, on_message, 100, raw=True)
+            started = time.monotonic()
+            try:
+                while rclpy.ok():
+                    rclpy.spin_once(node, timeout_sec=0.1)
+                    now = time.monotonic()
+                    if args.duration > 0 and now - started >= args.duration:
+                        break
+                    if args.idle_timeout > 0 and last_arrival[0] and now - last_arrival[0] >= args.idle_timeout:
+                        break
+            except (KeyboardInterrupt, ExternalShutdownException):
+                pass
+    finally:
+        node.destroy_node()
+    listing = ", ".join(f"{topic}: {count}" for topic, count in counts.items())
+    print(f"[record] wrote {args.output} ({listing})", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import rclpy
+
+    rclpy.init()
+    try:
+        return record(args)
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

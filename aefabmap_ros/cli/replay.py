@@ -1,0 +1,195 @@
+"""aefabmap_replay: publish a rosbag2 bag's image topic through rclpy (there is no ros2 bag wheel).
+
+Messages go out as the bag's own CDR bytes, with their original header stamps, paced by the bag's
+log times divided by ``--rate``. ``--lockstep TOPIC`` publishes the next image only once the
+pipeline answered the previous one on TOPIC (e.g. place_posteriors), so a replay is lossless and
+its results reproducible on any machine, however slow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.io import bags
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aefabmap_replay", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("bag", type=Path, help="rosbag2 bag directory (mcap or sqlite3)")
+    parser.add_argument("--topic", default="/image", help="image topic in the bag (default: /image)")
+    parser.add_argument("--out-topic", default="image", help="topic to publish on (default: image)")
+    parser.add_argument("--rate", type=float, default=1.0,
+                        help="playback speed factor; 0 = as fast as possible (default: 1.0)")
+    parser.add_argument("--start", type=float, default=0.0, help="skip the first START seconds of the bag")
+    parser.add_argument("--loop", action="store_true",
+                        help="replay forever; each lap's stamps are shifted past the previous lap's")
+    parser.add_argument("--qos", choices=("reliable", "sensor_data"), default="reliable",
+                        help="publisher QoS (default: reliable)")
+    parser.add_argument("--wait-subscribers", type=int, default=1,
+                        help="wait for this many subscribers before starting (default: 1; 0 = don't wait)")
+    parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for subscribers")
+    parser.add_argument("--lockstep", metavar="TOPIC", default="",
+                        help="after each image, wait for one message on TOPIC (e.g. place_posteriors)")
+    parser.add_argument("--lockstep-timeout", type=float, default=10.0,
+                        help="seconds to wait for the lockstep answer before moving on (default: 10)")
+    parser.add_argument("--quiet", action="store_true", help="no per-image progress")
+    return parser
+
+
+def _validate(args: argparse.Namespace) -> None:
+    if args.rate < 0:
+        raise ConfigError(f"--rate must be >= 0, got {args.rate}")
+    if args.start < 0:
+        raise ConfigError(f"--start must be >= 0, got {args.start}")
+    if args.loop and args.lockstep:
+        raise ConfigError("--loop and --lockstep together would never end; choose one")
+
+
+def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
+    """The message with its header stamp moved by ``offset_ns`` (used for --loop laps after the first)."""
+    if offset_ns == 0:
+        return raw
+    typestore = bags.get_typestore()
+    message: Any = typestore.deserialize_cdr(raw, msgtype)
+    message.header.stamp = bags.make_time(bags.stamp_to_ns(message.header.stamp) + offset_ns)
+    return bytes(typestore.serialize_cdr(message, msgtype))
+
+
+def _laps(bag: Path, topic: str, start_ns: int | None, loop: bool) -> Iterator[tuple[int, bags.BagMessage]]:
+    """(lap index, message) for one pass over the bag, or forever with --loop."""
+    lap = 0
+    while True:
+        yielded = False
+        for message in bags.read_messages(bag, [topic], start_ns=start_ns):
+            yielded = True
+            yield lap, message
+        if not loop or not yielded:
+            return
+        lap += 1
+
+
+class Replayer:
+    def __init__(self, args: argparse.Namespace, msgtype: str) -> None:
+        import rclpy
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import CompressedImage, Image
+
+        self.rclpy = rclpy
+        self.args = args
+        self.msgtype = msgtype
+        self.node = rclpy.create_node("aefabmap_replay")
+        msg_class = Image if msgtype == bags.IMAGE_TYPE else CompressedImage
+        qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
+                    else QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self.publisher = self.node.create_publisher(msg_class, args.out_topic, qos)
+        self.answers = 0
+        if args.lockstep:
+            from aefabmap_msgs.msg import PlacePosterior
+
+            self.node.create_subscription(PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
+
+    def _on_answer(self, _message: bytes) -> None:
+        self.answers += 1
+
+    def wait_for_subscribers(self) -> None:
+        wanted = self.args.wait_subscribers
+        deadline = time.monotonic() + self.args.wait_timeout
+        while self.publisher.get_subscription_count() < wanted:
+            if time.monotonic() > deadline:
+                raise AefabmapError(
+                    f"no subscriber on {self.publisher.topic_name} after {self.args.wait_timeout:.0f} s "
+                    f"(wanted {wanted}); is the pipeline running?"
+                )
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+        if self.args.lockstep:  # the answer topic must be connected too, or the first answer is lost
+            self._spin_until(lambda: self.node.count_publishers(self.args.lockstep) > 0, self.args.wait_timeout)
+
+    def _spin_until(self, done: Any, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            self.rclpy.spin_once(self.node, timeout_sec=min(0.05, remaining))
+        return True
+
+    def run(self) -> int:
+        args = self.args
+        start_ns = None
+        first_log_ns: int | None = None
+        if args.start > 0:
+            first_log_ns = next(iter(bags.read_messages(args.bag, [args.topic]))).log_time_ns
+            start_ns = first_log_ns + int(args.start * 1e9)
+        published, missed_answers = 0, 0
+        wall_start = time.monotonic()
+        lap_span_ns, lap_origin_ns = 0, None
+        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop):
+            if lap_origin_ns is None:
+                lap_origin_ns = message.log_time_ns
+            bag_offset_ns = message.log_time_ns - lap_origin_ns
+            lap_span_ns = max(lap_span_ns, bag_offset_ns)
+            elapsed_bag_s = (lap * (lap_span_ns + 1) + bag_offset_ns) / 1e9
+            if args.rate > 0 and not args.lockstep:
+                self._spin_until(lambda t=elapsed_bag_s: time.monotonic() - wall_start >= t / args.rate, 3600.0)
+            stamp_offset_ns = lap * (lap_span_ns + 100_000_000)
+            self.publisher.publish(_restamped(message.raw, self.msgtype, stamp_offset_ns))
+            published += 1
+            if args.lockstep and not self._spin_until(lambda n=published: self.answers >= n, args.lockstep_timeout):
+                missed_answers += 1
+                self.answers = published  # resynchronise: the pipeline dropped this image
+            if not args.quiet and published % 50 == 0:
+                print(f"[replay] {published} images", file=sys.stderr)
+        seconds = time.monotonic() - wall_start
+        summary = f"[replay] published {published} images from {args.bag} {args.topic} in {seconds:.1f} s"
+        if args.lockstep:
+            summary += f" ({missed_answers} without an answer on {args.lockstep})"
+        print(summary, file=sys.stderr)
+        # Let reliable delivery of the last messages complete before the node goes away.
+        self._spin_until(lambda: False, 0.5)
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    raw_argv = sys.argv[1:] if argv is None else argv
+    ros_args: list[str] = []
+    if "--ros-args" in raw_argv:
+        cut = raw_argv.index("--ros-args")
+        raw_argv, ros_args = raw_argv[:cut], raw_argv[cut:]
+    args = parser.parse_args(raw_argv)
+    try:
+        _validate(args)
+        msgtype = bags.require_image_topic(args.bag, args.topic)
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+
+    import rclpy
+
+    rclpy.init(args=["aefabmap_replay", *ros_args])
+    replayer = None
+    try:
+        replayer = Replayer(args, msgtype)
+        if args.wait_subscribers > 0:
+            replayer.wait_for_subscribers()
+        return replayer.run()
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        if replayer is not None:
+            replayer.node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,161 @@
+"""aefabmap_train: recorded bags (or image folders) -> a model directory the nodes load.
+
+    aefabmap_train --bag run1/ --bag run2/ --topic /camera/image_raw --out models/office
+    aefabmap_train --images frames/ --vocabulary kmeans --size 1000 --out models/baseline
+
+Stages: features (cached per input in the work directory) -> vocabulary (autoencoder or k-means;
+the autoencoder checkpoints, so an interrupted run resumes) -> bag-of-words of the training
+images -> Chow-Liu tree -> new-place samples. The model appears at --out only when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.core.features import FeatureConfig, Features
+from aefabmap_ros.core.model import save_model
+from aefabmap_ros.core.training import TrainingConfig, config_digest, extract_sequence_features, train_model
+from aefabmap_ros.core.vocabulary import VocabularyConfig
+from aefabmap_ros.io.config_files import build_config, read_sections
+from aefabmap_ros.io.sources import ImageSource
+
+SECTIONS = {"feature": FeatureConfig, "vocabulary": VocabularyConfig, "training": TrainingConfig}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aefabmap_train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = parser.add_argument_group("training images (one or more bags, or folders)")
+    source.add_argument("--bag", type=Path, action="append", default=[], help="rosbag2 bag (mcap or sqlite3)")
+    source.add_argument("--topic", default="/image", help="image topic in the bags (default: /image)")
+    source.add_argument("--images", type=Path, action="append", default=[], help="folder of image files")
+    parser.add_argument("--out", type=Path, required=True, help="model directory to write")
+    parser.add_argument("--config", type=Path, help="YAML with sections feature:, vocabulary:, training:")
+    parser.add_argument("--vocabulary", choices=("autoencoder", "kmeans"), help="vocabulary kind")
+    parser.add_argument("--size", type=int, help="number of visual words")
+    parser.add_argument("--feature", choices=("sift", "rootsift", "orb", "surf"), help="feature type")
+    parser.add_argument("--max-features", type=int, help="keypoints per image at most")
+    parser.add_argument("--seed", type=int, help="random seed")
+    parser.add_argument("--work-dir", type=Path, help="cache of resumable stages (default: beside --out)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing model directory")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def load_configs(args: argparse.Namespace) -> tuple[FeatureConfig, VocabularyConfig, TrainingConfig]:
+    sections = read_sections(args.config, set(SECTIONS))
+    overrides: dict[str, dict[str, Any]] = {
+        "feature": {"type": args.feature, "max_features": args.max_features},
+        "vocabulary": {"kind": args.vocabulary, "size": args.size, "seed": args.seed},
+        "training": {},
+    }
+    built: list[Any] = []
+    for name, config_type in SECTIONS.items():
+        values = {**sections.get(name, {}), **{k: v for k, v in overrides[name].items() if v is not None}}
+        built.append(build_config(config_type, values, f"{args.config or 'command line'} [{name}]"))
+    feature, vocabulary, training = built
+    assert isinstance(feature, FeatureConfig) and isinstance(vocabulary, VocabularyConfig)
+    assert isinstance(training, TrainingConfig)
+    return feature, vocabulary, training
+
+
+def gather_sources(args: argparse.Namespace) -> list[ImageSource]:
+    sources = [ImageSource(bag=bag, topic=args.topic) for bag in args.bag]
+    sources += [ImageSource(folder=folder) for folder in args.images]
+    if not sources:
+        raise ConfigError("no training images: give --bag (with --topic) or --images")
+    for source in sources:
+        source.check()  # a missing topic or folder fails now, not after an hour of work
+    return sources
+
+
+def check_output(out: Path, overwrite: bool) -> None:
+    if out.exists() and not overwrite:
+        raise ConfigError(f"--out {out} already exists (pass --overwrite to replace it)")
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise ConfigError(f"--out {out}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ConfigError(f"--out {out}: folder {parent} is not writable")
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        for chunk in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def source_provenance(source: ImageSource) -> dict[str, Any]:
+    entry: dict[str, Any] = {"source": source.name, "fingerprint": source.fingerprint()}
+    if source.bag is not None:
+        entry["files"] = {p.name: file_sha256(p) for p in sorted(source.bag.iterdir()) if p.is_file()}
+    return entry
+
+
+def extract_all(sources: list[ImageSource], feature_config: FeatureConfig, work_dir: Path,
+                quiet: bool) -> list[list[Features]]:
+    sequences = []
+    for source in sources:
+        cache = work_dir / f"features-{source.fingerprint()}-{config_digest(feature_config)}.npz"
+        with tqdm(total=len(source), desc=f"features {source.name}", unit="img", disable=quiet,
+                  file=sys.stderr) as bar:
+            frames = (gray for _, gray in source.frames())
+            sequence = extract_sequence_features(frames, feature_config, cache, on_frame=lambda _: bar.update())
+            bar.update(bar.total - bar.n)
+        sequences.append(sequence)
+    return sequences
+
+
+def run(args: argparse.Namespace) -> int:
+    feature_config, vocabulary_config, training_config = load_configs(args)
+    check_output(args.out, args.overwrite)
+    sources = gather_sources(args)
+    work_dir = args.work_dir or args.out.resolve().parent / f".{args.out.name}.work"
+    work_dir.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    sequences = extract_all(sources, feature_config, work_dir, args.quiet)
+    feature_seconds = time.monotonic() - started
+
+    def log(message: str) -> None:
+        if not args.quiet:
+            print(f"[train] {message}", file=sys.stderr)
+
+    provenance = {"sources": [source_provenance(s) for s in sources]}
+    model, report = train_model(sequences, feature_config, vocabulary_config, training_config, provenance,
+                                work_dir=work_dir, progress=not args.quiet, log=log)
+    save_model(args.out, model)
+    seconds = {"features": feature_seconds, **report.seconds}
+    print(f"model {model.model_id} written to {args.out}")
+    print(f"  images: {report.num_images} ({report.images_without_features} without features), "
+          f"descriptors: {report.num_descriptors}, self-supervision pairs: {report.num_pairs}")
+    print(f"  vocabulary: {vocabulary_config.kind}, {model.quantizer.size} words, {report.words_used} used "
+          f"by the training images; Chow-Liu tree: {report.tree_edges} edges")
+    print("  time: " + ", ".join(f"{stage} {value:.1f} s" for stage, value in seconds.items()))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("ERROR: interrupted; rerun the same command to resume from the cached stages", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

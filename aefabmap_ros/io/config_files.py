@@ -1,0 +1,55 @@
+"""YAML config files for the CLIs: sections of flat keys that map onto the core's config dataclasses.
+
+The same dataclasses are the nodes' ROS parameters, so a key means the same thing everywhere. A key
+that no dataclass has is an error naming it (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+from aefabmap_ros.core.errors import ConfigError
+
+ConfigT = TypeVar("ConfigT")
+
+
+def read_sections(path: Path | None, allowed: set[str]) -> dict[str, dict[str, Any]]:
+    """``{section: {key: value}}`` from a YAML file (empty when ``path`` is None)."""
+    if path is None:
+        return {}
+    try:
+        data = yaml.safe_load(Path(path).read_text()) or {}
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+    if not isinstance(data, dict) or any(not isinstance(v, dict) for v in data.values()):
+        raise ConfigError(f"config file {path} must map section names to key/value mappings")
+    unknown = set(data) - allowed
+    if unknown:
+        raise ConfigError(f"config file {path}: unknown section(s) {sorted(unknown)}; known: {sorted(allowed)}")
+    return data
+
+
+def build_config(config_type: type[ConfigT], values: dict[str, Any], origin: str) -> ConfigT:
+    """``config_type(**values)`` with unknown keys reported by name and ints accepted for floats."""
+    if not dataclasses.is_dataclass(config_type):
+        raise TypeError(f"{config_type!r} is not a dataclass")
+    fields = {f.name: f for f in dataclasses.fields(config_type)}
+    unknown = set(values) - set(fields)
+    if unknown:
+        raise ConfigError(f"{origin}: unknown key(s) {sorted(unknown)}; known: {sorted(fields)}")
+    defaults: Any = config_type()
+    coerced = {}
+    for key, value in values.items():
+        default = getattr(defaults, key)
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if type(value) is not type(default):
+            raise ConfigError(f"{origin}: {key}={value!r} must be a {type(default).__name__}")
+        coerced[key] = value
+    return config_type(**coerced)

@@ -1,0 +1,115 @@
+"""fabmap_node: ``aefabmap/words`` -> ``loop_closures`` and ``place_posteriors`` (FAB-MAP 2).
+
+Keeps the map of places; saves it atomically every ``save_period_s`` (when it changed) and on
+shutdown, and reloads it on start, so a restart loses no saved place. A map made with another
+vocabulary is refused at start-up rather than silently mixed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from aefabmap_msgs.msg import BagOfWords, LoopClosure, PlacePosterior
+from rclpy.node import Node
+
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.detector import PlaceRecognizer
+from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.model import load_model
+from aefabmap_ros.io.messages import (
+    message_to_word_ids,
+    recognition_to_loop_closure,
+    recognition_to_posterior,
+    time_to_ns,
+)
+from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, pipeline_qos, run_node
+
+
+class FabMapNode(Node):
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("fabmap_node", **node_kwargs)
+        model_dir = declare_parameter(self, "model_dir", "", "Model directory (from aefabmap_train). Required.")
+        map_file = declare_parameter(
+            self, "map_file", "", "File the map of places is saved to and reloaded from ('' = keep it in memory only)."
+        )
+        save_period_s = declare_parameter(
+            self, "save_period_s", 10.0, "Save the map this often when it changed (seconds; 0 = only on shutdown)."
+        )
+        depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the words subscription.")
+        config = declare_config(self, FabMapConfig)
+        if not model_dir:
+            raise ConfigError("fabmap_node: parameter model_dir is required (a directory made by aefabmap_train)")
+        model = load_model(model_dir)
+        if model.tree_matrix is None or model.new_place_samples is None:
+            raise ModelError(f"parameter model_dir={model_dir!r}: the model has no Chow-Liu tree / new-place samples")
+        self.vocabulary_id = model.model_id
+        self.vocabulary_size = model.quantizer.size
+        self.recognizer = PlaceRecognizer(
+            ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.model_id
+        )
+        self.map_path = Path(map_file) if map_file else None
+        if self.map_path is not None and self.map_path.exists():
+            self.recognizer.load_map(self.map_path)
+            self.get_logger().info(f"reloaded {self.recognizer.num_places} places from {self.map_path}")
+        # Frames at or before the newest saved place are already in the map: replaying them after a
+        # restart must not add them twice.
+        places = self.recognizer.num_places
+        self.last_stamp_ns = self.recognizer.place_stamp_ns(places - 1) if places else -1
+        self.unsaved_changes = False
+        self.counter = DropCounter(self)
+        self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
+        self.loop_publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
+        self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
+        if self.map_path is not None and save_period_s > 0:
+            self.create_timer(save_period_s, self._save_if_changed)
+        self.get_logger().info(
+            f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "
+            f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
+        )
+
+    def _on_words(self, message: BagOfWords) -> None:
+        stamp_ns = time_to_ns(message.header.stamp)
+        if stamp_ns <= self.last_stamp_ns:
+            self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns")
+            return
+        try:
+            word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)
+            recognition = self.recognizer.process(word_ids, stamp_ns)
+        except AefabmapError as exc:
+            self.counter.drop(type(exc).__name__, str(exc))
+            return
+        self.last_stamp_ns = stamp_ns
+        self.unsaved_changes = True
+        self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
+        loop_closure = recognition_to_loop_closure(recognition, message.header)
+        if loop_closure is not None:
+            self.loop_publisher.publish(loop_closure)
+            self.counter.ok("loop_closures")
+            self.get_logger().info(
+                f"loop closure: query {recognition.query_id} -> place {loop_closure.matched_place_id} "
+                f"(p={loop_closure.probability:.4f})"
+            )
+        self.counter.ok()
+
+    def _save_if_changed(self) -> None:
+        if self.map_path is None or not self.unsaved_changes:
+            return
+        try:
+            self.recognizer.save_map(self.map_path)
+            self.unsaved_changes = False
+        except (AefabmapError, OSError) as exc:
+            self.get_logger().error(f"cannot save map to {self.map_path}: {exc}", throttle_duration_sec=30.0)
+
+    def close(self) -> None:
+        self._save_if_changed()
+        self.get_logger().info(f"fabmap_node: {self.recognizer.num_places} places; {self.counter.summary()}")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(FabMapNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

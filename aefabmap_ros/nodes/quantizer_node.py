@@ -1,0 +1,66 @@
+"""quantizer_node: ``aefabmap/features`` -> ``aefabmap/words`` with the model's vocabulary."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from aefabmap_msgs.msg import BagOfWords, Features
+from rclpy.node import Node
+
+from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.core.model import load_model
+from aefabmap_ros.core.vocabulary import bag_of_words
+from aefabmap_ros.io.messages import bag_of_words_to_message, message_to_features
+from aefabmap_ros.nodes.common import DropCounter, declare_parameter, pipeline_qos, run_node
+
+
+class QuantizerNode(Node):
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("quantizer_node", **node_kwargs)
+        model_dir = declare_parameter(self, "model_dir", "", "Model directory (from aefabmap_train). Required.")
+        depth = declare_parameter(self, "queue_depth", 100, "Queue depth of subscriptions and publications.")
+        if not model_dir:
+            raise ConfigError("quantizer_node: parameter model_dir is required (a directory made by aefabmap_train)")
+        model = load_model(model_dir)  # at start-up, never in a callback
+        self.quantizer = model.quantizer
+        self.vocabulary_id = model.model_id
+        self.descriptor_type = model.feature_config.type
+        self.counter = DropCounter(self)
+        self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))
+        self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        self.get_logger().info(
+            f"quantizing {self.descriptor_type} features into {self.quantizer.size} {self.quantizer.kind} words "
+            f"(vocabulary {self.vocabulary_id})"
+        )
+
+    def _on_features(self, message: Features) -> None:
+        if message.descriptor_type != self.descriptor_type:
+            self.counter.drop(
+                "wrong_descriptor_type",
+                f"got {message.descriptor_type!r} features, the vocabulary is for {self.descriptor_type!r}",
+            )
+            return
+        try:
+            features = message_to_features(message)
+            keypoint_words = self.quantizer.quantize(features.descriptors)
+            word_ids, counts = bag_of_words(keypoint_words, self.quantizer.size)
+        except AefabmapError as exc:
+            self.counter.drop("bad_features", str(exc))
+            return
+        self.publisher.publish(bag_of_words_to_message(
+            message.header, self.vocabulary_id, self.quantizer.size, word_ids, counts,
+            keypoint_words.astype(np.int32),
+        ))
+        self.counter.ok()
+
+    def close(self) -> None:
+        self.get_logger().info(f"quantizer_node: {self.counter.summary()}")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(QuantizerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
