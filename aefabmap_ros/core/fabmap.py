@@ -384,14 +384,15 @@ class InvertedIndex:
     are kept as bits instead of postings: a place holds one bit per frequent word, packed 8 to a
     group, and a query adds, per byte column, a 256-entry table of its corrections (one lookup per
     place per 8 frequent words instead of one scattered add per place holding each word). Memory
-    is proportional to the number of stored (place, word) pairs: int32 word ids, int32 postings
+    is proportional to the number of stored (place, word) pairs: uint16/int32 word ids, int32 postings
     (amortised doubling), one float64 default and ``max_dense_words / 8`` bytes per place.
     """
 
     def __init__(self, model: FabMapModel, dense_min_marginal: float = 0.15, max_dense_words: int = 1024) -> None:
         self._model = model
         vocabulary_size = model.vocabulary_size
-        self._word_data = GrowableArray(np.int32, 1024)
+        # Word ids of each place (for persistence and keyframing): 2 bytes each when V fits.
+        self._word_data = GrowableArray(np.uint16 if vocabulary_size <= 2**16 else np.int32, 1024)
         self._word_ptr = GrowableArray(np.int64, 64)
         self._word_ptr.extend(np.zeros(1, dtype=np.int64))
         self._defaults = GrowableArray(np.float64, 64)
@@ -418,8 +419,8 @@ class InvertedIndex:
         return self._word_data.view()[ptr[index] : ptr[index + 1]].astype(np.int64)
 
     def word_csr(self) -> tuple[np.ndarray, np.ndarray]:
-        """(indptr (P + 1,) int64, indices int32) of all places' words."""
-        return self._word_ptr.view().copy(), self._word_data.view().copy()
+        """(indptr (P + 1,) int64, indices int64) of all places' words."""
+        return self._word_ptr.view().copy(), self._word_data.view().astype(np.int64)
 
     def add(self, word_ids: np.ndarray) -> int:
         """Append one place (validated sorted unique word ids); returns its index."""
@@ -436,7 +437,7 @@ class InvertedIndex:
         place_of = np.repeat(np.arange(first, first + n_new, dtype=np.int64), counts)
         defaults = np.bincount(place_of - first, weights=self._model.d1[indices], minlength=n_new)
         self._defaults.extend(defaults.astype(np.float64))
-        self._word_data.extend(indices.astype(np.int32))
+        self._word_data.extend(indices.astype(self._word_data.view().dtype))
         self._word_ptr.extend(self._word_ptr.view()[-1] + np.cumsum(counts))
         slots = self._dense_slot[indices]
         if self._dense_groups:
@@ -461,7 +462,7 @@ class InvertedIndex:
         for word, start, end in zip(words.tolist(), starts.tolist(), ends.tolist(), strict=True):
             posting = self._postings[word]
             if posting is None:
-                posting = self._postings[word] = GrowableArray(np.int32, 2 * (end - start))
+                posting = self._postings[word] = GrowableArray(np.int32, end - start)
             posting.extend(sorted_places[start:end])
 
     def scores(self, state: QueryState) -> np.ndarray:
