@@ -281,11 +281,12 @@ def learn_chow_liu_tree(
     """Learn a Chow-Liu tree from a training bag-of-words (N images x V words; value > 0 = present).
 
     ``lower_info_bound``: edges carrying less information (nats) are not used (openFABMAP's
-    LowerInfoBound); if that disconnects the words, the result is a forest (see module doc).
+    LowerInfoBound); if that disconnects the words, the result is a forest (see module doc);
+    ``-inf`` keeps every pair (always a spanning tree).
     ``floor``: additive smoothing, every probability is ``(1 - 2 floor) * frequency + floor``.
     """
-    if not np.isfinite(lower_info_bound):
-        raise DataError(f"lower_info_bound must be finite, got {lower_info_bound!r}")
+    if np.isnan(lower_info_bound) or lower_info_bound == np.inf:
+        raise DataError(f"lower_info_bound must be a number below +inf, got {lower_info_bound!r}")
     if not 0.0 < floor < 0.5:
         raise DataError(f"floor must be in (0, 0.5), got {floor!r}")
     present = binarize_bow(bow)
