@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,3 +37,45 @@ def running(*argv: str | Path) -> Iterator[subprocess.Popen[str]]:
         for stream in (process.stdout, process.stderr):
             if stream is not None:
                 stream.close()
+
+
+class LoggedProcess:
+    """``python -m module args...`` with output to a log file; always stopped and reaped on exit."""
+
+    def __init__(self, log_path: Path, module: str, *args: str | Path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open("w")
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", module, *map(str, args)], stdout=self._log, stderr=subprocess.STDOUT, text=True
+        )
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def wait_for_log(self, text: str, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while text not in self.log():
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"{text!r} not in log of {self.process.args} (exit {self.process.poll()}):\n"
+                                     f"{self.log()[-3000:]}")
+            time.sleep(0.1)
+
+    def wait(self, timeout_s: float) -> int:
+        return self.process.wait(timeout=timeout_s)
+
+    def stop(self, sig: int = signal.SIGINT, timeout_s: float = 20.0) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+            try:
+                self.process.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout=10)
+        return self.process.returncode
+
+    def __enter__(self) -> LoggedProcess:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.stop(signal.SIGKILL)
+        self._log.close()

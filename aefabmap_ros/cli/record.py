@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--idle-timeout", type=float, default=0.0,
                         help="stop once nothing arrived for this many seconds after the first message (0 = never)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    parser.add_argument("--wait-publishers", type=float, default=0.0,
+                        help="before reporting 'recording', wait up to this many seconds for every topic to have "
+                        "a publisher (default: 0 = don't wait)")
     return parser
 
 
@@ -56,6 +59,18 @@ def _resolve_type(node: Any, topic: str, timeout_s: float = 5.0) -> str:
                 return str(types[0])
         rclpy.spin_once(node, timeout_sec=0.1)
     raise ConfigError(f"cannot find the type of topic {topic!r}: nothing publishes it")
+
+
+def _wait_for_publishers(node: Any, topics: list[str], timeout_s: float) -> None:
+    """Give discovery time to connect us to every topic's publisher, so the first messages are kept."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if all(node.count_publishers(topic) > 0 for topic in topics):
+            rclpy.spin_once(node, timeout_sec=0.3)  # let the publishers' side of the match complete
+            return
+        rclpy.spin_once(node, timeout_sec=0.1)
 
 
 def _message_class(msgtype: str) -> Any:
@@ -84,6 +99,8 @@ def record(args: argparse.Namespace) -> int:
                     last_arrival[0] = time.monotonic()
 
                 node.create_subscription(_message_class(msgtype), topic, on_message, 100, raw=True)
+            _wait_for_publishers(node, args.topics, args.wait_publishers)
+            print(f"[record] recording {' '.join(args.topics)}", file=sys.stderr, flush=True)
             started = time.monotonic()
             try:
                 while rclpy.ok():

@@ -1,0 +1,168 @@
+"""Nodes in this process, callbacks called directly: bad input is counted and dropped, good input published."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+msg = pytest.importorskip("aefabmap_msgs.msg")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
+
+from aefabmap_ros.core.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
+from aefabmap_ros.io.sources import ImageSource  # noqa: E402
+from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
+from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
+from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
+from test.nodes.conftest import RevisitData  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ros_context() -> Iterator[None]:
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+class Captured:
+    """Replaces a publisher's publish() to keep what the node sends."""
+
+    def __init__(self, publisher: Any) -> None:
+        self.messages: list[Any] = []
+        publisher.publish = self.messages.append
+
+
+def _params(**values: Any) -> list[Parameter]:
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def _image(data: bytes, encoding: str, height: int, width: int, step: int, sec: int = 1) -> Image:
+    image = Image(height=height, width=width, encoding=encoding, step=step, data=data)
+    image.header.stamp = Time(sec=sec)
+    return image
+
+
+def _first_frames(data: RevisitData, count: int) -> list[np.ndarray]:
+    frames = ImageSource(bag=data.bag, topic="/image").frames()
+    return [gray for _, (_, gray) in zip(range(count), frames, strict=False)]
+
+
+def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) -> None:
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        out = Captured(node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        height, width = gray.shape
+        node._on_image(_image(gray.tobytes(), "mono8", height, width, width))
+        bgr = np.repeat(gray[:, :, None], 3, axis=2)
+        node._on_image(_image(bgr.tobytes(), "bgr8", height, width, 3 * width))
+        assert len(out.messages) == 2
+        assert out.messages[0].descriptor_type == "sift"
+        assert 0 < len(out.messages[0].x) <= 300  # the model's max_features, not the parameter default
+        assert len(out.messages[0].float_descriptors) == 128 * len(out.messages[0].x)
+
+        node._on_image(_image(b"\0" * 12, "yuv420_weird", 2, 2, 6))  # unsupported encoding
+        node._on_image(_image(b"\0" * 5, "mono8", 2, 3, 3))  # data shorter than step * height
+        node._on_image(_image(b"", "mono8", 0, 0, 0))  # zero-sized
+        node._on_image(CompressedImage(format="jpeg", data=b"\xff\xd8 not a jpeg"))
+        assert node.counter.counts["dropped_bad_image"] == 4
+        assert len(out.messages) == 2
+
+        blank = np.full((120, 160), 128, np.uint8)  # no features: still published, keeps its frame
+        node._on_image(_image(blank.tobytes(), "mono8", 120, 160, 160, sec=9))
+        assert len(out.messages) == 3 and len(out.messages[2].x) == 0
+        assert out.messages[2].header.stamp.sec == 9
+        assert node.counter.counts["images_without_features"] == 1
+    finally:
+        node.destroy_node()
+
+
+def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> None:
+    feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        features_out, words_out = Captured(feature_node.publisher), Captured(node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        feature_node._on_image(_image(gray.tobytes(), "mono8", *gray.shape, gray.shape[1]))
+        features = features_out.messages[0]
+        node._on_features(features)
+        words = words_out.messages[0]
+        assert words.vocabulary_id == revisit_data.model_id and words.vocabulary_size == 400
+        ids = np.asarray(words.word_ids)
+        assert ids.size > 0 and np.all(np.diff(ids) > 0) and ids.max() < 400
+        assert sum(words.counts) == len(features.x) == len(words.keypoint_words)
+
+        orb = msg.Features(descriptor_type="orb", descriptor_length=32)
+        node._on_features(orb)
+        broken = msg.Features(descriptor_type="sift", descriptor_length=128, x=[1.0], y=[1.0], size=[1.0],
+                              angle=[0.0], response=[1.0], float_descriptors=[0.0] * 10)
+        node._on_features(broken)
+        assert node.counter.counts["dropped_wrong_descriptor_type"] == 1
+        assert node.counter.counts["dropped_bad_features"] == 1
+        assert len(words_out.messages) == 1
+    finally:
+        feature_node.destroy_node()
+        node.destroy_node()
+
+
+def _words(word_ids: list[int], sec: int, vocabulary_id: str, size: int = 400) -> Any:
+    message = msg.BagOfWords(vocabulary_id=vocabulary_id, vocabulary_size=size, word_ids=word_ids,
+                             counts=[1] * len(word_ids))
+    message.header.stamp = Time(sec=sec)
+    return message
+
+
+def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitData, tmp_path: Path) -> None:
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                  map_file=str(tmp_path / "map.npz")))
+    try:
+        posteriors = Captured(node.posterior_publisher)
+        vid = revisit_data.model_id
+        node._on_words(_words([1, 5, 9], 10, vid))
+        node._on_words(_words([1, 5, 9], 10, vid))  # same stamp again
+        node._on_words(_words([2, 3], 5, vid))  # older stamp
+        node._on_words(_words([2, 3], 11, "another-vocabulary"))
+        node._on_words(_words([2, 3], 12, vid, size=1000))
+        node._on_words(_words([3, 400], 13, vid))  # word id out of range
+        node._on_words(_words([], 14, vid))  # an image without words still counts as a frame
+        counts = node.counter.counts
+        assert counts["dropped_out_of_order"] == 2
+        assert counts["dropped_VocabularyMismatchError"] == 2
+        assert counts["dropped_DataError"] == 1
+        assert [p.query_id for p in posteriors.messages] == [0, 1]
+        assert node.recognizer.num_places == 2
+        node.close()  # saves the map
+        assert (tmp_path / "map.npz").exists()
+    finally:
+        node.destroy_node()
+
+
+def test_fabmap_node_start_up_errors(revisit_data: RevisitData, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="model_dir is required"):
+        FabMapNode()
+    with pytest.raises(ModelError, match="nope"):
+        FabMapNode(parameter_overrides=_params(model_dir=str(tmp_path / "nope")))
+    with pytest.raises(ConfigError, match="match_threshold"):
+        FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), match_threshold=2.0))
+    with pytest.raises(ConfigError, match="'smoothing'"):
+        FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), smoothing="high"))
+    foreign_map = tmp_path / "foreign.npz"
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(foreign_map)))
+    node._on_words(_words([1, 2], 1, revisit_data.model_id))
+    node.close()
+    node.destroy_node()
+    data = dict(np.load(foreign_map, allow_pickle=False))
+    data["vocabulary_id"] = np.array("0123456789abcdef")  # as if saved by a node with another model
+    other = tmp_path / "other.npz"
+    np.savez(other, **data)
+    with pytest.raises(VocabularyMismatchError, match="0123456789abcdef"):
+        FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(other)))

@@ -1,0 +1,143 @@
+"""The suite as users run it: separate OS processes, a bag replayed through rclpy, results recorded.
+
+Every replay is in lockstep with ``place_posteriors``, so no image is dropped however loaded the
+machine is, and the results are deterministic.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("aefabmap_msgs.msg")
+
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.detector import PlaceRecognizer
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.model import load_model
+from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from test.nodes.conftest import FRAMES_PER_PASS, RevisitData
+from test.ros_processes import LoggedProcess
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+PARAMS = """
+fabmap_node:
+  ros__parameters:
+    exclude_recent_frames: 5
+    save_period_s: 0.2
+feature_node:
+  ros__parameters:
+    image_qos: reliable
+"""
+
+
+def _params_file(tmp_path: Path) -> Path:
+    path = tmp_path / "params.yaml"
+    path.write_text(PARAMS)
+    return path
+
+
+def _replay(tmp_path: Path, bag: Path, name: str) -> None:
+    with LoggedProcess(tmp_path / f"{name}.log", "aefabmap_ros.cli.replay", bag, "--topic", "/image",
+                       "--lockstep", "place_posteriors", "--quiet", "--wait-timeout", "60") as replay:
+        assert replay.wait(timeout_s=240) == 0, replay.log()
+        assert "0 without an answer" in replay.log(), replay.log()
+
+
+def _record_replay(tmp_path: Path, bag: Path, name: str) -> list[tuple[int, int, float]]:
+    """Replay ``bag`` with a recorder running; (query stamp, matched stamp, probability) per closure."""
+    recording = tmp_path / f"{name}_recording"
+    with LoggedProcess(tmp_path / f"{name}_record.log", "aefabmap_ros.cli.record", recording, "--topics",
+                       "loop_closures", "place_posteriors", "--wait-publishers", "60") as recorder:
+        recorder.wait_for_log("[record] recording", timeout_s=90)
+        _replay(tmp_path, bag, name)
+        assert recorder.stop(signal.SIGINT) == 0, recorder.log()
+    posteriors = list(read_messages(recording, ["place_posteriors"]))
+    assert len(posteriors) > 0
+    return [
+        (m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability))
+        for m in read_messages(recording, ["loop_closures"])
+    ]
+
+
+def _frame_of(data: RevisitData, stamp_ns: int) -> int:
+    index = int(np.searchsorted(data.stamps_ns, stamp_ns))
+    assert data.stamps_ns[index] == stamp_ns, f"stamp {stamp_ns} is no frame of the bag"
+    return index
+
+
+def _assert_true_revisits(data: RevisitData, closures: list[tuple[int, int, float]], minimum: int) -> None:
+    pairs = [(_frame_of(data, query), _frame_of(data, matched)) for query, matched, _ in closures]
+    wrong = [(q, m) for q, m in pairs if not data.gt[q, m]]
+    assert not wrong, f"loop closures that are not revisits (query frame, matched frame): {wrong}"
+    assert len(pairs) >= minimum, f"only {len(pairs)} loop closures: {pairs}"
+    assert all(probability > 0.99 for _, _, probability in closures)
+
+
+def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool) -> list[tuple[int, int, float]]:
+    name = "pipeline" if pipeline else "nodes"
+    launch_args = ["--model", data.model_dir, "--params", _params_file(tmp_path)] + (["--pipeline"] if pipeline else [])
+    with LoggedProcess(tmp_path / f"{name}_launch.log", "aefabmap_ros.cli.launch", *launch_args) as suite:
+        closures = _record_replay(tmp_path, data.bag, name)
+        assert suite.stop(signal.SIGINT) == 0, suite.log()
+    assert "fabmap_node: 32 places" in suite.log(), suite.log()[-3000:]
+    return closures
+
+
+def test_nodes_publish_true_loop_closures_and_pipeline_agrees(tmp_path: Path, revisit_data: RevisitData) -> None:
+    """Separate node processes close the revisits correctly; the one-process pipeline gives the same."""
+    (tmp_path / "separate").mkdir()
+    (tmp_path / "together").mkdir()
+    separate = _run_suite(tmp_path / "separate", revisit_data, pipeline=False)
+    _assert_true_revisits(revisit_data, separate, minimum=FRAMES_PER_PASS * 3 // 4)
+    together = _run_suite(tmp_path / "together", revisit_data, pipeline=True)
+    assert [(q, m) for q, m, _ in together] == [(q, m) for q, m, _ in separate]
+    np.testing.assert_allclose([p for *_, p in together], [p for *_, p in separate], rtol=1e-12)
+
+
+def _wait_until(condition: Callable[[], bool], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.1)
+
+
+def _places_in(map_path: Path, data: RevisitData) -> int:
+    model = load_model(data.model_dir)
+    assert model.tree_matrix is not None
+    recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
+                                 FabMapConfig(), model.model_id)
+    recognizer.load_map(map_path)
+    return recognizer.num_places
+
+
+def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path, revisit_data: RevisitData) -> None:
+    map_path = tmp_path / "map.npz"
+    common = ["--ros-args", "--params-file", _params_file(tmp_path), "-p", f"model_dir:={revisit_data.model_dir}"]
+    fabmap_args = [*common, "-p", f"map_file:={map_path}"]
+    with LoggedProcess(tmp_path / "feature.log", "aefabmap_ros.nodes.feature_node", *common) as features, \
+            LoggedProcess(tmp_path / "quantizer.log", "aefabmap_ros.nodes.quantizer_node", *common) as quantizer:
+        with LoggedProcess(tmp_path / "fabmap1.log", "aefabmap_ros.nodes.fabmap_node", *fabmap_args) as fabmap:
+            fabmap.wait_for_log("FAB-MAP 2 on vocabulary", timeout_s=60)
+            _replay(tmp_path, revisit_data.first_pass_bag, "first")
+            _wait_until(lambda: map_path.exists() and _places_in(map_path, revisit_data) == FRAMES_PER_PASS,
+                        timeout_s=10)  # the periodic save (every 0.2 s) has caught up
+            fabmap.stop(signal.SIGKILL)  # no shutdown hook: only what was saved survives
+        assert _places_in(map_path, revisit_data) == FRAMES_PER_PASS
+
+        with LoggedProcess(tmp_path / "fabmap2.log", "aefabmap_ros.nodes.fabmap_node", *fabmap_args) as fabmap:
+            fabmap.wait_for_log(f"reloaded {FRAMES_PER_PASS} places", timeout_s=60)
+            closures = _record_replay(tmp_path, revisit_data.second_pass_bag, "second")
+            assert fabmap.stop(signal.SIGINT) == 0, fabmap.log()
+        # The second pass closes loops with places made before the restart.
+        _assert_true_revisits(revisit_data, closures, minimum=FRAMES_PER_PASS * 3 // 4)
+        assert all(_frame_of(revisit_data, matched) < FRAMES_PER_PASS for _, matched, _ in closures)
+        assert _places_in(map_path, revisit_data) == 2 * FRAMES_PER_PASS
+        assert features.stop() == 0 and quantizer.stop() == 0
