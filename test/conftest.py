@@ -11,6 +11,9 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
+# The revisit model and bags, shared by node and CLI tests.
+pytest_plugins = ["test.revisit_fixture"]
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # `shared/` sits beside the checkout (CI: a clean clone with ../shared next to it).
 SHARED_DIR = REPO_ROOT.parent / "shared"

@@ -21,7 +21,7 @@ from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
-from test.nodes.conftest import RevisitData  # noqa: E402
+from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -166,3 +166,21 @@ def test_fabmap_node_start_up_errors(revisit_data: RevisitData, tmp_path: Path) 
     np.savez(other, **data)
     with pytest.raises(VocabularyMismatchError, match="0123456789abcdef"):
         FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(other)))
+
+
+def test_shipped_parameter_file_matches_declared_parameters(revisit_data: RevisitData) -> None:
+    """config/aefabmap.yaml names exactly the parameters each node declares, with valid values."""
+    import yaml
+
+    from test.conftest import REPO_ROOT
+
+    shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
+    for node_class in (FeatureNode, QuantizerNode, FabMapNode):
+        values = dict(shipped[node_class.__name__.replace("Node", "").lower() + "_node"]["ros__parameters"])
+        values["model_dir"] = str(revisit_data.model_dir)  # the file leaves it for the user to set
+        node = node_class(parameter_overrides=_params(**values))
+        try:
+            declared = set(node._parameters) - {"use_sim_time", "start_type_description_service"}
+            assert declared == set(values), f"{node.get_name()}: {declared ^ set(values)}"
+        finally:
+            node.destroy_node()

@@ -22,7 +22,7 @@ from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
-from test.nodes.conftest import FRAMES_PER_PASS, RevisitData
+from test.revisit_fixture import FRAMES_PER_PASS, RevisitData
 from test.ros_processes import LoggedProcess
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

@@ -1,0 +1,67 @@
+"""Error paths of aefabmap_replay, aefabmap_record and aefabmap_launch (their happy paths run in test/nodes)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.cli import launch, record, replay
+from aefabmap_ros.io.bags import write_image_bag
+
+
+def _bag(tmp_path: Path) -> Path:
+    path = tmp_path / "bag"
+    write_image_bag(path, "/cam", [(1, np.zeros((4, 4), np.uint8))])
+    return path
+
+
+def test_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = _bag(tmp_path)
+    cases = [
+        ([str(tmp_path / "nope")], "does not exist"),
+        ([str(bag), "--topic", "/image"], "'/image' not in bag"),
+        ([str(bag), "--topic", "/cam", "--rate", "-1"], "--rate must be >= 0"),
+        ([str(bag), "--topic", "/cam", "--loop", "--lockstep", "place_posteriors"], "never end"),
+    ]
+    for argv, message in cases:
+        assert replay.main(argv) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("ERROR: ") and message in err, err
+
+
+def test_replay_restamps_later_laps() -> None:
+    from aefabmap_ros.io.bags import get_typestore, make_image_message, stamp_to_ns
+
+    typestore = get_typestore()
+    raw = bytes(typestore.serialize_cdr(make_image_message(np.zeros((2, 2), np.uint8), 5_000), "sensor_msgs/msg/Image"))
+    assert replay._restamped(raw, "sensor_msgs/msg/Image", 0) == raw
+    moved = typestore.deserialize_cdr(replay._restamped(raw, "sensor_msgs/msg/Image", 7_000), "sensor_msgs/msg/Image")
+    assert stamp_to_ns(moved.header.stamp) == 12_000
+
+
+@pytest.mark.ros
+def test_record_refuses_existing_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("rclpy")
+    bag = _bag(tmp_path)
+    assert record.main([str(bag), "--duration", "0.1"]) == 1
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_launch_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert launch.main(["--model", str(tmp_path / "none")]) == 1
+    assert "is not a directory" in capsys.readouterr().err
+    assert launch.main(["--model", str(tmp_path), "--params", str(tmp_path / "p.yaml")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_launch_commands_pass_parameters_to_every_node(tmp_path: Path) -> None:
+    args = launch.build_parser().parse_args(["--model", str(tmp_path), "--map", "m.npz", "--image-topic", "/cam"])
+    commands = launch.node_commands(args)
+    assert [c[2] for c in commands] == [f"aefabmap_ros.nodes.{n}" for n in launch.NODES]
+    for command in commands:
+        assert f"model_dir:={tmp_path}" in command and "--params-file" in command
+    assert "image:=/cam" in commands[0] and "map_file:=m.npz" in commands[2]
+    single = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), "--pipeline"]))
+    assert len(single) == 1 and single[0][2] == "aefabmap_ros.nodes.pipeline"
