@@ -56,7 +56,7 @@ class LoggedProcess:
         deadline = time.monotonic() + timeout_s
         while text not in self.log():
             if self.process.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"{text!r} not in log of {self.process.args} (exit {self.process.poll()}):\n"
+                raise AssertionError(f"{text!r} not in log of {self.process.args!r} (exit {self.process.poll()}):\n"
                                      f"{self.log()[-3000:]}")
             time.sleep(0.1)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -37,7 +38,8 @@ def test_replay_restamps_later_laps() -> None:
     typestore = get_typestore()
     raw = bytes(typestore.serialize_cdr(make_image_message(np.zeros((2, 2), np.uint8), 5_000), "sensor_msgs/msg/Image"))
     assert replay._restamped(raw, "sensor_msgs/msg/Image", 0) == raw
-    moved = typestore.deserialize_cdr(replay._restamped(raw, "sensor_msgs/msg/Image", 7_000), "sensor_msgs/msg/Image")
+    restamped = replay._restamped(raw, "sensor_msgs/msg/Image", 7_000)
+    moved: Any = typestore.deserialize_cdr(restamped, "sensor_msgs/msg/Image")
     assert stamp_to_ns(moved.header.stamp) == 12_000
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,7 +27,8 @@ def test_trains_a_model_the_nodes_load(tmp_path: Path, revisit_data: RevisitData
     assert model.quantizer.size == 40 and model.feature_config.max_features == 150
     assert model.tree_matrix is not None and model.tree_matrix.shape == (4, 40)
     assert model.new_place_samples is not None and model.new_place_samples.shape == (16, 40)
-    assert model.provenance["sources"][0]["files"]  # bag file hashes recorded
+    sources: Any = model.provenance["sources"]
+    assert sources[0]["files"]  # bag file hashes recorded
 
     rclpy = pytest.importorskip("rclpy")
     from rclpy.parameter import Parameter

@@ -92,7 +92,8 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> Non
     try:
         features_out, words_out = Captured(feature_node.publisher), Captured(node.publisher)
         gray = _first_frames(revisit_data, 1)[0]
-        feature_node._on_image(_image(gray.tobytes(), "mono8", *gray.shape, gray.shape[1]))
+        height, width = gray.shape
+        feature_node._on_image(_image(gray.tobytes(), "mono8", height, width, width))
         features = features_out.messages[0]
         node._on_features(features)
         words = words_out.messages[0]

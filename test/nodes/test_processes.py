@@ -83,7 +83,9 @@ def _assert_true_revisits(data: RevisitData, closures: list[tuple[int, int, floa
 
 def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool) -> list[tuple[int, int, float]]:
     name = "pipeline" if pipeline else "nodes"
-    launch_args = ["--model", data.model_dir, "--params", _params_file(tmp_path)] + (["--pipeline"] if pipeline else [])
+    launch_args: list[str | Path] = ["--model", data.model_dir, "--params", _params_file(tmp_path)]
+    if pipeline:
+        launch_args.append("--pipeline")
     with LoggedProcess(tmp_path / f"{name}_launch.log", "aefabmap_ros.cli.launch", *launch_args) as suite:
         closures = _record_replay(tmp_path, data.bag, name)
         assert suite.stop(signal.SIGINT) == 0, suite.log()
@@ -120,7 +122,9 @@ def _places_in(map_path: Path, data: RevisitData) -> int:
 
 def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path, revisit_data: RevisitData) -> None:
     map_path = tmp_path / "map.npz"
-    common = ["--ros-args", "--params-file", _params_file(tmp_path), "-p", f"model_dir:={revisit_data.model_dir}"]
+    common: list[str | Path] = [
+        "--ros-args", "--params-file", _params_file(tmp_path), "-p", f"model_dir:={revisit_data.model_dir}",
+    ]
     fabmap_args = [*common, "-p", f"map_file:={map_path}"]
     with LoggedProcess(tmp_path / "feature.log", "aefabmap_ros.nodes.feature_node", *common) as features, \
             LoggedProcess(tmp_path / "quantizer.log", "aefabmap_ros.nodes.quantizer_node", *common) as quantizer:
