@@ -12,16 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
-from aefabmap_ros.core.chowliu import learn_chow_liu_tree
 from aefabmap_ros.core.features import FeatureConfig, extract_features
 from aefabmap_ros.core.ground_truth import loop_matrix_from_poses
-from aefabmap_ros.core.kmeans_vocab import KMeansQuantizer
 from aefabmap_ros.core.model import Model, save_model
 from aefabmap_ros.core.synth import SynthConfig, generate_sequence, train_test_configs
-from aefabmap_ros.core.training import binary_bow
-from aefabmap_ros.core.vocabulary import VocabularyConfig
+from aefabmap_ros.core.training import sampled_centres_model
 from aefabmap_ros.io.bags import write_image_bag
 
 FRAMES_PER_PASS = 16
@@ -48,20 +44,7 @@ def _noisy(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def _make_model(train_images: list[np.ndarray], directory: Path) -> Model:
     feature_config = FeatureConfig(max_features=300)
     features = [extract_features(image, feature_config) for image in train_images]
-    descriptors = np.concatenate([f.descriptors for f in features])
-    rng = np.random.default_rng(0)
-    centres = descriptors[rng.choice(len(descriptors), size=400, replace=False)]
-    quantizer = KMeansQuantizer(centres, descriptor_dim=128, binary=False)
-    bow = binary_bow(quantizer, features)
-    tree = learn_chow_liu_tree(bow)
-    model = Model.create(
-        feature_config=feature_config,
-        vocabulary_config=VocabularyConfig(kind="kmeans", size=400),
-        quantizer=quantizer,
-        tree_matrix=tree.to_matrix(),
-        new_place_samples=sp.csr_matrix(bow),
-        provenance={"fixture": "test/nodes/conftest.py"},
-    )
+    model = sampled_centres_model(features, feature_config, size=400)
     save_model(directory, model)
     return model
 

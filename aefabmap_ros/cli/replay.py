@@ -39,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="after each image, wait for one message on TOPIC (e.g. place_posteriors)")
     parser.add_argument("--lockstep-timeout", type=float, default=10.0,
                         help="seconds to wait for the lockstep answer before moving on (default: 10)")
+    parser.add_argument("--queue-depth", type=int, default=100,
+                        help="publisher history depth: raise it for --rate 0 bursts into slow subscribers")
     parser.add_argument("--quiet", action="store_true", help="no per-image progress")
     return parser
 
@@ -87,7 +89,7 @@ class Replayer:
         self.node = rclpy.create_node("aefabmap_replay")
         msg_class = Image if msgtype == bags.IMAGE_TYPE else CompressedImage
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
-                    else QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+                    else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, args.out_topic, qos)
         self.answers = 0
         if args.lockstep:

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from aefabmap_ros.core.chowliu import learn_chow_liu_tree
 from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.features import FeatureConfig, Features, extract_features
+from aefabmap_ros.core.kmeans_vocab import KMeansQuantizer, as_float_rows
 from aefabmap_ros.core.model import Model
 from aefabmap_ros.core.vocabulary import Quantizer, VocabularyConfig, sequence_pairs, train_vocabulary
 
@@ -218,3 +219,30 @@ def train_model(
         provenance={**provenance, "training": asdict(training_config)},
     )
     return model, report
+
+
+def sampled_centres_model(
+    features: Sequence[Features], feature_config: FeatureConfig, size: int, seed: int = 0,
+    lower_info_bound: float = 0.0005,
+) -> Model:
+    """A complete model whose word centres are ``size`` descriptors sampled from ``features``.
+
+    No clustering, so it costs seconds: for benchmarks and tests that exercise the machinery
+    (timing, plumbing), not for accuracy. Binary descriptors (ORB) get bit-space centres.
+    """
+    descriptors = np.concatenate([f.descriptors for f in features])
+    if len(descriptors) < size:
+        raise DataError(f"{len(descriptors)} descriptors are fewer than the vocabulary size {size}")
+    rng = np.random.default_rng(seed)
+    binary = descriptors.dtype == np.uint8
+    centres = as_float_rows(descriptors[rng.choice(len(descriptors), size=size, replace=False)], binary)
+    quantizer = KMeansQuantizer(centres, descriptor_dim=descriptors.shape[1], binary=binary)
+    bow = binary_bow(quantizer, features)
+    return Model.create(
+        feature_config=feature_config,
+        vocabulary_config=VocabularyConfig(kind="kmeans", size=size, seed=seed),
+        quantizer=quantizer,
+        tree_matrix=learn_chow_liu_tree(bow, lower_info_bound).to_matrix(),
+        new_place_samples=bow,
+        provenance={"vocabulary": f"{size} sampled descriptors (no clustering)"},
+    )
