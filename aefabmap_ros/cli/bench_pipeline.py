@@ -20,9 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -46,10 +44,8 @@ fabmap_node:
 """
 
 
-def _timed(function: Callable[[], Any]) -> tuple[Any, float]:
-    started = time.perf_counter()
-    result = function()
-    return result, (time.perf_counter() - started) * 1e3
+def _ms_since(started: float) -> float:
+    return (time.perf_counter() - started) * 1e3
 
 
 def _summary(values_ms: list[float]) -> str:
@@ -64,14 +60,18 @@ def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[fl
     for index, image in enumerate(images):
         height, width = image.shape[:2]
         raw = image.tobytes()
-        gray, ms = _timed(lambda raw=raw, h=height, w=width: image_to_gray(raw, "mono8", h, w, w))
-        stages["decode"].append(ms)
-        features, ms = _timed(lambda gray=gray: extract_features(gray, model.feature_config))
-        stages["features"].append(ms)
-        words, ms = _timed(lambda f=features: np.unique(model.quantizer.quantize(f.descriptors)))
-        stages["quantize"].append(ms)
-        _, ms = _timed(lambda w=words, i=index: recognizer.process(w, i * 100_000_000))
-        stages["fabmap"].append(ms)
+        started = time.perf_counter()
+        gray = image_to_gray(raw, "mono8", height, width, width)
+        stages["decode"].append(_ms_since(started))
+        started = time.perf_counter()
+        features = extract_features(gray, model.feature_config)
+        stages["features"].append(_ms_since(started))
+        started = time.perf_counter()
+        words = np.unique(model.quantizer.quantize(features.descriptors))
+        stages["quantize"].append(_ms_since(started))
+        started = time.perf_counter()
+        recognizer.process(words, index * 100_000_000)
+        stages["fabmap"].append(_ms_since(started))
     return stages
 
 
