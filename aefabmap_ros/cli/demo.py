@@ -1,0 +1,243 @@
+"""aefabmap_demo: the whole package on sample data it makes itself, in one command.
+
+1. sample bags: a synthetic town driven twice (test) and another town (training), as mcap bags
+   with ground truth (aefabmap_synth), made once into bags/generated/;
+2. models: an autoencoder vocabulary (AE-FABMAP) and a k-means one (the FABMAP2 baseline), each
+   with its Chow-Liu tree, trained on the training bag (aefabmap_train);
+3. online: the test bag is replayed through the three ROS nodes as separate processes
+   (aefabmap_launch + aefabmap_replay); loop closures are printed as they arrive and everything
+   is recorded to an mcap that Foxglove opens (aefabmap_record);
+4. evaluation: the paper's four methods offline, and the online run from its recording
+   (aefabmap_eval); the table is printed and the plots written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aefabmap_ros.core.errors import AefabmapError
+from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aefabmap_demo", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "output" / "demo", help="results folder")
+    parser.add_argument("--bags", type=Path, default=REPO_ROOT / "bags" / "generated",
+                        help="where the sample bags are made (once) and found")
+    parser.add_argument("--frames", type=int, default=300, help="frames per synthetic sequence (default 300)")
+    parser.add_argument("--size", type=int, default=1000, help="visual words per vocabulary (default 1000)")
+    parser.add_argument("--skip-ros", action="store_true", help="offline evaluation only (no ROS nodes)")
+    parser.add_argument("--quick", action="store_true",
+                        help="a small, fast version (fewer and smaller frames, small vocabularies)")
+    return parser
+
+
+def _step(title: str) -> None:
+    print(f"\n=== {title}", flush=True)
+
+
+def _run(command: list[str | Path], what: str) -> None:
+    """Run one of our CLIs (as the user would); its own ERROR line explains a failure."""
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, "-m", *map(str, command)], check=False)
+    if result.returncode != 0:
+        raise AefabmapError(f"{what} failed (exit {result.returncode}): {' '.join(map(str, command))}")
+    print(f"    ({what}: {time.monotonic() - started:.0f} s)", flush=True)
+
+
+def make_bags(args: argparse.Namespace) -> tuple[Path, Path]:
+    train, test = args.bags / "train", args.bags / "test"
+    if (train / "bag").is_dir() and (test / "bag").is_dir() and (test / "loop_gt.npz").is_file():
+        print(f"    using the sample bags in {args.bags}")
+        return train, test
+    command: list[str | Path] = ["aefabmap_ros.cli.synth", "--out", args.bags, "--kind", "both", "--format", "mcap",
+                                 "--frames", str(args.frames), "--overwrite"]
+    if args.quick:
+        command += ["--width", "320", "--height", "240"]
+    _run(command, "making the sample bags")
+    return train, test
+
+
+def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
+    models = {}
+    for kind in ("autoencoder", "kmeans"):
+        out = args.out / "models" / kind
+        if (out / "metadata.json").is_file():
+            print(f"    using the {kind} model in {out}")
+        else:
+            command: list[str | Path] = ["aefabmap_ros.cli.train", "--bag", train / "bag", "--topic", "/image",
+                                         "--vocabulary", kind, "--size", str(args.size), "--out", out,
+                                         "--overwrite", "--work-dir", args.out / "models" / ".work"]
+            _run(command, f"training the {kind} vocabulary and Chow-Liu tree")
+        models[kind] = out
+    return models
+
+
+class ClosurePrinter:
+    """Prints loop closures and progress as the FAB-MAP node publishes them (spun in a thread)."""
+
+    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray) -> None:
+        import rclpy
+        from aefabmap_msgs.msg import LoopClosure, PlacePosterior
+        from rclpy.executors import SingleThreadedExecutor
+
+        self._rclpy = rclpy
+        self._stamps = stamps_ns
+        self._gt = gt
+        self.posteriors = 0
+        self.closures: list[tuple[int, int, bool]] = []
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("aefabmap_demo_printer", context=self.context)
+        self.node.create_subscription(LoopClosure, "loop_closures", self._on_closure, 100)
+        self.node.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, 100)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, name="demo-printer")
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def _frame(self, stamp: Any) -> int:
+        return int(np.searchsorted(self._stamps, stamp_to_ns(stamp)))
+
+    def _on_posterior(self, _message: Any) -> None:
+        self.posteriors += 1
+        if self.posteriors % 50 == 0:
+            print(f"    ... {self.posteriors}/{len(self._stamps)} images processed", flush=True)
+
+    def _on_closure(self, message: Any) -> None:
+        query, matched = self._frame(message.header.stamp), self._frame(message.matched_stamp)
+        true = bool(self._gt[query, matched]) if query < len(self._gt) and matched < len(self._gt) else False
+        self.closures.append((query, matched, true))
+        verdict = "true revisit" if true else "NOT a revisit in the ground truth"
+        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  ({verdict})",
+              flush=True)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.try_shutdown(context=self.context)
+
+
+def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while text not in log.read_text():
+        if process.poll() is not None or time.monotonic() > deadline:
+            raise AefabmapError(f"{process.args!r} did not start; its log {log}:\n{log.read_text()[-2000:]}")
+        time.sleep(0.2)
+
+
+def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
+    """Replay the test bag through the nodes; returns the recording."""
+    recording = args.out / "online_recording"
+    shutil.rmtree(recording, ignore_errors=True)
+    stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
+    gt = np.load(test / "loop_gt.npz")["gt"]
+    logs = args.out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    params = args.out / "demo_params.yaml"
+    params.write_text((REPO_ROOT / "config" / "demo.yaml").read_text())
+    python = sys.executable
+    processes: list[subprocess.Popen[bytes]] = []
+    printer = None
+    try:
+        with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log:
+            processes.append(subprocess.Popen(
+                [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
+                 "--map", str(args.out / "map.npz")], stdout=nodes_log, stderr=subprocess.STDOUT))
+            processes.append(subprocess.Popen(
+                [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", "loop_closures",
+                 "place_posteriors", "--wait-publishers", "120"], stdout=record_log, stderr=subprocess.STDOUT))
+            printer = ClosurePrinter(stamps, gt)
+            _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
+            print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images", flush=True)
+            subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
+                            "--lockstep", "place_posteriors", "--quiet"], check=True)
+            time.sleep(1.0)  # the last closure's delivery to the printer
+            for process in reversed(processes):
+                process.send_signal(signal.SIGINT)
+                process.wait(timeout=60)
+    except subprocess.CalledProcessError as exc:
+        raise AefabmapError(f"replay failed (exit {exc.returncode})") from exc
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+        if printer is not None:
+            printer.close()
+    if printer is not None:
+        true = sum(1 for *_, ok in printer.closures if ok)
+        print(f"    {len(printer.closures)} loop closures published, {true} of them true revisits; "
+              f"{printer.posteriors} posteriors", flush=True)
+    return recording
+
+
+def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
+    command: list[str | Path] = ["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image",
+                                 "--gt", test / "loop_gt.npz", "--model", models["kmeans"],
+                                 "--model", models["autoencoder"], "--out", args.out / "evaluation"]
+    if recording is not None:
+        command += ["--recording", recording]
+    _run(command, "evaluation")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.quick:
+        args.frames, args.size = min(args.frames, 120), min(args.size, 300)
+        if args.out == build_parser().get_default("out"):
+            args.out = args.out.with_name("demo_quick")
+        if args.bags == build_parser().get_default("bags"):
+            args.bags = args.bags.with_name("generated_quick")
+    started = time.monotonic()
+    args.out.mkdir(parents=True, exist_ok=True)
+    _step("1/4 sample bags")
+    train, test = make_bags(args)
+    _step("2/4 vocabularies and Chow-Liu trees (trained on the training town only)")
+    models = train_models(args, train)
+    recording = None
+    if not args.skip_ros:
+        _step("3/4 online: test bag -> feature, quantizer and FAB-MAP nodes -> /loop_closures")
+        recording = run_online(args, models["autoencoder"], test)
+    _step("4/4 evaluation of FABMAP2, AE-FABMAP, BoW and AE-BoW (and the online run)")
+    evaluate(args, models, test, recording)
+    print(f"\nDone in {time.monotonic() - started:.0f} s. Results: {args.out / 'evaluation' / 'results.md'}; "
+          f"plots: {args.out / 'evaluation'}/*.png" + (f"; recording (Foxglove): {recording}" if recording else ""))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    try:
+        return run(args)
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("ERROR: interrupted", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
