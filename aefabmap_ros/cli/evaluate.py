@@ -1,0 +1,467 @@
+"""aefabmap_eval: the paper's comparison (FABMAP2, AE-FABMAP, BoW, AE-BoW) on a test sequence.
+
+    # train both vocabularies on other images, then evaluate on the test folder
+    aefabmap_eval --images test/images --gt test/loop_gt.npz --train-images train/images --out results/
+    # a bag topic, ground truth from KITTI poses (10 m, 30 degrees, 10 frames apart)
+    aefabmap_eval --bag test/bag --topic /image --poses test/poses.txt --max-distance 10 --max-angle 30 \\
+        --train-bag train/bag --train-topic /image --out results/
+    # models trained earlier (aefabmap_train); each gives its FAB-MAP and its BoW method
+    aefabmap_eval --images test/images --gt test/loop_gt.npz --model models/ae --model models/kmeans --out r/
+    # metrics of a recorded run of the nodes (aefabmap_record: loop_closures, place_posteriors)
+    aefabmap_eval --recording run.mcap_dir --gt test/loop_gt.npz --out r/
+
+Per method: precision-recall curve, average precision, max F1, recall at 100 % precision, and the
+paper's accuracy (= precision) and recall at a fixed threshold: --threshold (FAB-MAP posterior,
+default 0.99 as in the paper) and --bow-threshold (tf-idf cosine, default 0.3: chosen on the
+synthetic *training* sequence, where it sits in the gap between the cosine of revisits and of
+different places; the cosine has no probabilistic meaning, so this default is a convention --
+compare methods by AP and recall at 100 % precision, which need no threshold).
+
+Protocol: the best candidate of query i among frames j <= i - --min-gap; for FAB-MAP those recent
+frames are also left out of the posterior (see aefabmap_ros.core.evaluation). Vocabularies (one per
+kind, shared by its FAB-MAP and BoW method), Chow-Liu trees and new-place samples come from the
+training images (--train-images / --train-bag, as the paper does) or, with --train-on-test, from
+the test sequence itself (each query is then left out of FAB-MAP's new-place sample mean). Trained
+models and features are cached in --work-dir (default OUT/.cache), so a rerun is quick; the models
+can be reused with --model.
+
+Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png and OUT/scores_<method>.png (score
+matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
+vocabulary_kmeans, vocabulary_autoencoder (per-kind overrides), training, fabmap, evaluation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from aefabmap_ros.cli.train import extract_all, source_provenance
+from aefabmap_ros.core.errors import AefabmapError, ConfigError, DataError, ModelError
+from aefabmap_ros.core.evaluation import (
+    METHODS,
+    EvaluationConfig,
+    MethodResult,
+    check_gt_matches,
+    closure_precision_recall,
+    evaluate_model,
+    leave_one_out_samples,
+    load_gt_npz,
+    methods_of_kind,
+    parse_methods,
+    result_to_dict,
+    results_markdown,
+    scores_from_recording,
+    unique_slugs,
+)
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.features import FeatureConfig, Features
+from aefabmap_ros.core.ground_truth import loop_matrix_from_kitti
+from aefabmap_ros.core.metrics import evaluate_scores
+from aefabmap_ros.core.model import Model, load_model, save_model
+from aefabmap_ros.core.training import TrainingConfig, config_digest, evenly_spaced, train_model
+from aefabmap_ros.core.vocabulary import VocabularyConfig
+from aefabmap_ros.io import bags
+from aefabmap_ros.io.config_files import build_config, read_sections
+from aefabmap_ros.io.plots import Curve, plot_pr_curves, plot_score_matrix
+from aefabmap_ros.io.sources import ImageSource
+
+SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencoder", "training", "fabmap",
+            "evaluation")
+RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
+                    "loop_closures": "aefabmap_msgs/msg/LoopClosure"}
+
+
+class _UsageError(Exception):
+    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise _UsageError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="aefabmap_eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    test = parser.add_argument_group("test sequence (a folder, or a bag topic)")
+    test.add_argument("--images", type=Path, help="folder of test images (natural sort order)")
+    test.add_argument("--bag", type=Path, help="rosbag2 bag holding the test images")
+    test.add_argument("--topic", default="/image", help="image topic of --bag (default: /image)")
+    truth = parser.add_argument_group("ground truth (a loop matrix, or poses and a rule)")
+    truth.add_argument("--gt", type=Path, help=".npz with key 'gt': (N, N) 0/1, gt[i, j] = 1: frame i revisits j")
+    truth.add_argument("--poses", type=Path, help="KITTI pose file (one 3x4 camera-to-world matrix per line)")
+    truth.add_argument("--max-distance", type=float, help="with --poses: camera centres within this many metres")
+    truth.add_argument("--max-angle", type=float, help="with --poses: optical axes within this many degrees")
+    truth.add_argument("--min-gap", type=int, help="frames j > i - G are never candidates of query i (default 10)")
+    train = parser.add_argument_group("vocabularies (train on other images, on the test images, or load models)")
+    train.add_argument("--train-images", type=Path, action="append", default=[], help="folder of training images")
+    train.add_argument("--train-bag", type=Path, action="append", default=[], help="bag of training images")
+    train.add_argument("--train-topic", default="/image", help="image topic of --train-bag (default: /image)")
+    train.add_argument("--train-on-test", action="store_true", help="train on the test sequence itself")
+    train.add_argument("--model", type=Path, action="append", default=[],
+                       help="an already trained model directory (repeatable)")
+    parser.add_argument("--recording", type=Path,
+                        help="evaluate a recorded run (bag with loop_closures / place_posteriors) instead")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
+    parser.add_argument("--threshold", type=float, help="FAB-MAP posterior threshold (default 0.99)")
+    parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.3)")
+    parser.add_argument("--config", type=Path, help=f"YAML with sections {', '.join(SECTIONS)}")
+    parser.add_argument("--size", type=int, help="visual words of both vocabularies")
+    parser.add_argument("--feature", choices=("sift", "rootsift", "orb", "surf"), help="feature type")
+    parser.add_argument("--max-features", type=int, help="keypoints per image at most")
+    parser.add_argument("--seed", type=int, help="random seed of the vocabularies")
+    parser.add_argument("--out", type=Path, required=True, help="folder for results.md/json and the plots")
+    parser.add_argument("--work-dir", type=Path, help="cache of features and trained models (default OUT/.cache)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    return parser
+
+
+# ------------------------------------------------------------------------------------------ configs
+
+
+class Settings:
+    """Every config the run uses, from the YAML sections and the command line."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        sections = read_sections(args.config, set(SECTIONS))
+        origin = str(args.config or "command line")
+
+        def section(name: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+            extra = {k: v for k, v in (overrides or {}).items() if v is not None}
+            return {**sections.get(name, {}), **extra}
+
+        self.feature = build_config(FeatureConfig, section(
+            "feature", {"type": args.feature, "max_features": args.max_features}), f"{origin} [feature]")
+        self.training = build_config(TrainingConfig, section("training"), f"{origin} [training]")
+        self.fabmap = build_config(FabMapConfig, section("fabmap"), f"{origin} [fabmap]")
+        self.evaluation = build_config(EvaluationConfig, section("evaluation", {
+            "min_gap": args.min_gap, "threshold": args.threshold, "bow_threshold": args.bow_threshold,
+        }), f"{origin} [evaluation]")
+        common = section("vocabulary", {"size": args.size, "seed": args.seed})
+        common.pop("kind", None)  # the method decides the kind
+        self.vocabulary = {
+            kind: build_config(VocabularyConfig, {**common, **section(f"vocabulary_{kind}"), "kind": kind},
+                               f"{origin} [vocabulary_{kind}]")
+            for kind in ("kmeans", "autoencoder")
+        }
+
+
+# ------------------------------------------------------------------------------------------ outputs
+
+
+def prepare_output(out: Path) -> None:
+    """Create the output folder and prove it writable now, not after the work."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(dir=out, prefix=".write-test-")
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as error:
+        raise ConfigError(f"--out {out} is not a writable folder: {error.strerror or error}") from error
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "w") as file:
+            file.write(text)
+        os.replace(temp_name, path)
+    except BaseException:
+        Path(temp_name).unlink(missing_ok=True)
+        raise
+
+
+def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header: dict[str, Any],
+                  extra_markdown: str = "") -> list[Path]:
+    """results.md, results.json, pr_curves.png and scores_<method>.png; returns the written paths."""
+    min_gap = int(header["min_gap"])
+    slugs = unique_slugs(results)
+    written = []
+    plot_pr_curves([Curve(r.title, r.metrics.pr_precision, r.metrics.pr_recall) for r in results],
+                   out / "pr_curves.png", title=f"Precision-recall: {header['test']}")
+    written.append(out / "pr_curves.png")
+    for result, slug in zip(results, slugs, strict=True):
+        path = out / f"scores_{slug}.png"
+        plot_score_matrix(result.scores, gt, min_gap, path, f"{result.title} scores")
+        written.append(path)
+    lines = [f"# Loop-closure evaluation: {header['test']}", ""]
+    lines += [f"- {key}: {value}" for key, value in header.items() if key != "test"]
+    lines += ["", results_markdown(results)]
+    if extra_markdown:
+        lines += [extra_markdown]
+    write_text_atomic(out / "results.md", "\n".join(lines))
+    payload = {**header, "methods": [
+        {**result_to_dict(r), "scores_plot": f"scores_{slug}.png"} for r, slug in zip(results, slugs, strict=True)
+    ]}
+    write_text_atomic(out / "results.json", json.dumps(payload, indent=2, sort_keys=False) + "\n")
+    written += [out / "results.md", out / "results.json"]
+    return written
+
+
+# ------------------------------------------------------------------------------------------ inputs
+
+
+def test_source(args: argparse.Namespace) -> ImageSource:
+    if (args.images is None) == (args.bag is None):
+        raise ConfigError("give the test sequence as --images DIR or as --bag BAG (with --topic), exactly one")
+    source = ImageSource(folder=args.images) if args.images is not None else ImageSource(bag=args.bag,
+                                                                                           topic=args.topic)
+    source.check()
+    return source
+
+
+def load_ground_truth(args: argparse.Namespace, min_gap: int) -> np.ndarray:
+    if (args.gt is None) == (args.poses is None):
+        raise ConfigError("give the ground truth as --gt FILE.npz or as --poses FILE (with --max-distance "
+                          "and --max-angle), exactly one")
+    if args.gt is not None:
+        return load_gt_npz(args.gt)
+    if args.max_distance is None or args.max_angle is None:
+        raise ConfigError("--poses needs --max-distance (metres) and --max-angle (degrees)")
+    return loop_matrix_from_kitti(args.poses, args.max_distance, args.max_angle, min_gap)
+
+
+def training_sources(args: argparse.Namespace) -> list[ImageSource]:
+    sources = [ImageSource(folder=folder) for folder in args.train_images]
+    sources += [ImageSource(bag=bag, topic=args.train_topic) for bag in args.train_bag]
+    for source in sources:
+        source.check()
+    return sources
+
+
+def check_training_choice(args: argparse.Namespace) -> None:
+    chosen = [bool(args.train_images or args.train_bag), bool(args.train_on_test), bool(args.model)]
+    if sum(chosen) != 1:
+        raise ConfigError("choose where the vocabularies come from, exactly one of: --train-images/--train-bag, "
+                          "--train-on-test, --model")
+
+
+class Run:
+    """State shared by the stages of one evaluation: settings, cache folder, logging."""
+
+    def __init__(self, args: argparse.Namespace, settings: Settings) -> None:
+        self.args = args
+        self.settings = settings
+        self.work_dir: Path = args.work_dir or args.out / ".cache"
+        try:
+            self.work_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise ConfigError(f"--work-dir {self.work_dir} cannot be created: {error.strerror or error}") from error
+        self.seconds: dict[str, float] = {}
+
+    def log(self, message: str) -> None:
+        if not self.args.quiet:
+            print(f"[eval] {message}", file=sys.stderr)
+
+    def features(self, source: ImageSource, feature_config: FeatureConfig) -> list[Features]:
+        started = time.monotonic()
+        sequence = extract_all([source], feature_config, self.work_dir, self.args.quiet)[0]
+        self.seconds["features"] = self.seconds.get("features", 0.0) + time.monotonic() - started
+        return sequence
+
+    def trained_model(self, kind: str, sequences: list[list[Features]], provenance: dict[str, Any],
+                      fingerprint: str) -> tuple[Model, Path]:
+        """Train (or reuse from the cache) the model of one vocabulary kind."""
+        settings = self.settings
+        vocabulary = settings.vocabulary[kind]
+        key = config_digest(settings.feature, vocabulary, settings.training)
+        directory = self.work_dir / f"model-{kind}-{fingerprint}-{key}"
+        if directory.is_dir():
+            try:
+                model = load_model(directory)
+                self.log(f"reusing the cached {kind} model {directory}")
+                return model, directory
+            except ModelError as error:
+                self.log(f"cached model unusable ({error}); training again")
+        started = time.monotonic()
+        model, _ = train_model(sequences, settings.feature, vocabulary, settings.training, provenance,
+                               work_dir=self.work_dir, progress=not self.args.quiet, log=self.log)
+        save_model(directory, model)
+        self.seconds[f"train_{kind}"] = time.monotonic() - started
+        return model, directory
+
+
+def _fingerprint(sources: list[ImageSource]) -> str:
+    """Identifies the training images (their sources' fingerprints, in order)."""
+    return hashlib.sha256("\n".join(s.fingerprint() for s in sources).encode()).hexdigest()[:12]
+
+
+# ------------------------------------------------------------------------------------------ modes
+
+
+def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
+    args, settings = run.args, run.settings
+    check_training_choice(args)
+    min_gap = settings.evaluation.min_gap
+    gt = load_ground_truth(args, min_gap)
+    source = test_source(args)
+    num_frames = len(source)
+    check_gt_matches(gt, num_frames, source.name)
+    train = [] if args.train_on_test or args.model else training_sources(args)
+
+    # (label, model, path, exclude_samples) per model to evaluate.
+    entries: list[tuple[str, Model, Path, np.ndarray | None]] = []
+    if args.model:
+        loaded = [(path, load_model(path)) for path in args.model]
+        by_kind: dict[str, int] = {}
+        for _, model in loaded:
+            by_kind[model.quantizer.kind] = by_kind.get(model.quantizer.kind, 0) + 1
+        for path, model in loaded:
+            label = path.name if by_kind[model.quantizer.kind] > 1 else ""
+            entries.append((label, model, path, None))
+        kinds_given = {model.quantizer.kind for _, model in loaded}
+        methods = tuple(name for name in methods if METHODS[name][0] in kinds_given)
+        if not methods:
+            raise ConfigError(f"none of the selected methods can run with the given models "
+                              f"(vocabulary kinds {sorted(kinds_given)})")
+    else:
+        kinds = [kind for kind in ("kmeans", "autoencoder") if methods_of_kind(kind, methods)]
+        if args.train_on_test:
+            sequences = [run.features(source, settings.feature)]
+            fingerprint = _fingerprint([source])
+            provenance: dict[str, Any] = {"sources": [source_provenance(source)], "train_on_test": True}
+            samples = evenly_spaced(num_frames, settings.training.max_new_place_samples)
+            exclude: np.ndarray | None = leave_one_out_samples(num_frames, samples)
+        else:
+            sequences = [run.features(s, settings.feature) for s in train]
+            fingerprint = _fingerprint(train)
+            provenance = {"sources": [source_provenance(s) for s in train]}
+            exclude = None
+        for kind in kinds:
+            model, directory = run.trained_model(kind, sequences, provenance, fingerprint)
+            entries.append(("", model, directory, exclude))
+
+    results: list[MethodResult] = []
+    features_by_config: dict[str, list[Features]] = {}
+    for label, model, path, exclude in entries:
+        key = config_digest(model.feature_config)
+        if key not in features_by_config:
+            features_by_config[key] = run.features(source, model.feature_config)
+        test_features = features_by_config[key]
+        wanted = methods_of_kind(model.quantizer.kind, methods)
+        fabmap_count = sum(1 for name in wanted if METHODS[name][1] == "fabmap")
+        run.log(f"scoring {', '.join(wanted)} with {model.quantizer.kind} model {model.model_id}")
+        with tqdm(total=num_frames * fabmap_count, desc="FAB-MAP queries", unit="img", disable=args.quiet,
+                  file=sys.stderr) as bar:
+            results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
+                                      exclude_samples=None if exclude is None else exclude.tolist(),
+                                      on_frame=lambda _: bar.update(), label=label, model_path=str(path))
+    order = {name: index for index, name in enumerate(METHODS)}
+    results.sort(key=lambda r: (order[r.name], r.label))
+    header = {
+        "test": source.name,
+        "frames": num_frames,
+        "positive_queries": results[0].metrics.num_positive_queries if results else 0,
+        "min_gap": min_gap,
+        "training": ("test sequence (--train-on-test)" if args.train_on_test else
+                     "models " + ", ".join(str(p) for p in args.model) if args.model else
+                     ", ".join(s.name for s in train)),
+        "features": f"{settings.feature.type}, at most {settings.feature.max_features} per image"
+                    if not args.model else "from the models",
+        "fabmap": {k: v for k, v in asdict(settings.fabmap).items()
+                   if k in ("p_z_given_e", "p_z_given_not_e", "new_place_model", "motion_model", "smoothing")},
+    }
+    return results, gt, header
+
+
+def read_recording(path: Path) -> tuple[list[Any], list[Any]]:
+    """PlacePosterior and LoopClosure messages of a recording (topics with or without a leading '/')."""
+    topics = bags.list_topics(path)
+    found: dict[str, str] = {}
+    for topic, msgtype in topics.items():
+        name = topic.lstrip("/")
+        if name in RECORDING_TOPICS:
+            if msgtype != RECORDING_TOPICS[name]:
+                raise DataError(f"topic {topic!r} in recording {path} is {msgtype}, expected {RECORDING_TOPICS[name]}")
+            found[name] = topic
+    if not found:
+        raise DataError(f"recording {path} has neither place_posteriors nor loop_closures; "
+                        f"its topics: {sorted(topics) or 'none'}")
+    posteriors: list[Any] = []
+    closures: list[Any] = []
+    for message in bags.read_messages(path, list(found.values())):
+        (posteriors if message.topic.lstrip("/") == "place_posteriors" else closures).append(message.message)
+    return posteriors, closures
+
+
+def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str]:
+    args, settings = run.args, run.settings
+    if args.images is not None or args.bag is not None or args.model or args.train_images or args.train_bag \
+            or args.train_on_test:
+        raise ConfigError("--recording takes only the ground truth (--gt or --poses); it evaluates recorded "
+                          "outputs, no images or models")
+    min_gap = settings.evaluation.min_gap
+    gt = load_ground_truth(args, min_gap)
+    started = time.monotonic()
+    posteriors, closures = read_recording(args.recording)
+    recorded = scores_from_recording(posteriors, closures, gt.shape[0])
+    metrics = evaluate_scores(recorded.scores, gt, min_gap, settings.evaluation.threshold)
+    result = MethodResult(name="recording", vocabulary_kind="recorded", vocabulary_size=0, model_id="",
+                          scores=recorded.scores, metrics=metrics, seconds=time.monotonic() - started,
+                          model_path=str(args.recording))
+    precision, recall = closure_precision_recall(recorded.closures, gt, min_gap)
+    header = {
+        "test": str(args.recording),
+        "frames": int(gt.shape[0]),
+        "positive_queries": metrics.num_positive_queries,
+        "min_gap": min_gap,
+        "place_posteriors": recorded.num_posteriors,
+        "loop_closures": recorded.num_loop_closures,
+        "recorded_loop_closures_precision": None if np.isnan(precision) else precision,
+        "recorded_loop_closures_recall": recall,
+        "candidates_aligned_by_stamp": recorded.stamp_aligned_candidates,
+    }
+    extra = (f"The detector's own decisions ({recorded.num_loop_closures} loop closures): precision "
+             f"{'n/a' if np.isnan(precision) else f'{precision:.3f}'}, recall {recall:.3f}.\n")
+    return [result], gt, header, extra
+
+
+def run_evaluation(args: argparse.Namespace) -> int:
+    started = time.monotonic()
+    settings = Settings(args)
+    methods = parse_methods(args.methods.split(","))
+    prepare_output(args.out)
+    run = Run(args, settings)
+    extra = ""
+    if args.recording is not None:
+        results, gt, header, extra = evaluate_recording(run)
+    else:
+        results, gt, header = evaluate_images(run, methods)
+    header["wall_seconds"] = round(time.monotonic() - started, 1)
+    header["stage_seconds"] = {k: round(v, 1) for k, v in run.seconds.items()}
+    written = write_results(args.out, results, gt, header, extra)
+    print(results_markdown(results), end="")
+    if extra:
+        print(extra, end="")
+    print(f"wall time {header['wall_seconds']:.1f} s; written: " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return run_evaluation(args)
+    except _UsageError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    except AefabmapError as exc:
+        print(f"ERROR: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("ERROR: interrupted; rerun the same command to resume from the cached stages", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
