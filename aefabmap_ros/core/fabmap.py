@@ -33,6 +33,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.special import logsumexp
@@ -377,15 +378,147 @@ class GrowableArray:
 _BYTE_BITS = ((np.arange(256)[:, None] >> np.arange(8)[None, :]) & 1).astype(np.float64)
 
 
+# Compiled kernels of the FAB-MAP 2 query and of posting storage. Single-threaded on purpose (the
+# latency target is per core); cache=True keeps the compiled code in __pycache__ (or numba's user
+# cache dir when the package is read-only), so only the first process on a machine compiles them.
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_byte_tables(
+    scores: np.ndarray, bits: np.ndarray, groups: np.ndarray, tables: np.ndarray, num_places: int
+) -> None:
+    """scores[p] += sum_k tables[k, bits[groups[k], p]] for p < num_places.
+
+    scores (P,) float64, bits (G, capacity) uint8, groups (K,) int64, tables (K, 256) float64.
+    Four groups per pass over ``scores``: the read-modify-write of scores, not the look-ups, bounds
+    a one-group pass.
+    """
+    n_groups = groups.size
+    k = 0
+    while k + 4 <= n_groups:
+        b0, b1, b2, b3 = bits[groups[k]], bits[groups[k + 1]], bits[groups[k + 2]], bits[groups[k + 3]]
+        t0, t1, t2, t3 = tables[k], tables[k + 1], tables[k + 2], tables[k + 3]
+        for p in range(num_places):
+            scores[p] += (t0[b0[p]] + t1[b1[p]]) + (t2[b2[p]] + t3[b3[p]])
+        k += 4
+    while k < n_groups:
+        b0, t0 = bits[groups[k]], tables[k]
+        for p in range(num_places):
+            scores[p] += t0[b0[p]]
+        k += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _scatter_postings(
+    scores: np.ndarray, pool: np.ndarray, starts: np.ndarray, lengths: np.ndarray, words: np.ndarray,
+    weights: np.ndarray,
+) -> None:
+    """scores[pool[starts[w] : starts[w] + lengths[w]]] += weight for each (w, weight) in (words, weights).
+
+    A place occurs at most once per posting, so the adds of one word never collide.
+    """
+    for k in range(words.size):
+        word = words[k]
+        weight = weights[k]
+        start = starts[word]
+        for j in range(start, start + lengths[word]):
+            scores[pool[j]] += weight
+
+
+@numba.njit(cache=True, nogil=True)
+def _move_blocks(
+    source: np.ndarray, destination: np.ndarray, old_starts: np.ndarray, new_starts: np.ndarray,
+    lengths: np.ndarray,
+) -> None:
+    """destination[new_starts[k] + j] = source[old_starts[k] + j] for j < lengths[k] (blocks must not overlap)."""
+    for k in range(lengths.size):
+        old, new = old_starts[k], new_starts[k]
+        for j in range(lengths[k]):
+            destination[new + j] = source[old + j]
+
+
+def _exclusive_cumsum(values: np.ndarray) -> np.ndarray:
+    out = np.zeros(values.size, dtype=np.int64)
+    np.cumsum(values[:-1], out=out[1:])
+    return out
+
+
+class PostingPool:
+    """word -> increasing place ids, all words' postings in one int32 pool (a growable CSR).
+
+    Word w's posting is ``pool[starts[w] : starts[w] + lengths[w]]`` inside a block of
+    ``capacities[w]`` slots. A block that overflows moves to the free end of the pool with 1.5x
+    capacity (its old slots become garbage); when the free end runs out the live blocks are
+    repacked into a new pool with half their capacity as free end. Appends are amortised O(1) per
+    (place, word); memory is at most ~3x the stored pairs (exactly 1x after one bulk load).
+    """
+
+    def __init__(self, vocabulary_size: int) -> None:
+        self._pool = np.empty(0, dtype=np.int32)
+        self._end = 0  # first free slot of the pool
+        self.starts = np.zeros(vocabulary_size, dtype=np.int64)
+        self.lengths = np.zeros(vocabulary_size, dtype=np.int64)
+        self.capacities = np.zeros(vocabulary_size, dtype=np.int64)
+
+    @property
+    def pool(self) -> np.ndarray:
+        """The whole int32 pool (including free and garbage slots); index it through starts/lengths."""
+        return self._pool
+
+    def posting(self, word: int) -> np.ndarray:
+        start = int(self.starts[word])
+        return self._pool[start : start + int(self.lengths[word])]
+
+    def extend(self, words: np.ndarray, places: np.ndarray) -> None:
+        """Append (word, place) pairs: words (N,) sorted; places (N,) int, increasing per word and
+        greater than every place already in that word's posting."""
+        if words.size == 0:
+            return
+        unique, first, counts = np.unique(words, return_index=True, return_counts=True)
+        need = self.lengths[unique] + counts
+        moving = need > self.capacities[unique]
+        if np.any(moving):
+            self._relocate(unique[moving], need[moving])
+        rank = np.arange(words.size, dtype=np.int64) - np.repeat(first, counts)  # position within its word's run
+        self._pool[self.starts[words] + self.lengths[words] + rank] = places
+        self.lengths[unique] += counts
+
+    def _relocate(self, words: np.ndarray, need: np.ndarray) -> None:
+        old_capacity = self.capacities[words]
+        # Empty blocks get exactly what they need (a bulk load is stored without slack).
+        capacity = np.where(old_capacity == 0, need, np.maximum(need, old_capacity + old_capacity // 2 + 4))
+        total = int(capacity.sum())
+        if self._end + total > self._pool.size:
+            self._repack(total)
+        new_starts = self._end + _exclusive_cumsum(capacity)
+        _move_blocks(self._pool, self._pool, self.starts[words], new_starts, self.lengths[words])
+        self.starts[words] = new_starts
+        self.capacities[words] = capacity
+        self._end += total
+
+    def _repack(self, reserve: int) -> None:
+        """Copy the live blocks into a new pool with ``reserve`` + half their capacity free at the end."""
+        live = int(self.capacities.sum())
+        pool = np.empty(live + reserve + live // 2, dtype=np.int32)
+        new_starts = _exclusive_cumsum(self.capacities)
+        _move_blocks(self._pool, pool, self.starts, new_starts, self.lengths)
+        self._pool, self.starts, self._end = pool, new_starts, live
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._pool.nbytes + self.starts.nbytes + self.lengths.nbytes + self.capacities.nbytes)
+
+
 class InvertedIndex:
     """Places as word lists (CSR) + word -> places postings + each place's FAB-MAP 2 default.
 
     Frequent words (training marginal >= ``dense_min_marginal``, at most ``max_dense_words``)
     are kept as bits instead of postings: a place holds one bit per frequent word, packed 8 to a
-    group, and a query adds, per byte column, a 256-entry table of its corrections (one lookup per
-    place per 8 frequent words instead of one scattered add per place holding each word). Memory
-    is proportional to the number of stored (place, word) pairs: uint16/int32 word ids, int32 postings
-    (amortised doubling), one float64 default and ``max_dense_words / 8`` bytes per place.
+    byte (a *group*), and a query adds, per group, a 256-entry table of its corrections (one
+    look-up per place per 8 frequent words instead of one scattered add per place holding each
+    word). Other words are postings in a :class:`PostingPool`. Memory is proportional to the number
+    of stored (place, word) pairs: uint16/int32 word ids, int32 postings, one float64 default and
+    ``max_dense_words / 8`` bytes per place (arrays grow by doubling / 1.5x).
     """
 
     def __init__(self, model: FabMapModel, dense_min_marginal: float = 0.15, max_dense_words: int = 1024) -> None:
@@ -396,14 +529,13 @@ class InvertedIndex:
         self._word_ptr = GrowableArray(np.int64, 64)
         self._word_ptr.extend(np.zeros(1, dtype=np.int64))
         self._defaults = GrowableArray(np.float64, 64)
-        self._postings: list[GrowableArray | None] = [None] * vocabulary_size
+        self._postings = PostingPool(vocabulary_size)
         marginal = model.tree.marginal
         by_frequency = np.argsort(-marginal, kind="stable")
         dense = by_frequency[marginal[by_frequency] >= dense_min_marginal][:max_dense_words]
         self._dense_slot = np.full(vocabulary_size, -1, dtype=np.int64)  # word -> bit slot, -1 = posting
         self._dense_slot[dense] = np.arange(dense.size)
-        # int16, not uint8: numpy's take() with uint8 indices is several times slower.
-        self._dense_groups = [GrowableArray(np.int16, 64) for _ in range((dense.size + 7) // 8)]
+        self._bits = np.zeros(((dense.size + 7) // 8, 0), dtype=np.uint8)  # (groups, place capacity)
 
     @property
     def num_places(self) -> int:
@@ -440,30 +572,24 @@ class InvertedIndex:
         self._word_data.extend(indices.astype(self._word_data.view().dtype))
         self._word_ptr.extend(self._word_ptr.view()[-1] + np.cumsum(counts))
         slots = self._dense_slot[indices]
-        if self._dense_groups:
-            bits = np.zeros((n_new, len(self._dense_groups)), dtype=np.int16)
+        if self._bits.shape[0]:
+            self._reserve_bits(first, first + n_new)
             dense = slots >= 0
             np.bitwise_or.at(
-                bits,
-                (place_of[dense] - first, slots[dense] // 8),
-                (1 << (slots[dense] % 8)).astype(np.int16),
+                self._bits, (slots[dense] // 8, place_of[dense]), (1 << (slots[dense] % 8)).astype(np.uint8)
             )
-            for group, column in zip(self._dense_groups, bits.T, strict=True):
-                group.extend(column)
         sparse = slots < 0
-        indices, place_of = indices[sparse], place_of[sparse]
-        if indices.size == 0:
-            return
-        order = np.argsort(indices, kind="stable")  # stable: places stay in increasing order per word
-        sorted_words = indices[order]
-        sorted_places = place_of[order].astype(np.int32)
-        words, starts = np.unique(sorted_words, return_index=True)
-        ends = np.append(starts[1:], sorted_words.size)
-        for word, start, end in zip(words.tolist(), starts.tolist(), ends.tolist(), strict=True):
-            posting = self._postings[word]
-            if posting is None:
-                posting = self._postings[word] = GrowableArray(np.int32, end - start)
-            posting.extend(sorted_places[start:end])
+        order = np.argsort(indices[sparse], kind="stable")  # stable: places stay in increasing order per word
+        self._postings.extend(indices[sparse][order], place_of[sparse][order].astype(np.int32))
+
+    def _reserve_bits(self, filled: int, num_places: int) -> None:
+        """Make room for bits of ``num_places`` places, keeping the first ``filled`` columns."""
+        capacity = self._bits.shape[1]
+        if num_places > capacity:
+            # Doubling, except the first allocation (a bulk load) is exact; new columns are zero.
+            grown = np.zeros((self._bits.shape[0], max(num_places, 2 * capacity)), dtype=np.uint8)
+            grown[:, :filled] = self._bits[:, :filled]
+            self._bits = grown
 
     def scores(self, state: QueryState) -> np.ndarray:
         """(P,) float64 FAB-MAP 2 log-likelihood of every place relative to an empty place."""
@@ -471,29 +597,26 @@ class InvertedIndex:
         slots = self._dense_slot[state.touched]
         dense = slots >= 0
         if np.any(dense):
-            weights = np.zeros(8 * len(self._dense_groups))
+            weights = np.zeros(8 * self._bits.shape[0])
             weights[slots[dense]] = state.corrections[dense]
-            # tables[g, b]: sum of the corrections of the frequent words whose bits are set in byte b of group g.
             group_weights = weights.reshape(-1, 8)
-            tables = group_weights @ _BYTE_BITS.T
-            looked_up = np.empty_like(scores)
-            for g in np.flatnonzero(np.any(group_weights != 0, axis=1)).tolist():
-                np.take(tables[g], self._dense_groups[g].view(), out=looked_up)
-                scores += looked_up
-        postings = self._postings
+            groups = np.flatnonzero(np.any(group_weights != 0, axis=1))
+            # tables[k, b]: sum of the corrections of group groups[k]'s words whose bits are set in byte b.
+            tables = np.ascontiguousarray(group_weights[groups] @ _BYTE_BITS.T)
+            _add_byte_tables(scores, self._bits, groups, tables, scores.size)
         sparse = ~dense
-        for word, weight in zip(state.touched[sparse].tolist(), state.corrections[sparse].tolist(), strict=True):
-            posting = postings[word]
-            if posting is not None:
-                # A place occurs at most once per posting, so a fancy-indexed add is exact.
-                scores[posting.view()] += weight
+        postings = self._postings
+        _scatter_postings(
+            scores, postings.pool, postings.starts, postings.lengths, state.touched[sparse], state.corrections[sparse]
+        )
         return scores
 
     @property
     def nbytes(self) -> int:
-        postings = sum(p.nbytes for p in self._postings if p is not None)
-        bits = sum(g.nbytes for g in self._dense_groups)
-        return self._word_data.nbytes + self._word_ptr.nbytes + self._defaults.nbytes + postings + bits
+        return int(
+            self._word_data.nbytes + self._word_ptr.nbytes + self._defaults.nbytes + self._postings.nbytes
+            + self._bits.nbytes
+        )
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,6 +13,8 @@ from aefabmap_ros.core.fabmap import (
     FabMap2,
     FabMapConfig,
     FabMapModel,
+    InvertedIndex,
+    PostingPool,
     fabmap_score_matrices,
     motion_log_prior,
     posterior,
@@ -184,3 +186,65 @@ def test_motion_prior_follows_openfabmap_formula():
     np.testing.assert_allclose(np.exp(motion_log_prior(previous[:2], 2, 0.9, 0.5)), [0.9, 1.0, 1.0])
     p = posterior(np.array([0.0, 1.0, 2.0]), None, 0.9)
     np.testing.assert_allclose(p, 0.9 * np.exp([0, 1, 2]) / np.exp([0, 1, 2]).sum() + 0.1 / 3)
+
+
+def _csr(rows):
+    indptr = np.concatenate([[0], np.cumsum([r.size for r in rows])]).astype(np.int64)
+    return indptr, np.concatenate(rows).astype(np.int64)
+
+
+# 0.0: every word a bit (10 groups: 4 + 4 + 2 per pass); 0.4: bits and postings; 1.1: postings only.
+@pytest.mark.parametrize("dense_min_marginal", [0.0, 0.4, 1.1])
+def test_inverted_index_scores_match_a_dense_reference_while_growing(dense_min_marginal):
+    rng = np.random.default_rng(3)
+    v = 80
+    model = FabMapModel(_random_tree(rng, v))
+    index = InvertedIndex(model, dense_min_marginal=dense_min_marginal)
+    places: list[np.ndarray] = []
+
+    def check():
+        for _ in range(3):
+            state = model.query_state(np.flatnonzero(rng.random(v) < 0.3))
+            correction = np.zeros(v)
+            correction[state.touched] = state.corrections
+            # score = sum over the place's words of d1 + the query's correction of that word
+            expected = np.array([model.d1[w].sum() + correction[w].sum() for w in places])
+            np.testing.assert_allclose(index.scores(state), expected, rtol=0, atol=1e-9)
+
+    for phase in ("bulk", "single", "bulk", "single"):
+        # A bulk load, then single places (postings relocate and repack), then both again.
+        new = [np.flatnonzero(rng.random(v) < rng.uniform(0.05, 0.6)) for _ in range(70)]
+        if phase == "bulk":
+            index.add_many(*_csr(new))
+        else:
+            for words in new:
+                index.add(words)
+        places.extend(new)
+        check()
+    assert index.num_places == len(places)
+    for i in (0, 69, 100, 279):
+        np.testing.assert_array_equal(index.place_words(i), places[i])
+
+
+def test_posting_pool_keeps_postings_in_order_with_bounded_memory():
+    rng = np.random.default_rng(8)
+    v = 60
+    pool = PostingPool(v)
+    expected: list[list[int]] = [[] for _ in range(v)]
+    bulk_words = np.sort(rng.integers(0, v, 500))
+    bulk_places = np.zeros(500, dtype=np.int32)
+    for w in np.unique(bulk_words):  # places 0.. per word, increasing
+        bulk_places[bulk_words == w] = np.arange(int(np.sum(bulk_words == w)))
+    pool.extend(bulk_words, bulk_places)
+    assert pool.pool.size == 500  # a bulk load into an empty pool is stored without slack
+    for w, place in zip(bulk_words.tolist(), bulk_places.tolist(), strict=True):
+        expected[w].append(place)
+    for place in range(1000, 1600):  # one place at a time: relocations and repacks
+        words = np.flatnonzero(rng.random(v) < rng.uniform(0.01, 0.5))
+        pool.extend(words, np.full(words.size, place, dtype=np.int32))
+        for w in words.tolist():
+            expected[w].append(place)
+    for w in range(v):
+        np.testing.assert_array_equal(pool.posting(w), expected[w])
+    stored = sum(len(e) for e in expected)
+    assert pool.pool.size <= 4 * stored + 12 * v
