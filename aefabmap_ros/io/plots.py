@@ -81,8 +81,7 @@ def plot_score_matrix(scores: np.ndarray, gt: np.ndarray, min_gap: int, path: Pa
     index = np.arange(matrix.shape[0])
     candidates = index[None, :] <= index[:, None] - min_gap
     shown = np.where(candidates & np.isfinite(matrix), matrix, np.nan)
-    colormap = matplotlib.colormaps["viridis"].copy()
-    colormap.set_bad("0.85")
+    colormap = matplotlib.colormaps["viridis"].with_extremes(bad="0.85")
     figure, (left, right) = plt.subplots(1, 2, figsize=(10.0, 4.8))
     finite = shown[np.isfinite(shown)]
     low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)

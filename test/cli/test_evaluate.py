@@ -1,0 +1,320 @@
+"""aefabmap_eval: the four methods on a tiny synthetic sequence, --model, --train-on-test, recordings and
+every bad input (ERROR: ..., exit 1)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.cli import synth
+from aefabmap_ros.cli.evaluate import main
+from aefabmap_ros.core.metrics import evaluate_scores
+
+FRAMES = 30
+# Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.
+TINY_CONFIG = """\
+feature:
+  max_features: 120
+vocabulary:
+  size: 40
+  num_threads: 1
+  kmeans_iterations: 5
+  ae_epochs: 1
+  ae_max_train_descriptors: 1500
+"""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Quantizing with the autoencoder on one thread: far faster on a busy 2-core machine."""
+    torch = pytest.importorskip("torch")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    args = ["--out", str(root / "synth"), "--kind", "both", "--frames", str(FRAMES), "--width", "160",
+            "--height", "120", "--format", "both"]
+    assert synth.main(args) == 0
+    config = root / "tiny.yaml"
+    config.write_text(TINY_CONFIG)
+    return root
+
+
+def paths(data):
+    return data / "synth" / "test", data / "synth" / "train", data / "tiny.yaml"
+
+
+def read_results(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+def check_outputs(out: Path, methods: list[str]) -> dict:
+    results = read_results(out)
+    assert [m["method"] for m in results["methods"]] == methods
+    for entry in results["methods"]:
+        for key in ("average_precision", "max_f1", "recall_at_100_precision", "recall_at_threshold"):
+            assert 0.0 <= entry[key] <= 1.0, (entry["method"], key)
+        assert entry["accuracy_at_threshold"] is None or 0.0 <= entry["accuracy_at_threshold"] <= 1.0
+        curve = entry["pr_curve"]
+        assert all(0 <= v <= 1 for v in curve["precision"] + curve["recall"])
+        assert (out / entry["scores_plot"]).stat().st_size > 1000
+    assert (out / "pr_curves.png").read_bytes()[:4] == b"\x89PNG"
+    table = (out / "results.md").read_text()
+    for method in methods:
+        assert f"| {method} |" in table
+    assert results["frames"] == FRAMES and results["min_gap"] == 10
+    return results
+
+
+@pytest.fixture(scope="module")
+def trained(data):
+    """One evaluation with vocabularies trained on the separate training sequence (shared by tests)."""
+    test, train, config = paths(data)
+    out = data / "separate"
+    code = main(["--images", str(test / "images"), "--gt", str(test / "loop_gt.npz"),
+                 "--train-images", str(train / "images"), "--config", str(config), "--seed", "3",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    return out
+
+
+def test_separate_training_writes_table_and_plots(trained, capsys):
+    results = check_outputs(trained, ["FABMAP2", "AE-FABMAP", "BoW", "AE-BoW"])
+    kinds = {m["method"]: (m["vocabulary_kind"], m["vocabulary_size"], m["model_id"]) for m in results["methods"]}
+    assert kinds["FABMAP2"][:2] == ("kmeans", 40) and kinds["AE-FABMAP"][:2] == ("autoencoder", 40)
+    assert kinds["FABMAP2"][2] == kinds["BoW"][2]  # one vocabulary per kind, shared by both its methods
+    assert kinds["AE-FABMAP"][2] == kinds["AE-BoW"][2] != kinds["FABMAP2"][2]
+    assert "train/images" in results["training"]
+    assert {m["threshold"] for m in results["methods"]} == {0.99, 0.3}
+
+
+def test_models_reused_give_the_same_numbers(data, trained, capsys):
+    """--model on the models the first run trained: the same metrics (deterministic scoring)."""
+    test, _, _ = paths(data)
+    first = read_results(trained)
+    models = sorted({m["model_path"] for m in first["methods"]})
+    out = data / "reused"
+    argv = ["--images", str(test / "images"), "--gt", str(test / "loop_gt.npz"), "--out", str(out), "--quiet",
+            "--methods", "ae-fabmap,fabmap2,bow"]
+    for model in models:
+        argv += ["--model", model]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "| FABMAP2 |" in printed and "results.md" in printed and "| AE-BoW |" not in printed
+    again = check_outputs(out, ["FABMAP2", "AE-FABMAP", "BoW"])
+    before = {m["method"]: m for m in first["methods"]}
+    for entry in again["methods"]:
+        for key in ("average_precision", "max_f1", "recall_at_100_precision", "pr_curve"):
+            assert entry[key] == before[entry["method"]][key]
+
+
+def test_train_on_test_from_a_bag_with_poses(data):
+    test, _, config = paths(data)
+    out = data / "on_test"
+    code = main(["--bag", str(test / "bag"), "--topic", "/image", "--poses", str(test / "poses.txt"),
+                 "--max-distance", "2.5", "--max-angle", "30", "--train-on-test", "--config", str(config),
+                 "--methods", "FABMAP2,BoW", "--bow-threshold", "0.5", "--out", str(out), "--quiet"])
+    assert code == 0
+    results = check_outputs(out, ["FABMAP2", "BoW"])
+    assert "train-on-test" in results["training"]
+    assert results["methods"][1]["threshold"] == 0.5
+    # The pose rule with the generator's parameters reproduces its loop matrix.
+    with np.load(test / "loop_gt.npz") as gt:
+        positive = int(np.tril(gt["gt"], -10).any(axis=1).sum())
+    assert results["positive_queries"] == positive > 0
+
+
+# ------------------------------------------------------------------------------------------ bad inputs
+
+
+def run_error(argv, capsys) -> str:
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: "), err
+    return err
+
+
+@pytest.fixture
+def base(data, tmp_path):
+    test, train, _ = paths(data)
+    return {"test": test, "train": train, "out": tmp_path / "out"}
+
+
+def test_error_gt_of_the_wrong_size(base, tmp_path, capsys):
+    np.savez(tmp_path / "gt.npz", gt=np.zeros((FRAMES - 1, FRAMES - 1), np.uint8))
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(tmp_path / "gt.npz"),
+                     "--train-on-test", "--out", str(base["out"])], capsys)
+    assert f"ground truth is {FRAMES - 1}x{FRAMES - 1}" in err and f"has {FRAMES} frames" in err
+
+
+def test_error_missing_topic(base, capsys):
+    err = run_error(["--bag", str(base["test"] / "bag"), "--topic", "/camera/nope", "--gt",
+                     str(base["test"] / "loop_gt.npz"), "--train-on-test", "--out", str(base["out"])], capsys)
+    assert "'/camera/nope' not in bag" in err and "/image" in err
+
+
+def test_error_empty_folder(base, tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    err = run_error(["--images", str(tmp_path / "empty"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--train-on-test", "--out", str(base["out"])], capsys)
+    assert "no image files" in err
+
+
+@pytest.mark.parametrize("missing", ["gt", "images", "train-images", "model", "config", "recording", "poses"])
+def test_error_missing_files(base, tmp_path, capsys, missing):
+    nowhere = str(tmp_path / "does_not_exist")
+    argv = {
+        "gt": ["--images", str(base["test"] / "images"), "--gt", nowhere, "--train-on-test"],
+        "images": ["--images", nowhere, "--gt", str(base["test"] / "loop_gt.npz"), "--train-on-test"],
+        "train-images": ["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                         "--train-images", nowhere],
+        "model": ["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                  "--model", nowhere],
+        "config": ["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                   "--train-on-test", "--config", nowhere],
+        "recording": ["--recording", nowhere, "--gt", str(base["test"] / "loop_gt.npz")],
+        "poses": ["--images", str(base["test"] / "images"), "--poses", nowhere, "--max-distance", "2",
+                  "--max-angle", "30", "--train-on-test"],
+    }[missing]
+    err = run_error([*argv, "--out", str(base["out"])], capsys)
+    assert "does_not_exist" in err
+
+
+def test_error_unknown_method(base, capsys):
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--train-on-test", "--methods", "FABMAP2,NetVLAD", "--out", str(base["out"])], capsys)
+    assert "unknown method 'NetVLAD'" in err and "AE-FABMAP" in err
+
+
+def test_error_unwritable_output(base, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--train-on-test", "--out", str(blocker / "results")], capsys)
+    assert "is not a writable folder" in err
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    ([], "exactly one of: --train-images/--train-bag, --train-on-test, --model"),
+    (["--train-on-test", "--model", "m"], "exactly one of"),
+    (["--train-on-test", "--threshold", "1.5"], "threshold=1.5"),
+    (["--train-on-test", "--bogus"], "unrecognized arguments: --bogus"),
+])
+def test_error_bad_choices(base, capsys, extra, message):
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--out", str(base["out"]), *extra], capsys)
+    assert message in err
+
+
+def test_error_poses_without_rule(base, capsys):
+    err = run_error(["--images", str(base["test"] / "images"), "--poses", str(base["test"] / "poses.txt"),
+                     "--train-on-test", "--out", str(base["out"])], capsys)
+    assert "--poses needs --max-distance" in err
+
+
+def test_error_unknown_config_key(base, tmp_path, capsys):
+    config = tmp_path / "bad.yaml"
+    config.write_text("evaluation:\n  min_gapp: 3\n")
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--train-on-test", "--config", str(config), "--out", str(base["out"])], capsys)
+    assert "min_gapp" in err
+
+
+# ------------------------------------------------------------------------------------------ recordings
+
+
+def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
+                    closures: list[tuple[int, int, float]]) -> None:
+    from aefabmap_ros.io import bags
+
+    types = bags.get_typestore().types
+    start = 1_700_000_000_000_000_000
+    period = 100_000_000
+    with bags.BagWriter(path) as writer:
+        writer.add_topic("/place_posteriors", "aefabmap_msgs/msg/PlacePosterior")
+        writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
+        for query, places, probabilities in posteriors:
+            message = types["aefabmap_msgs/msg/PlacePosterior"](
+                header=bags.make_header(start + query * period), query_id=query, assigned_place_id=query,
+                is_new_place=True, new_place_probability=1.0 - sum(probabilities),
+                place_ids=np.array(places, dtype=np.int64),
+                place_stamps=[bags.make_time(start + p * period) for p in places],
+                probabilities=np.array(probabilities, dtype=np.float64),
+                log_likelihoods=np.zeros(len(places), dtype=np.float64),
+            )
+            writer.write("/place_posteriors", start + query * period, message)
+        for query, place, probability in closures:
+            message = types["aefabmap_msgs/msg/LoopClosure"](
+                header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
+                matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
+                probability=probability, log_likelihood=0.0,
+            )
+            writer.write("/loop_closures", start + query * period, message)
+
+
+def test_recording_metrics(tmp_path, capsys):
+    frames = 20
+    gt = np.zeros((frames, frames), np.uint8)
+    for i in range(12, 20):
+        gt[i, i - 12] = 1  # frames 12..19 revisit 0..7
+    posteriors = []
+    expected = np.zeros((frames, frames))
+    rng = np.random.default_rng(5)
+    for i in range(frames):
+        places = list(range(i))[-5:]  # top-5 of the recording: mostly recent frames
+        probabilities = list(rng.uniform(0.0, 0.1, len(places)))
+        if i >= 12:
+            places.append(i - 12)
+            probabilities.append([0.999, 0.995, 0.2, 0.97, 0.999, 0.5, 0.3, 0.9][i - 12])
+        if i == 15:  # a confident wrong candidate beats the true one
+            places.append(1)
+            probabilities.append(0.98)
+        expected[i, places] = probabilities
+        posteriors.append((i, places, probabilities))
+    closures = [(12, 0, 0.999), (16, 4, 0.999), (18, 2, 0.9995)]  # the last one is wrong
+    expected[18, 2] = 0.9995
+    write_recording(tmp_path / "run", posteriors, closures)
+    np.savez(tmp_path / "gt.npz", gt=gt)
+    assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--threshold", "0.99",
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| recording |" in printed and "3 loop closures" in printed
+    results = read_results(tmp_path / "out")
+    reference = evaluate_scores(expected, gt, 10, 0.99)
+    entry = results["methods"][0]
+    assert entry["average_precision"] == pytest.approx(reference.average_precision)
+    assert entry["recall_at_100_precision"] == pytest.approx(reference.recall_at_100_precision)
+    assert entry["pr_curve"]["precision"] == pytest.approx(reference.pr_precision.tolist())
+    # By hand: best candidates 12:0.999 T, 13:0.995 T, 14:0.2 T, 15:0.98 F, 16:0.999 T, 17:0.5 T, 18:0.9995 F
+    # (18 -> 2, the recorded closure), 19:0.9 T. At 0.99: predictions 18, 12, 16, 13 -> 3 of 4 true; recall 3 / 8.
+    assert entry["accuracy_at_threshold"] == pytest.approx(0.75)
+    assert entry["recall_at_threshold"] == pytest.approx(3 / 8)
+    assert entry["recall_at_100_precision"] == 0.0  # the top-scoring proposal (18 -> 2) is wrong
+    assert results["recorded_loop_closures_precision"] == pytest.approx(2 / 3)
+    assert results["recorded_loop_closures_recall"] == pytest.approx(2 / 8)
+    assert results["loop_closures"] == 3 and results["place_posteriors"] == frames
+    assert (tmp_path / "out" / "scores_recording.png").is_file()
+
+
+def test_recording_without_the_topics(tmp_path, capsys):
+    from aefabmap_ros.io import bags
+
+    bags.write_image_bag(tmp_path / "images", "/image", [(1, np.zeros((4, 4), np.uint8))])
+    np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
+    err = run_error(["--recording", str(tmp_path / "images"), "--gt", str(tmp_path / "gt.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "neither place_posteriors nor loop_closures" in err
+
+
+def test_recording_with_query_beyond_the_ground_truth(tmp_path, capsys):
+    write_recording(tmp_path / "run", [(0, [], []), (5, [0], [0.5])], [])
+    np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "query id 5 outside the 3 frames" in err
