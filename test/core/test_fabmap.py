@@ -248,3 +248,22 @@ def test_posting_pool_keeps_postings_in_order_with_bounded_memory():
         np.testing.assert_array_equal(pool.posting(w), expected[w])
     stored = sum(len(e) for e in expected)
     assert pool.pool.size <= 4 * stored + 12 * v
+
+
+def test_warm_up_covers_the_kernel_signatures_of_adds_and_queries():
+    from aefabmap_ros.core import fabmap
+
+    assert fabmap.warm_up_kernels() >= 0.0
+    kernels = (fabmap._add_byte_tables, fabmap._scatter_postings, fabmap._move_blocks)
+    warmed = [list(kernel.signatures) for kernel in kernels]
+    rng = np.random.default_rng(4)
+    model = FabMapModel(_random_tree(rng, 40))
+    index = InvertedIndex(model, dense_min_marginal=0.5)
+    rows = [np.flatnonzero(rng.random(40) < 0.4) for _ in range(30)]
+    index.add_many(*_csr(rows))
+    for words in rows:
+        index.add(words)
+    index.scores(model.query_state(rows[0]))
+    # No new specialisation: the first real query after warm-up compiles nothing.
+    assert [list(kernel.signatures) for kernel in kernels] == warmed
+    assert all(len(signatures) == 1 for signatures in warmed)
