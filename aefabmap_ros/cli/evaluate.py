@@ -12,10 +12,10 @@
 
 Per method: precision-recall curve, average precision, max F1, recall at 100 % precision, and the
 paper's accuracy (= precision) and recall at a fixed threshold: --threshold (FAB-MAP posterior,
-default 0.99 as in the paper) and --bow-threshold (tf-idf cosine, default 0.3: chosen on the
-synthetic *training* sequence, where it sits in the gap between the cosine of revisits and of
-different places; the cosine has no probabilistic meaning, so this default is a convention --
-compare methods by AP and recall at 100 % precision, which need no threshold).
+default 0.99 as in the paper) and --bow-threshold (tf-idf cosine, default 0.6: near the best-F1
+threshold of k-means BoW on the synthetic *training* sequence; the cosine is no calibrated
+probability, so this default is a convention -- compare methods by AP and recall at 100 %
+precision, which need no threshold).
 
 Protocol: the best candidate of query i among frames j <= i - --min-gap; for FAB-MAP those recent
 frames are also left out of the posterior (see aefabmap_ros.core.evaluation). Vocabularies (one per
@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
     parser.add_argument("--threshold", type=float, help="FAB-MAP posterior threshold (default 0.99)")
-    parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.3)")
+    parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.6)")
     parser.add_argument("--config", type=Path, help=f"YAML with sections {', '.join(SECTIONS)}")
     parser.add_argument("--size", type=int, help="visual words of both vocabularies")
     parser.add_argument("--feature", choices=("sift", "rootsift", "orb", "surf"), help="feature type")
