@@ -437,6 +437,40 @@ def _move_blocks(
             destination[new + j] = source[old + j]
 
 
+@numba.njit(cache=True, nogil=True)
+def _count_words(indices: np.ndarray, counts: np.ndarray) -> None:
+    """counts[w] += occurrences of w in indices (np.bincount would first copy int32 ids to int64)."""
+    for k in range(indices.size):
+        counts[indices[k]] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _append_places(
+    indptr: np.ndarray, indices: np.ndarray, first_place: int, dense_slot: np.ndarray, d1: np.ndarray,
+    bits: np.ndarray, pool: np.ndarray, starts: np.ndarray, lengths: np.ndarray, defaults: np.ndarray,
+) -> None:
+    """Store places first_place + i (CSR rows i of word ids) in the bits and the (reserved) postings.
+
+    indptr (N + 1,) int64, indices int32, dense_slot (V,) int64 (-1 = posting), d1 (V,) float64,
+    bits (G, capacity) uint8, pool int32, starts/lengths (V,) int64; writes defaults (N,) float64
+    (the sum of d1 over each row, in row order as np.bincount would). Rows are visited in order, so
+    postings stay in increasing place order.
+    """
+    for i in range(indptr.size - 1):
+        place = first_place + i
+        default = 0.0
+        for j in range(indptr[i], indptr[i + 1]):
+            word = indices[j]
+            default += d1[word]
+            slot = dense_slot[word]
+            if slot >= 0:
+                bits[slot >> 3, place] |= np.uint8(1 << (slot & 7))
+            else:
+                pool[starts[word] + lengths[word]] = place
+                lengths[word] += 1
+        defaults[i] = default
+
+
 def warm_up_kernels() -> float:
     """Load the compiled FAB-MAP 2 kernels now (compile them if the cache is cold); returns seconds taken.
 
@@ -447,9 +481,12 @@ def warm_up_kernels() -> float:
     scores = np.zeros(1)
     ids = np.zeros(1, dtype=np.int64)
     pool = np.zeros(1, dtype=np.int32)
-    _add_byte_tables(scores, np.zeros((1, 1), dtype=np.uint8), ids, np.zeros((1, 256)), 1)
+    bits = np.zeros((1, 1), dtype=np.uint8)
+    _add_byte_tables(scores, bits, ids, np.zeros((1, 256)), 1)
     _scatter_postings(scores, pool, ids, ids, ids, scores)
     _move_blocks(pool, pool, ids, ids, ids)
+    _count_words(pool, ids.copy())
+    _append_places(np.zeros(1, dtype=np.int64), pool, 0, ids, scores, bits, pool, ids, ids.copy(), scores.copy())
     return time.perf_counter() - start
 
 
@@ -485,19 +522,13 @@ class PostingPool:
         start = int(self.starts[word])
         return self._pool[start : start + int(self.lengths[word])]
 
-    def extend(self, words: np.ndarray, places: np.ndarray) -> None:
-        """Append (word, place) pairs: words (N,) sorted; places (N,) int, increasing per word and
-        greater than every place already in that word's posting."""
-        if words.size == 0:
-            return
-        unique, first, counts = np.unique(words, return_index=True, return_counts=True)
-        need = self.lengths[unique] + counts
-        moving = need > self.capacities[unique]
-        if np.any(moving):
-            self._relocate(unique[moving], need[moving])
-        rank = np.arange(words.size, dtype=np.int64) - np.repeat(first, counts)  # position within its word's run
-        self._pool[self.starts[words] + self.lengths[words] + rank] = places
-        self.lengths[unique] += counts
+    def reserve(self, counts: np.ndarray) -> None:
+        """Make room for ``counts[w]`` more places in each word w's posting ((V,) int64); appending is
+        then ``pool[starts[w] + lengths[w]] = place; lengths[w] += 1`` (see ``_append_places``)."""
+        need = self.lengths + counts
+        moving = np.flatnonzero(need > self.capacities)
+        if moving.size:
+            self._relocate(moving, need[moving])
 
     def _relocate(self, words: np.ndarray, need: np.ndarray) -> None:
         # 1.5x slack, also after a bulk load: the places added online next would otherwise move most
@@ -577,26 +608,43 @@ class InvertedIndex:
         return index
 
     def add_many(self, indptr: np.ndarray, indices: np.ndarray) -> None:
-        """Append places given as CSR rows (indices sorted unique per row, in range) in one vectorised pass."""
+        """Append places given as CSR rows (indices sorted unique per row, in range).
+
+        One compiled pass over the (place, word) pairs; besides the index itself it allocates only
+        (V,) and (rows,) arrays (and an int32 copy of ``indices`` if they are not int32 already), so
+        loading a large map does not need several times its size in temporaries.
+        """
         n_new = indptr.size - 1
         first = self.num_places
-        indices = np.asarray(indices, dtype=np.int64)
-        counts = np.diff(indptr)
-        place_of = np.repeat(np.arange(first, first + n_new, dtype=np.int64), counts)
-        defaults = np.bincount(place_of - first, weights=self._model.d1[indices], minlength=n_new)
-        self._defaults.extend(defaults.astype(np.float64))
-        self._word_data.extend(indices.astype(self._word_data.view().dtype))
-        self._word_ptr.extend(self._word_ptr.view()[-1] + np.cumsum(counts))
-        slots = self._dense_slot[indices]
-        if self._bits.shape[0]:
-            self._reserve_bits(first, first + n_new)
-            dense = slots >= 0
-            np.bitwise_or.at(
-                self._bits, (slots[dense] // 8, place_of[dense]), (1 << (slots[dense] % 8)).astype(np.uint8)
-            )
-        sparse = slots < 0
-        order = np.argsort(indices[sparse], kind="stable")  # stable: places stay in increasing order per word
-        self._postings.extend(indices[sparse][order], place_of[sparse][order].astype(np.int32))
+        indptr = np.ascontiguousarray(indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(indices, dtype=np.int32)
+        counts = np.zeros(self._model.vocabulary_size, dtype=np.int64)
+        _count_words(indices, counts)
+        counts[self._dense_slot >= 0] = 0
+        self._postings.reserve(counts)
+        self._reserve_bits(first, first + n_new)
+        defaults = np.empty(n_new)
+        postings = self._postings
+        _append_places(
+            indptr, indices, first, self._dense_slot, self._model.d1, self._bits,
+            postings.pool, postings.starts, postings.lengths, defaults,
+        )
+        self._defaults.extend(defaults)
+        self._word_data.extend(indices)  # cast to the stored dtype on copy
+        self._word_ptr.extend(self._word_ptr.view()[-1] + (indptr[1:] - indptr[0]))
+
+    def posting(self, word: int) -> np.ndarray:
+        """(n,) int64 increasing ids of the places holding ``word`` (whether stored as bits or a posting)."""
+        slot = int(self._dense_slot[word])
+        if slot < 0:
+            return self._postings.posting(word).astype(np.int64)
+        row = self._bits[slot >> 3, : self.num_places]
+        return np.flatnonzero(row & (1 << (slot & 7)))
+
+    @property
+    def postings(self) -> PostingPool:
+        """The postings of the words not stored as bits (read-only use)."""
+        return self._postings
 
     def _reserve_bits(self, filled: int, num_places: int) -> None:
         """Make room for bits of ``num_places`` places, keeping the first ``filled`` columns."""

@@ -14,7 +14,6 @@ from aefabmap_ros.core.fabmap import (
     FabMapConfig,
     FabMapModel,
     InvertedIndex,
-    PostingPool,
     fabmap_score_matrices,
     motion_log_prior,
     posterior,
@@ -226,30 +225,27 @@ def test_inverted_index_scores_match_a_dense_reference_while_growing(dense_min_m
         np.testing.assert_array_equal(index.place_words(i), places[i])
 
 
-def test_posting_pool_keeps_postings_in_order_with_bounded_memory():
+@pytest.mark.parametrize("dense_min_marginal", [0.0, 0.4, 1.1])
+def test_postings_stay_in_place_order_with_bounded_memory(dense_min_marginal):
     rng = np.random.default_rng(8)
     v = 60
-    pool = PostingPool(v)
-    expected: list[list[int]] = [[] for _ in range(v)]
-    bulk_words = np.sort(rng.integers(0, v, 500))
-    bulk_places = np.zeros(500, dtype=np.int32)
-    for w in np.unique(bulk_words):  # places 0.. per word, increasing
-        bulk_places[bulk_words == w] = np.arange(int(np.sum(bulk_words == w)))
-    pool.extend(bulk_words, bulk_places)
-    counts = np.bincount(bulk_words)
-    counts = counts[counts > 0]
+    model = FabMapModel(_random_tree(rng, v))
+    index = InvertedIndex(model, dense_min_marginal=dense_min_marginal)
+    bulk = [np.flatnonzero(rng.random(v) < 0.15) for _ in range(40)]
+    index.add_many(*_csr(bulk))
+    pool = index.postings
+    counts = np.bincount(np.concatenate(bulk), minlength=v)[pool.lengths > 0]
     # A bulk load: each posting gets 1.5x + 4 slots, the pool a quarter more as free end.
     assert pool.pool.size == int(np.sum(counts + counts // 2 + 4)) * 5 // 4
-    for w, place in zip(bulk_words.tolist(), bulk_places.tolist(), strict=True):
-        expected[w].append(place)
-    for place in range(1000, 1600):  # one place at a time: relocations and repacks
-        words = np.flatnonzero(rng.random(v) < rng.uniform(0.01, 0.5))
-        pool.extend(words, np.full(words.size, place, dtype=np.int32))
-        for w in words.tolist():
-            expected[w].append(place)
+    online = [np.flatnonzero(rng.random(v) < rng.uniform(0.01, 0.5)) for _ in range(600)]
+    for words in online:  # one place at a time: postings move, the pool is repacked
+        index.add(words)
+    places = bulk + online
     for w in range(v):
-        np.testing.assert_array_equal(pool.posting(w), expected[w])
-    stored = sum(len(e) for e in expected)
+        expected = [i for i, words in enumerate(places) if w in set(words.tolist())]
+        np.testing.assert_array_equal(index.posting(w), expected)
+    stored = int(pool.lengths.sum())
+    assert stored == sum(int(np.sum(index._dense_slot[words] < 0)) for words in places)
     assert pool.pool.size <= 4 * stored + 12 * v
 
 
@@ -257,7 +253,10 @@ def test_warm_up_covers_the_kernel_signatures_of_adds_and_queries():
     from aefabmap_ros.core import fabmap
 
     assert fabmap.warm_up_kernels() >= 0.0
-    kernels = (fabmap._add_byte_tables, fabmap._scatter_postings, fabmap._move_blocks)
+    kernels = (
+        fabmap._add_byte_tables, fabmap._scatter_postings, fabmap._move_blocks, fabmap._count_words,
+        fabmap._append_places,
+    )
     warmed = [list(kernel.signatures) for kernel in kernels]
     rng = np.random.default_rng(4)
     model = FabMapModel(_random_tree(rng, 40))
