@@ -17,6 +17,7 @@ from aefabmap_ros.core.fabmap import (
     fabmap_score_matrices,
     motion_log_prior,
     posterior,
+    top_k_indices,
 )
 
 GOLDEN_RUNS = [
@@ -269,3 +270,18 @@ def test_warm_up_covers_the_kernel_signatures_of_adds_and_queries():
     # No new specialisation: the first real query after warm-up compiles nothing.
     assert [list(kernel.signatures) for kernel in kernels] == warmed
     assert all(len(signatures) == 1 for signatures in warmed)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 300), k=st.integers(0, 8), scale=st.sampled_from([0.5, 500]))
+def test_top_k_indices_equals_a_full_stable_sort(seed, n, k, scale):
+    rng = np.random.default_rng(seed)
+    log_likelihoods = rng.normal(0, scale, n)
+    log_likelihoods[rng.random(n) < 0.2] = 0.0  # exact ties
+    p = posterior(log_likelihoods, None, 0.99) if n else np.zeros(0)  # underflow: many equal floor values
+    np.testing.assert_array_equal(top_k_indices(p, k), np.lexsort((np.arange(n), -p))[:k])
+
+
+def test_top_k_indices_rejects_negative_k():
+    with pytest.raises(DataError, match="k = -1 must be >= 0"):
+        top_k_indices(np.zeros(3), -1)
