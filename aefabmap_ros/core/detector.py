@@ -50,6 +50,7 @@ from aefabmap_ros.core.fabmap import (
     make_engine,
     motion_log_prior,
     posterior,
+    top_k_indices,
 )
 
 MAP_FORMAT_VERSION = 1
@@ -181,7 +182,8 @@ class PlaceRecognizer:
         self._previous_posterior = previous
 
         place_p = p[1:]
-        order = np.lexsort((included, -place_p))  # best first, ties: older place first
+        # Best first, ties: older place first (``included`` is increasing); O(k P), not a full sort.
+        order = top_k_indices(place_p, max(self.config.top_k, 1))
         candidates = tuple(
             Candidate(
                 place_id=int(included[k]),

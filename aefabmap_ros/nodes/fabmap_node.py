@@ -16,7 +16,7 @@ from rclpy.node import Node
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
-from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.fabmap import FabMapConfig, warm_up_kernels
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.io.messages import (
     message_to_word_ids,
@@ -49,6 +49,7 @@ class FabMapNode(Node):
         self.recognizer = PlaceRecognizer(
             ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.model_id
         )
+        warm_up_kernels()  # compile/load FAB-MAP's kernels now, not on the first image
         self.map_path = Path(map_file) if map_file else None
         if self.map_path is not None and self.map_path.exists():
             self.recognizer.load_map(self.map_path)
