@@ -71,7 +71,7 @@ class VocabularyConfig:
         metadata={"description": "k-means trains on at most this many descriptors per word (random subsample)."},
     )
     ae_embedding_dim: int = field(
-        default=32, metadata={"description": "Autoencoder embedding size (the space the words live in)."}
+        default=64, metadata={"description": "Autoencoder embedding size (the space the words live in)."}
     )
     ae_epochs: int = field(default=8, metadata={"description": "Autoencoder pre-training epochs."})
     ae_batch_size: int = field(default=256, metadata={"description": "Autoencoder mini-batch size."})

@@ -324,7 +324,7 @@ def real_descriptors() -> np.ndarray:
 @pytest.mark.parametrize("kind", ["kmeans", "autoencoder"])
 def test_real_images_use_most_words_evenly(real_descriptors: np.ndarray, kind: str) -> None:
     descriptors = real_descriptors
-    config = VocabularyConfig(kind=kind, size=150, ae_epochs=3, num_threads=2)
+    config = VocabularyConfig(kind=kind, size=150, ae_epochs=3, num_threads=1)
     quantizer = train_vocabulary(descriptors, config, progress=False)
     usage = word_usage(quantizer, descriptors)
     assert usage.sum() == descriptors.shape[0]
