@@ -74,6 +74,7 @@ def make_bags(args: argparse.Namespace) -> tuple[Path, Path]:
 
 def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
     models = {}
+    (args.out / "models").mkdir(parents=True, exist_ok=True)
     for kind in ("autoencoder", "kmeans"):
         out = args.out / "models" / kind
         if (out / "metadata.json").is_file():
@@ -194,12 +195,14 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
 
 
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
-    command: list[str | Path] = ["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image",
-                                 "--gt", test / "loop_gt.npz", "--model", models["kmeans"],
-                                 "--model", models["autoencoder"], "--out", args.out / "evaluation"]
+    gt = test / "loop_gt.npz"
+    _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
+          "--model", models["kmeans"], "--model", models["autoencoder"], "--out", args.out / "evaluation"],
+         "offline evaluation of the four methods")
     if recording is not None:
-        command += ["--recording", recording]
-    _run(command, "evaluation")
+        print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)
+        _run(["aefabmap_ros.cli.evaluate", "--recording", recording, "--gt", gt,
+              "--out", args.out / "evaluation_online"], "evaluation of the recording")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -221,8 +224,10 @@ def run(args: argparse.Namespace) -> int:
         recording = run_online(args, models["autoencoder"], test)
     _step("4/4 evaluation of FABMAP2, AE-FABMAP, BoW and AE-BoW (and the online run)")
     evaluate(args, models, test, recording)
-    print(f"\nDone in {time.monotonic() - started:.0f} s. Results: {args.out / 'evaluation' / 'results.md'}; "
-          f"plots: {args.out / 'evaluation'}/*.png" + (f"; recording (Foxglove): {recording}" if recording else ""))
+    print(f"\nDone in {time.monotonic() - started:.0f} s.\n  tables: {args.out / 'evaluation' / 'results.md'}"
+          + (f", {args.out / 'evaluation_online' / 'results.md'}" if recording else "")
+          + f"\n  plots:  {args.out / 'evaluation'}/*.png"
+          + (f"\n  recording (opens in Foxglove): {recording}" if recording else ""))
     return 0
 
 
