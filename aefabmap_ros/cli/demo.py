@@ -82,7 +82,8 @@ def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
         else:
             command: list[str | Path] = ["aefabmap_ros.cli.train", "--bag", train / "bag", "--topic", "/image",
                                          "--vocabulary", kind, "--size", str(args.size), "--out", out,
-                                         "--overwrite", "--work-dir", args.out / "models" / ".work"]
+                                         "--overwrite", "--work-dir", args.out / "models" / ".work",
+                                         "--config", REPO_ROOT / "config" / "demo_train.yaml"]
             _run(command, f"training the {kind} vocabulary and Chow-Liu tree")
         models[kind] = out
     return models
