@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.errors import AefabmapError
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
 
@@ -235,14 +236,7 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    try:
-        return run(args)
-    except AefabmapError as exc:
-        print(f"ERROR: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("ERROR: interrupted", file=sys.stderr)
-        return 1
+    return report_errors(lambda: run(args))
 
 
 if __name__ == "__main__":

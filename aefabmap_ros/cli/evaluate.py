@@ -48,8 +48,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from aefabmap_ros.cli.common import RESUME_HINT, report_errors
 from aefabmap_ros.cli.train import extract_all, source_provenance
-from aefabmap_ros.core.errors import AefabmapError, ConfigError, DataError, ModelError
+from aefabmap_ros.core.atomic import atomic_write_text
+from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.evaluation import (
     METHODS,
     EvaluationConfig,
@@ -173,17 +175,6 @@ def prepare_output(out: Path) -> None:
         raise ConfigError(f"--out {out} is not a writable folder: {error.strerror or error}") from error
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
-
-
 def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header: dict[str, Any],
                   extra_markdown: str = "") -> list[Path]:
     """results.md, results.json, pr_curves.png and scores_<method>.png; returns the written paths."""
@@ -202,11 +193,11 @@ def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header
     lines += ["", results_markdown(results)]
     if extra_markdown:
         lines += [extra_markdown]
-    write_text_atomic(out / "results.md", "\n".join(lines))
+    atomic_write_text(out / "results.md", "\n".join(lines))
     payload = {**header, "methods": [
         {**result_to_dict(r), "scores_plot": f"scores_{slug}.png"} for r, slug in zip(results, slugs, strict=True)
     ]}
-    write_text_atomic(out / "results.json", json.dumps(payload, indent=2, sort_keys=False) + "\n")
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=2, sort_keys=False) + "\n")
     written += [out / "results.md", out / "results.json"]
     return written
 
@@ -453,16 +444,10 @@ def run_evaluation(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
-        return run_evaluation(args)
-    except _UsageError as exc:
+    except _UsageError as exc:  # argparse's own errors, as ERROR lines too
         print(f"ERROR: {exc}", file=sys.stderr)
         return 1
-    except AefabmapError as exc:
-        print(f"ERROR: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("ERROR: interrupted; rerun the same command to resume from the cached stages", file=sys.stderr)
-        return 1
+    return report_errors(lambda: run_evaluation(args), RESUME_HINT)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
 from aefabmap_ros.core.synth import SynthConfig, SyntheticSequence, generate_sequence, train_test_configs
@@ -66,17 +67,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
-
-
 def _write_png(path: Path, image: np.ndarray) -> None:
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
@@ -98,12 +88,12 @@ def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: 
         write_image_bag(directory / "bag", topic, frames, storage="mcap")
     write_kitti_poses(directory / "poses.txt", sequence.poses)
     seconds = (sequence.stamps_ns - sequence.stamps_ns[0]) / 1e9
-    _write_bytes_atomic(directory / "times.txt", "".join(f"{t:.6e}\n" for t in seconds).encode())
+    atomic_write_bytes(directory / "times.txt", "".join(f"{t:.6e}\n" for t in seconds).encode())
     projection = np.hstack([sequence.camera_matrix, np.zeros((3, 1))]).reshape(12)
-    _write_bytes_atomic(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
+    atomic_write_bytes(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
     with open(directory / "loop_gt.npz", "wb") as file:
         np.savez_compressed(file, gt=sequence.gt)
-    _write_bytes_atomic(directory / "synth_config.json", (json.dumps(asdict(config), indent=2) + "\n").encode())
+    atomic_write_bytes(directory / "synth_config.json", (json.dumps(asdict(config), indent=2) + "\n").encode())
 
 
 def _publish(temporary: Path, target: Path, overwrite: bool) -> None:

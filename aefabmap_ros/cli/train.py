@@ -20,7 +20,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.cli.common import RESUME_HINT, report_errors
+from aefabmap_ros.core.errors import ConfigError
 from aefabmap_ros.core.features import FeatureConfig, Features
 from aefabmap_ros.core.model import save_model
 from aefabmap_ros.core.training import TrainingConfig, config_digest, extract_sequence_features, train_model
@@ -147,14 +148,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except AefabmapError as exc:
-        print(f"ERROR: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("ERROR: interrupted; rerun the same command to resume from the cached stages", file=sys.stderr)
-        return 1
+    return report_errors(lambda: run(args), RESUME_HINT)
 
 
 if __name__ == "__main__":

@@ -49,8 +49,6 @@ import contextlib
 import hashlib
 import io
 import json
-import os
-import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -62,6 +60,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.kmeans_vocab import (
     as_float_rows,
@@ -559,16 +558,3 @@ class _Checkpoint:
 _SKIP = 1 << 30  # an epoch number past any stage's end: the stage's loop runs no epoch
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same directory + os.replace."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise

@@ -11,13 +11,12 @@ the camera looks along its +z axis, so the optical axis in the world is the thir
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from aefabmap_ros.core.atomic import atomic_write_text
 from aefabmap_ros.core.errors import ConfigError, DataError
 
 _UNIT_TOLERANCE = 1e-3
@@ -104,18 +103,7 @@ def write_kitti_poses(path: Path, poses: np.ndarray) -> None:
     if matrices.ndim != 3 or matrices.shape[1:] != (3, 4):
         raise DataError(f"poses must have shape (N, 3, 4), got {matrices.shape}")
     lines = [" ".join(f"{value:.9e}" for value in matrix.reshape(12)) for matrix in matrices]
-    _write_text_atomic(Path(path), "\n".join(lines) + "\n")
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "w") as file:
-            file.write(text)
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
+    atomic_write_text(Path(path), "\n".join(lines) + "\n")
 
 
 def positions_and_axes(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
