@@ -30,9 +30,8 @@ The map (places' words, stamps, frames, counters, last posterior) is saved atomi
 
 from __future__ import annotations
 
+import io
 import json
-import os
-import tempfile
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import (
@@ -285,16 +285,9 @@ class PlaceRecognizer:
             "config_json": np.array(json.dumps(asdict(self.config), sort_keys=True)),
         }
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                np.savez(handle, **arrays)  # type: ignore[arg-type]
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(tmp_name, path)
-        except BaseException:
-            Path(tmp_name).unlink(missing_ok=True)
-            raise
+        buffer = io.BytesIO()
+        np.savez(buffer, **arrays)  # type: ignore[arg-type]
+        atomic_write_bytes(path, buffer.getvalue())
 
     def load_map(self, path: Path) -> None:
         """Replace the map by the one saved at ``path``.

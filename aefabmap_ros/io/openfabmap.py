@@ -9,14 +9,13 @@ subset FileStorage writes); files written here open with ``cv2.FileStorage`` and
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from aefabmap_ros.core.atomic import atomic_write_text
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.errors import ModelError
 
@@ -118,16 +117,7 @@ def write_opencv_matrices(path: Path | str, nodes: Mapping[str, np.ndarray]) -> 
         lines.append("   data: [ " + (",\n       ".join(chunks)) + " ]")
     text = "\n".join(lines) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.yml", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, text)
 
 
 def read_vocabulary(path: Path | str) -> np.ndarray:
