@@ -62,6 +62,7 @@ from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.metrics import LoopMetrics, evaluate_scores
 from aefabmap_ros.core.model import Model
+from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.tfidf import tfidf_score_matrix
 from aefabmap_ros.core.training import count_bow
 
@@ -335,9 +336,9 @@ def scores_from_recording(
     """
     stamp_to_frame: dict[int, int] = {}
     for message in posteriors:
-        stamp_to_frame.setdefault(_stamp_ns(message.header.stamp), int(message.query_id))
+        stamp_to_frame.setdefault(stamp_to_ns(message.header.stamp), int(message.query_id))
     for message in loop_closures:
-        stamp_to_frame.setdefault(_stamp_ns(message.header.stamp), int(message.query_id))
+        stamp_to_frame.setdefault(stamp_to_ns(message.header.stamp), int(message.query_id))
 
     scores = np.zeros((num_frames, num_frames))
     aligned = 0
@@ -361,7 +362,7 @@ def scores_from_recording(
         query = int(message.query_id)
         place_ids = np.asarray(message.place_ids, dtype=np.int64)
         probabilities = np.asarray(message.probabilities, dtype=np.float64)
-        stamps = [_stamp_ns(s) for s in message.place_stamps]
+        stamps = [stamp_to_ns(s) for s in message.place_stamps]
         if probabilities.shape != place_ids.shape:
             raise DataError(f"place_posteriors query {query}: {place_ids.size} place ids but "
                             f"{probabilities.size} probabilities")
@@ -372,14 +373,10 @@ def scores_from_recording(
     closures = []
     for message in loop_closures:
         query = int(message.query_id)
-        frame = frame_of(int(message.matched_place_id), _stamp_ns(message.matched_stamp))
+        frame = frame_of(int(message.matched_place_id), stamp_to_ns(message.matched_stamp))
         put(query, frame, float(message.probability), "loop_closures")
         closures.append(RecordedClosure(query, frame, float(message.probability)))
     return RecordingScores(scores, closures, len(posteriors), len(loop_closures), aligned)
-
-
-def _stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def closure_precision_recall(closures: Sequence[RecordedClosure], gt: np.ndarray, min_gap: int) -> tuple[float, float]:

@@ -24,6 +24,7 @@ from rosbags.typesys import get_typestore as _rosbags_typestore
 from rosbags.typesys.store import Typestore
 
 from aefabmap_ros.core.errors import BagError
+from aefabmap_ros.core.stamps import stamp_to_ns
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
@@ -64,11 +65,6 @@ def _storage_plugin(storage: str) -> StoragePlugin:
         return STORAGES[storage]
     except KeyError:
         raise BagError(f"unknown bag storage {storage!r}; choose one of {sorted(STORAGES)}") from None
-
-
-def stamp_to_ns(stamp: Any) -> int:
-    """builtin_interfaces/Time (rosbags or rclpy) -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def make_time(stamp_ns: int) -> Any:

@@ -18,11 +18,11 @@ from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.core.fabmap import FabMapConfig, warm_up_kernels
 from aefabmap_ros.core.model import load_model
+from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.io.messages import (
     message_to_word_ids,
     recognition_to_loop_closure,
     recognition_to_posterior,
-    time_to_ns,
 )
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, pipeline_qos, run_node
 
@@ -71,7 +71,7 @@ class FabMapNode(Node):
         )
 
     def _on_words(self, message: BagOfWords) -> None:
-        stamp_ns = time_to_ns(message.header.stamp)
+        stamp_ns = stamp_to_ns(message.header.stamp)
         if stamp_ns <= self.last_stamp_ns:
             self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns")
             return
