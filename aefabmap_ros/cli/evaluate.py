@@ -90,6 +90,11 @@ class _UsageError(Exception):
     """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
 
 
+# The FAB-MAP settings that shape the evaluation's scores (the others are fixed by the protocol).
+REPORTED_FABMAP_SETTINGS = ("p_z_given_e", "p_z_given_not_e", "new_place_model", "motion_model", "smoothing",
+                            "min_words")
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         raise _UsageError(message)
@@ -362,8 +367,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
                      ", ".join(s.name for s in train)),
         "features": f"{settings.feature.type}, at most {settings.feature.max_features} per image"
                     if not args.model else "from the models",
-        "fabmap": {k: v for k, v in asdict(settings.fabmap).items()
-                   if k in ("p_z_given_e", "p_z_given_not_e", "new_place_model", "motion_model", "smoothing")},
+        "fabmap": {k: v for k, v in asdict(settings.fabmap).items() if k in REPORTED_FABMAP_SETTINGS},
     }
     return results, gt, header
 

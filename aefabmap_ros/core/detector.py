@@ -1,7 +1,11 @@
 """Online place recognition with FAB-MAP 2: data association, place policies, map persistence.
 
 One :class:`PlaceRecognizer` per camera. Every call of :meth:`PlaceRecognizer.process` is one
-frame and gets the next query id (0, 1, 2, ...), also frames without words. Per frame:
+frame and gets the next query id (0, 1, 2, ...), also frames without words. Frames with fewer
+than ``min_words`` distinct words stop there: they carry almost no evidence, and FAB-MAP would
+match a blank frame to any earlier blank frame with certainty (see
+:data:`aefabmap_ros.core.fabmap.DEFAULT_MIN_WORDS`); they get no posterior and no place, and the
+motion model continues from the last informative frame. Every other frame:
 
 1. FAB-MAP 2 log-likelihoods of every stored place and of the new place.
 2. Hypotheses: "new" plus the stored places except the recent ones: places created from the
@@ -18,8 +22,8 @@ frame and gets the next query id (0, 1, 2, ...), also frames without words. Per 
    place and a Jaccard word overlap with it of at most ``keyframe_max_overlap``, or, when
    ``keyframe_max_frames`` > 0, once that many frames have passed (whatever the overlap).
 
-Place ids are 0, 1, 2, ... in the order places are added (so with policy "all" and default
-keyframing, place id == query id, as in openFABMAP's golden run).
+Place ids are 0, 1, 2, ... in the order places are added (so with policy "all", default
+keyframing and ``min_words = 0``, place id == query id, as in openFABMAP's golden run).
 
 New-place samples that are the query itself: pass ``exclude_sample=<sample index>`` to
 :meth:`PlaceRecognizer.process` (identity by index, not by comparing word sets).
@@ -79,6 +83,9 @@ class Recognition:
     loop_closure: Candidate | None  # the matched place, if any
     added_place_id: int = -1  # place created from this frame, -1 if none (policy / keyframing)
     new_place_log_likelihood: float = 0.0
+    # False: fewer than ``min_words`` words; nothing was decided (no candidates, no place, and
+    # ``new_place_probability`` is nan).
+    informative: bool = True
 
 
 def jaccard(a: np.ndarray, b: np.ndarray) -> float:
@@ -165,6 +172,14 @@ class PlaceRecognizer:
         words = as_word_ids(word_ids, self.vocabulary_size)
         query_id = self._next_query_id
         self._next_query_id += 1
+        if words.size < self.config.min_words:
+            # No evidence: the belief stays as it was (the motion model continues from the last
+            # informative frame) and the frame neither matches nor becomes a place.
+            return Recognition(
+                query_id=query_id, stamp_ns=stamp_ns, assigned_place_id=-1, is_new_place=False,
+                new_place_probability=float("nan"), candidates=(), loop_closure=None,
+                new_place_log_likelihood=float("nan"), informative=False,
+            )
 
         new_ll, place_ll = self._engine.log_likelihoods(words, exclude_sample)
         included = np.flatnonzero(self._included(query_id, stamp_ns))

@@ -13,10 +13,11 @@ A vocabulary is trained (or loaded) once per kind and serves both its FAB-MAP an
 
 **FAB-MAP score matrix.** The scores are produced by the online
 :class:`~aefabmap_ros.core.detector.PlaceRecognizer` itself (one code path with the nodes), run
-frame by frame with add policy "all" and no keyframing (so place id == frame index) and every
-candidate reported (``top_k`` = all): ``scores[i, j]`` = posterior of place j for query i,
-``new_place[i]`` = posterior of "new place". The metrics then take each query's best candidate
-among ``j <= i - min_gap`` (``core.metrics``).
+frame by frame with add policy "all" and no keyframing (every informative frame is a place) and
+every candidate reported (``top_k`` = all): ``scores[i, j]`` = posterior of frame j's place for
+query i, ``new_place[i]`` = posterior of "new place". Frames with fewer than the config's
+``min_words`` words are not recognised (a zero row) and are no places (a zero column). The
+metrics then take each query's best candidate among ``j <= i - min_gap`` (``core.metrics``).
 
 Whether the recent frames are hypotheses of the posterior is ``fabmap_exclude_recent``
 (the recognizer's ``exclude_recent_frames``). Default 0, none excluded, as openFABMAP: measured,
@@ -173,8 +174,10 @@ def fabmap_posterior_matrix(
     """FAB-MAP 2 posteriors of a sequence, the places of the last ``exclude_recent_frames`` frames excluded.
 
     observations: (N, V) bag-of-words (value > 0 = word present). Returns ``scores`` (N, N) float64
-    with ``[i, j]`` = p(place j | query i) for ``j < i - exclude_recent_frames`` and 0 elsewhere, and
-    ``new_place`` (N,) float64 = p(new place | query i).
+    with ``[i, j]`` = p(place of frame j | query i) for ``j < i - exclude_recent_frames`` and 0 elsewhere
+    (also 0 in the rows and columns of frames with fewer than ``config.min_words`` words: they are not
+    recognised and are no places), and ``new_place`` (N,) float64 = p(new place | query i), nan for
+    those frames.
     """
     matrix = sp.csr_matrix(observations)
     num_frames = matrix.shape[0]
@@ -190,13 +193,13 @@ def fabmap_posterior_matrix(
     for i in range(num_frames):
         words = matrix.indices[matrix.indptr[i] : matrix.indptr[i + 1]].astype(np.int64)
         exclude = None if exclude_samples is None or exclude_samples[i] < 0 else int(exclude_samples[i])
+        # The frame index is the stamp: a candidate's stamp is its frame (uninformative frames
+        # become no place, so place ids and frames differ after the first of them).
         recognition = recognizer.process(words, i, exclude_sample=exclude)
-        if recognition.added_place_id != i:  # guaranteed by fabmap_evaluation_config; place id = frame
-            raise DataError(f"frame {i} became place {recognition.added_place_id}, expected {i}")
         new_place[i] = recognition.new_place_probability
         if recognition.candidates:
-            places = np.fromiter((c.place_id for c in recognition.candidates), np.int64)
-            scores[i, places] = np.fromiter((c.probability for c in recognition.candidates), np.float64)
+            frames = np.fromiter((c.stamp_ns for c in recognition.candidates), np.int64)
+            scores[i, frames] = np.fromiter((c.probability for c in recognition.candidates), np.float64)
         if on_frame is not None:
             on_frame(i)
     return scores, new_place

@@ -82,6 +82,9 @@ class FabMapNode(Node):
             self.counter.drop(type(exc).__name__, str(exc))
             return
         self.last_stamp_ns = stamp_ns
+        if not recognition.informative:  # too few words to say anything: no posterior, no place
+            self.counter.ok("frames_below_min_words")
+            return
         self.unsaved_changes = True
         self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
         loop_closure = recognition_to_loop_closure(recognition, message.header)

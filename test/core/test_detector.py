@@ -6,7 +6,7 @@ import scipy.sparse as sp
 
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer, jaccard
-from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
+from aefabmap_ros.core.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import FabMapConfig, fabmap_score_matrices
 
 V = 40
@@ -54,7 +54,8 @@ def test_golden_sequence_online(golden_dir):
     train = sp.csr_matrix(read_bow(golden_dir / "bowtrain.yml"))
     test = read_bow(golden_dir / "bowtest.yml")
     golden_p = np.loadtxt(golden_dir / "fabmap2_sampled_motion.probabilities.txt")
-    recognizer = PlaceRecognizer(tree, train, FabMapConfig(motion_model=True, top_k=3), "golden")
+    # openFABMAP recognises every frame, also its two blank ones (min_words=0).
+    recognizer = PlaceRecognizer(tree, train, FabMapConfig(motion_model=True, top_k=3, min_words=0), "golden")
     for i, row in enumerate(test):
         result = recognizer.process(np.flatnonzero(row > 0).astype(np.uint32), stamp_ns=i)
         assert result.new_place_probability == pytest.approx(golden_p[i, i], abs=1e-5)
@@ -116,8 +117,8 @@ def test_keyframe_policy():
 
 
 def test_empty_frames_keep_their_index_and_errors():
-    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
-    assert recognizer.process(np.zeros(0, dtype=np.uint32), 0).query_id == 0
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(min_words=0), "v")
+    assert recognizer.process(np.zeros(0, dtype=np.uint32), 0).added_place_id == 0
     assert recognizer.process(np.array([3, 1, 1]), 1).added_place_id == 1  # normalised to [1, 3]
     np.testing.assert_array_equal(recognizer.place_words(1), [1, 3])
     with pytest.raises(DataError, match=f"word id {V} out of range"):
@@ -129,6 +130,51 @@ def test_empty_frames_keep_their_index_and_errors():
     with pytest.raises(DataError, match="place id 7 out of range"):
         recognizer.place_words(7)
     assert recognizer.num_queries == 2
+
+
+def test_blank_frame_is_certain_to_match_a_blank_place_without_min_words():
+    """Why min_words exists: FAB-MAP alone "recognises" an earlier blank frame with certainty."""
+    frames = _frames(6)
+    blank = np.zeros(0, dtype=np.int64)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(min_words=0), "v")
+    for i, words in enumerate([blank, *frames]):
+        recognizer.process(words, i)
+    best, second = recognizer.process(blank, 10).candidates[:2]
+    assert best.place_id == 0 and best.probability > 0.5 and best.probability > 5 * second.probability
+    skipping = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")  # default min_words = 1
+    for i, words in enumerate([blank, *frames]):
+        skipping.process(words, i)
+    assert skipping.process(blank, 10).candidates == () and skipping.num_places == len(frames)
+
+
+@pytest.mark.parametrize("motion_model", [False, True])
+def test_frames_below_min_words_are_skipped(motion_model):
+    frames = _frames(8)
+    config = FabMapConfig(min_words=3, motion_model=motion_model, top_k=100)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
+    reference = PlaceRecognizer(_tree(), SAMPLES, config, "v")  # never sees the sparse frames
+    sparse = [np.zeros(0, dtype=np.int64), np.array([2, 5])]
+    results = []
+    for i, words in enumerate([sparse[0], *frames[:4], sparse[1], *frames[4:]]):
+        results.append(recognizer.process(words, i))
+    for result in (results[0], results[5]):
+        assert not result.informative and result.candidates == () and result.loop_closure is None
+        assert result.added_place_id == -1 and result.assigned_place_id == -1 and not result.is_new_place
+        assert np.isnan(result.new_place_probability)
+    assert recognizer.num_queries == 10 and recognizer.num_places == 8
+    # The informative frames are recognised exactly as if the sparse ones had never arrived (the
+    # motion model continues from the last informative posterior).
+    informative = [r for r in results if r.informative]
+    for words, result in zip(frames, informative, strict=True):
+        expected = reference.process(words, result.stamp_ns)
+        assert result.added_place_id == expected.added_place_id
+        assert result.new_place_probability == pytest.approx(expected.new_place_probability, rel=1e-12)
+        assert [(c.place_id, c.stamp_ns) for c in result.candidates] == \
+            [(c.place_id, c.stamp_ns) for c in expected.candidates]
+        np.testing.assert_allclose([c.probability for c in result.candidates],
+                                   [c.probability for c in expected.candidates], rtol=1e-12)
+    with pytest.raises(ConfigError, match="min_words"):
+        FabMapConfig(min_words=-1)
 
 
 def test_map_round_trip_and_refusals(tmp_path):

@@ -134,13 +134,15 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         node._on_words(_words([2, 3], 11, "another-vocabulary"))
         node._on_words(_words([2, 3], 12, vid, size=1000))
         node._on_words(_words([3, 400], 13, vid))  # word id out of range
-        node._on_words(_words([], 14, vid))  # an image without words still counts as a frame
+        node._on_words(_words([], 14, vid))  # an image without words: a query, but no posterior, no place
+        node._on_words(_words([2, 7], 15, vid))
         counts = node.counter.counts
         assert counts["dropped_out_of_order"] == 2
         assert counts["dropped_VocabularyMismatchError"] == 2
         assert counts["dropped_DataError"] == 1
-        assert [p.query_id for p in posteriors.messages] == [0, 1]
-        assert node.recognizer.num_places == 2
+        assert counts["frames_below_min_words"] == 1
+        assert [p.query_id for p in posteriors.messages] == [0, 2]
+        assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
         node.close()  # saves the map
         assert (tmp_path / "map.npz").exists()
     finally:
