@@ -21,6 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.chowliu import learn_chow_liu_tree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import AefabmapError
@@ -167,25 +168,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--zipf-exponent", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    try:
-        sizes: tuple[int, ...]
-        if args.quick:
-            vocabulary_size, n_train, sizes, n_queries, n_ratio = 2000, 500, (1000, 5000), 20, 200
-        else:
-            vocabulary_size, n_train, sizes, n_queries, n_ratio = 10_000, 5000, (1000, 10_000, 100_000), 100, 500
-        vocabulary_size = args.vocabulary_size or vocabulary_size
-        if vocabulary_size < 2 or args.words_per_image < 1:
-            raise AefabmapError("--vocabulary-size must be >= 2 and --words-per-image >= 1")
-        load_1min, load_5min, _ = os.getloadavg()
-        print(f"Load average {load_1min:.2f} (1 min) {load_5min:.2f} (5 min) on {os.cpu_count()} CPUs")
-        images = ZipfImages(vocabulary_size, args.words_per_image, args.zipf_exponent, args.seed)
-        _, train = bench_chow_liu(images, n_train)
-        bench_kernel_load()
-        fabmap1_per_place = bench_fabmap1_ratio(images, train, n_ratio, n_queries=10)
-        bench_queries(images, train, sizes, n_queries, min(n_train, 1000), fabmap1_per_place)
-    except AefabmapError as error:
-        print(f"ERROR: {error}", file=sys.stderr)
-        return 1
+    return report_errors(lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    sizes: tuple[int, ...]
+    if args.quick:
+        vocabulary_size, n_train, sizes, n_queries, n_ratio = 2000, 500, (1000, 5000), 20, 200
+    else:
+        vocabulary_size, n_train, sizes, n_queries, n_ratio = 10_000, 5000, (1000, 10_000, 100_000), 100, 500
+    vocabulary_size = args.vocabulary_size or vocabulary_size
+    if vocabulary_size < 2 or args.words_per_image < 1:
+        raise AefabmapError("--vocabulary-size must be >= 2 and --words-per-image >= 1")
+    load_1min, load_5min, _ = os.getloadavg()
+    print(f"Load average {load_1min:.2f} (1 min) {load_5min:.2f} (5 min) on {os.cpu_count()} CPUs")
+    images = ZipfImages(vocabulary_size, args.words_per_image, args.zipf_exponent, args.seed)
+    _, train = bench_chow_liu(images, n_train)
+    bench_kernel_load()
+    fabmap1_per_place = bench_fabmap1_ratio(images, train, n_ratio, n_queries=10)
+    bench_queries(images, train, sizes, n_queries, min(n_train, 1000), fabmap1_per_place)
     return 0
 
 

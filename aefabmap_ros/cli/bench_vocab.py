@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.errors import AefabmapError
 from aefabmap_ros.core.features import FeatureConfig, extract_features
 from aefabmap_ros.core.vocabulary import VocabularyConfig, train_vocabulary, word_usage
@@ -99,11 +100,7 @@ def bench_extraction(images: list[np.ndarray], repeats: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    try:
-        return _run(args)
-    except AefabmapError as error:
-        print(f"ERROR: {error}", file=sys.stderr)
-        return 1
+    return report_errors(lambda: _run(args))
 
 
 def _run(args: argparse.Namespace) -> int:

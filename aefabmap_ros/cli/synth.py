@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
@@ -147,14 +148,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         print(f"ERROR: {error}", file=sys.stderr)
         return 1
+    return report_errors(lambda: _run_reporting_write_errors(args))
+
+
+def _run_reporting_write_errors(args: argparse.Namespace) -> int:
     try:
         run(args)
-    except AefabmapError as error:
-        print(f"ERROR: {error}", file=sys.stderr)
-        return 1
     except OSError as error:
-        print(f"ERROR: cannot write to {args.out}: {error}", file=sys.stderr)
-        return 1
+        raise ConfigError(f"cannot write to {args.out}: {error}") from error
     return 0
 
 
