@@ -1,0 +1,265 @@
+"""Geometric verification of loop-closure candidates (epipolar consistency of feature matches).
+
+FAB-MAP scores appearance only: two corridors with the same doors and lights share their visual
+words, and the posterior can be confident about the wrong one. A real revisit also shares the
+*geometry*: the query's and the place's keypoints are related by one fundamental matrix. This
+module matches the two images' descriptors (mutual nearest neighbours with Lowe's ratio test),
+fits a fundamental matrix robustly (OpenCV's USAC MAGSAC++) and counts the matches consistent
+with it. A candidate is accepted when at least ``min_inliers`` matches are.
+
+The check uses the image features themselves, not the visual words, so it is independent of the
+vocabulary and applies to every method alike (FAB-MAP and tf-idf).
+
+Why a fundamental matrix, not a homography: the scene is 3-D and the camera translates; why
+MAGSAC++: it needs no hand-tuned inlier threshold to be robust to the outlier ratios of aliased
+corridors. An 8-point model fits a handful of random matches by chance, so the inlier count is
+compared with a floor of matches well above 8.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from aefabmap_ros.core.errors import ConfigError, DataError
+from aefabmap_ros.core.features import Features
+
+MIN_MODEL_MATCHES = 8  # the fundamental matrix needs 8 correspondences (7 with a cubic, OpenCV uses 8)
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Geometric verification parameters."""
+
+    min_inliers: int = field(
+        default=15,
+        metadata={"description": "A candidate is accepted when at least this many matches fit one fundamental "
+                  "matrix (>= 8)."},
+    )
+    ratio: float = field(
+        default=0.8,
+        metadata={"description": "Lowe's ratio test: a match is kept when its distance is below ratio times "
+                  "the second-nearest one, in (0, 1]."},
+    )
+    ransac_threshold_px: float = field(
+        default=2.0,
+        metadata={"description": "Maximum distance (pixels) of an inlier from its epipolar line, > 0."},
+    )
+    confidence: float = field(
+        default=0.999, metadata={"description": "Robust estimation confidence, in (0, 1)."}
+    )
+    max_iterations: int = field(
+        default=10000, metadata={"description": "Robust estimation iterations at most, >= 1."}
+    )
+    candidates: int = field(
+        default=5,
+        metadata={"description": "Evaluation: the best this many candidates of a query are tried in order of "
+                  "score; the first accepted one is its loop candidate (>= 1)."},
+    )
+
+    def __post_init__(self) -> None:
+        def bad(name: str, rule: str) -> ConfigError:
+            return ConfigError(f"VerificationConfig.{name} = {getattr(self, name)!r}: must be {rule}")
+
+        for name in ("min_inliers", "max_iterations", "candidates"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise bad(name, "an integer")
+        for name in ("ratio", "ransac_threshold_px", "confidence"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+                raise bad(name, "a finite number")
+        if self.min_inliers < MIN_MODEL_MATCHES:
+            raise bad("min_inliers", f">= {MIN_MODEL_MATCHES}")
+        if not 0.0 < self.ratio <= 1.0:
+            raise bad("ratio", "in (0, 1]")
+        if self.ransac_threshold_px <= 0.0:
+            raise bad("ransac_threshold_px", "> 0")
+        if not 0.0 < self.confidence < 1.0:
+            raise bad("confidence", "in (0, 1)")
+        if self.max_iterations < 1:
+            raise bad("max_iterations", ">= 1")
+        if self.candidates < 1:
+            raise bad("candidates", ">= 1")
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Outcome of verifying one (query, place) pair."""
+
+    matches: int  # descriptor matches that passed the ratio test
+    inliers: int  # of those, consistent with the fitted fundamental matrix
+    accepted: bool
+
+
+def _check_features(features: Features, role: str) -> None:
+    if features.keypoints.ndim != 2 or features.keypoints.shape[1] < 2:
+        raise DataError(f"{role} keypoints must be (N, >= 2), got shape {features.keypoints.shape}")
+    if features.descriptors.ndim != 2 or features.descriptors.shape[0] != features.keypoints.shape[0]:
+        raise DataError(f"{role} has {features.keypoints.shape[0]} keypoints but descriptors of shape "
+                        f"{features.descriptors.shape}")
+
+
+def match_descriptors(query: Features, place: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ratio-test matches from query to place: (M, 2) float32 query points and (M, 2) place points.
+
+    Binary (uint8) descriptors are compared by Hamming distance, float ones by L2. Each query
+    keypoint keeps its nearest place keypoint when that is closer than ``ratio`` times the second
+    nearest; a place keypoint claimed by several query keypoints keeps only the closest (so no
+    correspondence is counted twice).
+    """
+    _check_features(query, "query")
+    _check_features(place, "place")
+    empty = np.zeros((0, 2), dtype=np.float32)
+    if query.descriptor_type != place.descriptor_type:
+        raise DataError(f"cannot match {query.descriptor_type!r} features against {place.descriptor_type!r} ones")
+    if len(query) == 0 or len(place) < 2:
+        return empty, empty
+    binary = query.descriptors.dtype == np.uint8
+    if binary != (place.descriptors.dtype == np.uint8):
+        raise DataError(f"descriptor dtypes differ: {query.descriptors.dtype} vs {place.descriptors.dtype}")
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
+    dtype = np.uint8 if binary else np.float32
+    pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=dtype),
+                             np.ascontiguousarray(place.descriptors, dtype=dtype), k=2)
+    best_by_place: dict[int, tuple[float, int]] = {}
+    for pair in pairs:
+        if len(pair) < 2 or pair[0].distance >= ratio * pair[1].distance:
+            continue
+        nearest = pair[0]
+        kept = best_by_place.get(nearest.trainIdx)
+        if kept is None or nearest.distance < kept[0]:
+            best_by_place[nearest.trainIdx] = (nearest.distance, nearest.queryIdx)
+    if not best_by_place:
+        return empty, empty
+    place_index = np.fromiter(best_by_place, dtype=np.int64)
+    query_index = np.fromiter((q for _, q in best_by_place.values()), dtype=np.int64)
+    return (np.ascontiguousarray(query.keypoints[query_index, :2], dtype=np.float32),
+            np.ascontiguousarray(place.keypoints[place_index, :2], dtype=np.float32))
+
+
+def count_epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> int:
+    """Matches consistent with one robustly fitted fundamental matrix (0 when none can be fitted)."""
+    if query_points.shape != place_points.shape or query_points.ndim != 2 or query_points.shape[1] != 2:
+        raise DataError(f"point arrays must both be (M, 2), got {query_points.shape} and {place_points.shape}")
+    if query_points.shape[0] < MIN_MODEL_MATCHES:
+        return 0
+    try:
+        _, mask = cv2.findFundamentalMat(query_points, place_points, cv2.USAC_MAGSAC,
+                                         config.ransac_threshold_px, config.confidence, config.max_iterations)
+    except cv2.error:  # degenerate configurations (all points on a line, ...): no model, no inliers
+        return 0
+    return 0 if mask is None else int(np.count_nonzero(mask))
+
+
+def verify_pair(query: Features, place: Features, config: VerificationConfig) -> Verification:
+    """Geometric verification of one candidate pair."""
+    query_points, place_points = match_descriptors(query, place, config.ratio)
+    inliers = count_epipolar_inliers(query_points, place_points, config)
+    return Verification(matches=int(query_points.shape[0]), inliers=inliers, accepted=inliers >= config.min_inliers)
+
+
+PairVerifier = Callable[[int, int], Verification]
+
+
+def cached_pair_verifier(features: Sequence[Features], config: VerificationConfig) -> PairVerifier:
+    """verify(i, j) on a sequence's features, each pair computed once (methods share candidates)."""
+    cache: dict[tuple[int, int], Verification] = {}
+
+    def verify(query: int, place: int) -> Verification:
+        key = (query, place)
+        if key not in cache:
+            cache[key] = verify_pair(features[query], features[place], config)
+        return cache[key]
+
+    return verify
+
+
+def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, min_gap: int) -> np.ndarray:
+    """Score matrix after verification: per query, its first accepted candidate keeps its score.
+
+    For query i, the eligible places j <= i - min_gap with a positive score are tried best first
+    (ties: the most recent first, as the metrics pick them), at most ``candidates`` of them; the
+    first that ``verify(i, j)`` accepts keeps ``scores[i, j]`` and every other entry of row i is 0.
+    A query whose candidates all fail has no loop candidate.
+    """
+    matrix = np.asarray(scores, dtype=np.float64)
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
+        raise DataError(f"scores must be a square (N, N) matrix, got shape {matrix.shape}")
+    if candidates < 1 or min_gap < 1:
+        raise ConfigError(f"candidates ({candidates}) and min_gap ({min_gap}) must be >= 1")
+    out = np.zeros_like(matrix)
+    for query in range(min_gap, matrix.shape[0]):
+        row = matrix[query, : query - min_gap + 1]
+        # Best first; among equal scores the most recent place (the metrics' tie rule).
+        order = np.lexsort((-np.arange(row.size), -row))
+        for place in order[:candidates]:
+            if not row[place] > 0.0:
+                break
+            if verify(query, int(place)).accepted:
+                out[query, place] = row[place]
+                break
+    return out
+
+
+class FeatureStore:
+    """Features of past frames by image stamp, for verifying loop closures online.
+
+    Bounded: at most ``max_frames`` frames (the oldest is forgotten first) and, when
+    ``max_features_per_frame`` > 0, only each frame's strongest keypoints (by detector response).
+    Float descriptors are kept as float16 (half the memory; nearest-neighbour ranks are unchanged
+    to well below SIFT's quantisation), binary ones as they are. About 128 KiB per frame of
+    500 SIFT features.
+    """
+
+    def __init__(self, max_frames: int, max_features_per_frame: int = 0) -> None:
+        if max_frames < 1 or max_features_per_frame < 0:
+            raise ConfigError(f"FeatureStore needs max_frames >= 1 (got {max_frames}) and "
+                              f"max_features_per_frame >= 0 (got {max_features_per_frame})")
+        self.max_frames = max_frames
+        self.max_features_per_frame = max_features_per_frame
+        self._frames: dict[int, Features] = {}  # insertion-ordered: the first key is the oldest
+        self._nbytes = 0
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def nbytes(self) -> int:
+        return self._nbytes
+
+    def add(self, stamp_ns: int, features: Features) -> None:
+        """Store (or replace) the features of the frame stamped ``stamp_ns``."""
+        _check_features(features, "stored frame")
+        keep = np.arange(len(features))
+        if self.max_features_per_frame and len(features) > self.max_features_per_frame:
+            # Strongest first; a stable sort keeps the detector's order among equal responses.
+            keep = np.sort(np.argsort(-features.keypoints[:, 4], kind="stable")[: self.max_features_per_frame])
+        descriptors = features.descriptors[keep]
+        if descriptors.dtype != np.uint8:
+            descriptors = descriptors.astype(np.float16)
+        compact = Features(keypoints=np.ascontiguousarray(features.keypoints[keep, :2], dtype=np.float32),
+                           descriptors=np.ascontiguousarray(descriptors), descriptor_type=features.descriptor_type)
+        self._forget(stamp_ns)
+        self._frames[stamp_ns] = compact
+        self._nbytes += compact.keypoints.nbytes + compact.descriptors.nbytes
+        while len(self._frames) > self.max_frames:
+            self._forget(next(iter(self._frames)))
+
+    def get(self, stamp_ns: int) -> Features | None:
+        """The stored features of that frame (float descriptors back as float32), None if unknown."""
+        stored = self._frames.get(stamp_ns)
+        if stored is None:
+            return None
+        descriptors = stored.descriptors
+        if descriptors.dtype == np.float16:
+            descriptors = descriptors.astype(np.float32)
+        return Features(keypoints=stored.keypoints, descriptors=descriptors, descriptor_type=stored.descriptor_type)
+
+    def _forget(self, stamp_ns: int) -> None:
+        stored = self._frames.pop(stamp_ns, None)
+        if stored is not None:
+            self._nbytes -= stored.keypoints.nbytes + stored.descriptors.nbytes

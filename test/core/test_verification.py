@@ -1,0 +1,294 @@
+"""Geometric verification: matches against a brute-force reference, two-view geometry with a known
+answer, the candidate walk of the evaluation, the bounded feature store, and the real corridor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.core.errors import ConfigError, DataError
+from aefabmap_ros.core.features import Features
+from aefabmap_ros.core.verification import (
+    FeatureStore,
+    Verification,
+    VerificationConfig,
+    count_epipolar_inliers,
+    match_descriptors,
+    verified_scores,
+    verify_pair,
+)
+from test.conftest import SHARED_DIR as SHARED
+
+WIDTH, HEIGHT, FOCAL = 640, 480, 500.0
+
+
+def _project(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    camera = points @ rotation.T + translation
+    return np.stack([FOCAL * camera[:, 0] / camera[:, 2] + WIDTH / 2,
+                     FOCAL * camera[:, 1] / camera[:, 2] + HEIGHT / 2], axis=1)
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _features(points_2d: np.ndarray, descriptors: np.ndarray, response: np.ndarray | None = None) -> Features:
+    count = points_2d.shape[0]
+    keypoints = np.zeros((count, 5), np.float32)
+    keypoints[:, :2] = points_2d
+    keypoints[:, 2] = 8.0
+    keypoints[:, 4] = np.linspace(1.0, 0.1, count) if response is None else response
+    kind = "orb" if descriptors.dtype == np.uint8 else "sift"
+    return Features(keypoints=keypoints, descriptors=descriptors, descriptor_type=kind)
+
+
+def _two_views(seed: int, shared: int = 120, clutter: int = 60) -> tuple[Features, Features, int]:
+    """A 3-D scene seen from two poses (rotation + translation): ``shared`` points in both images with
+    the same (slightly noisy) descriptor, plus ``clutter`` unrelated keypoints in each image."""
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([rng.uniform(-4, 4, shared), rng.uniform(-3, 3, shared), rng.uniform(5, 15, shared)])
+    first = _project(points, np.eye(3), np.zeros(3))
+    second = _project(points, _rotation_y(0.15), np.array([0.8, 0.1, 0.3]))
+    second += rng.normal(0.0, 0.3, second.shape)  # detector noise, well inside the 2 px threshold
+    descriptors = rng.uniform(0, 255, (shared, 128)).astype(np.float32)
+    noisy = descriptors + rng.normal(0, 4, descriptors.shape).astype(np.float32)
+    clutter_a = rng.uniform([0, 0], [WIDTH, HEIGHT], (clutter, 2))
+    clutter_b = rng.uniform([0, 0], [WIDTH, HEIGHT], (clutter, 2))
+    query = _features(np.vstack([first, clutter_a]),
+                      np.vstack([descriptors, rng.uniform(0, 255, (clutter, 128)).astype(np.float32)]))
+    place = _features(np.vstack([second, clutter_b]),
+                      np.vstack([noisy, rng.uniform(0, 255, (clutter, 128)).astype(np.float32)]))
+    return query, place, shared
+
+
+# ----------------------------------------------------------------------------------------- matching
+
+
+def _reference_matches(query: np.ndarray, place: np.ndarray, ratio: float, hamming: bool) -> set[tuple[int, int]]:
+    """Brute force: all distances, ratio test, then one query keypoint per place keypoint (the closest)."""
+    if hamming:
+        bits_q, bits_p = np.unpackbits(query, axis=1), np.unpackbits(place, axis=1)
+        distances = (bits_q[:, None, :] != bits_p[None, :, :]).sum(axis=2).astype(np.float64)
+    else:
+        distances = np.sqrt(((query[:, None, :].astype(np.float64) - place[None, :, :]) ** 2).sum(axis=2))
+    best: dict[int, tuple[float, int]] = {}
+    for q, row in enumerate(distances):
+        first, second = np.argsort(row, kind="stable")[:2]
+        if row[first] < ratio * row[second] and (first not in best or row[first] < best[first][0]):
+            best[int(first)] = (float(row[first]), q)
+    return {(q, p) for p, (_, q) in best.items()}
+
+
+def _pairs_of(query: Features, place: Features, ratio: float) -> set[tuple[int, int]]:
+    query_points, place_points = match_descriptors(query, place, ratio)
+    index_q = {tuple(p): i for i, p in enumerate(query.keypoints[:, :2].tolist())}
+    index_p = {tuple(p): i for i, p in enumerate(place.keypoints[:, :2].tolist())}
+    return {(index_q[tuple(a)], index_p[tuple(b)]) for a, b in zip(query_points.tolist(), place_points.tolist(),
+                                                                   strict=True)}
+
+
+@pytest.mark.parametrize("ratio", [0.6, 0.8, 0.95])
+def test_float_matches_equal_brute_force(ratio: float) -> None:
+    query, place, _ = _two_views(seed=1, shared=40, clutter=40)
+    expected = _reference_matches(query.descriptors, place.descriptors, ratio, hamming=False)
+    assert _pairs_of(query, place, ratio) == expected
+    assert len(expected) >= 35  # the shared points (distinct positions, so the index maps are exact)
+
+
+def test_binary_matches_equal_brute_force_with_hamming_distance() -> None:
+    rng = np.random.default_rng(2)
+    place_bits = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    query_bits = place_bits[rng.permutation(50)[:30]].copy()
+    flips = rng.integers(0, 32, 30)
+    query_bits[np.arange(30), flips] ^= 0b00010001  # two flipped bits per descriptor
+    query = _features(rng.uniform(0, 600, (30, 2)), query_bits)
+    place = _features(rng.uniform(0, 600, (50, 2)), place_bits)
+    expected = _reference_matches(query_bits, place_bits, 0.8, hamming=True)
+    assert _pairs_of(query, place, 0.8) == expected and len(expected) == 30
+
+
+def test_a_place_keypoint_is_matched_at_most_once() -> None:
+    rng = np.random.default_rng(3)
+    place_descriptors = rng.uniform(0, 255, (20, 128)).astype(np.float32)
+    # Three query keypoints all nearest to place keypoint 0, at increasing distance.
+    query_descriptors = np.repeat(place_descriptors[:1], 3, axis=0) + np.array([[1.0], [2.0], [3.0]], np.float32)
+    query = _features(rng.uniform(0, 600, (3, 2)), query_descriptors)
+    place = _features(rng.uniform(0, 600, (20, 2)), place_descriptors)
+    assert _pairs_of(query, place, 0.8) == {(0, 0)}
+
+
+def test_matching_refuses_mixed_kinds_and_bad_shapes() -> None:
+    query, place, _ = _two_views(seed=4, shared=10, clutter=0)
+    orb = _features(np.zeros((5, 2)), np.zeros((5, 32), np.uint8))
+    with pytest.raises(DataError, match="cannot match 'sift' features against 'orb'"):
+        match_descriptors(query, orb, 0.8)
+    broken = Features(keypoints=np.zeros((4, 5), np.float32), descriptors=np.zeros((3, 128), np.float32),
+                      descriptor_type="sift")
+    with pytest.raises(DataError, match="4 keypoints but descriptors of shape"):
+        match_descriptors(broken, place, 0.8)
+    empty = _features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    assert match_descriptors(empty, place, 0.8)[0].shape == (0, 2)
+
+
+# ----------------------------------------------------------------------------------------- geometry
+
+
+def test_a_true_second_view_is_accepted_with_its_correspondences_as_inliers() -> None:
+    query, place, shared = _two_views(seed=5)
+    result = verify_pair(query, place, VerificationConfig())
+    assert result.accepted
+    # Independent reference: the scene's own correspondences are the inliers (clutter is not).
+    assert 0.9 * shared <= result.inliers <= result.matches <= shared + 5
+
+
+def test_same_appearance_in_another_arrangement_is_rejected() -> None:
+    """Perceptual aliasing: every descriptor matches, but the keypoints are scattered at random, so
+    no single epipolar geometry explains them (a different corridor with the same doors)."""
+    query, place, shared = _two_views(seed=6, clutter=0)
+    rng = np.random.default_rng(6)
+    scattered = Features(keypoints=place.keypoints.copy(), descriptors=place.descriptors,
+                         descriptor_type=place.descriptor_type)
+    scattered.keypoints[:, :2] = rng.uniform([0, 0], [WIDTH, HEIGHT], (shared, 2))
+    result = verify_pair(query, scattered, VerificationConfig())
+    assert result.matches >= 0.9 * shared  # appearance says "same place" ...
+    assert not result.accepted and result.inliers < 15  # ... geometry says no
+
+
+def test_unrelated_images_are_rejected() -> None:
+    query, _, _ = _two_views(seed=7)
+    _, other, _ = _two_views(seed=8)
+    result = verify_pair(query, other, VerificationConfig())
+    assert not result.accepted and result.matches < 15  # random descriptors rarely pass the ratio test
+
+
+def test_verification_is_deterministic() -> None:
+    query, place, _ = _two_views(seed=9, shared=30, clutter=60)
+    assert len({verify_pair(query, place, VerificationConfig()) for _ in range(3)}) == 1
+
+
+def test_too_few_matches_give_no_model() -> None:
+    points = np.zeros((7, 2), np.float32)
+    assert count_epipolar_inliers(points, points, VerificationConfig()) == 0
+    with pytest.raises(DataError, match="must both be"):
+        count_epipolar_inliers(np.zeros((9, 2), np.float32), np.zeros((8, 2), np.float32), VerificationConfig())
+
+
+@pytest.mark.parametrize(("field", "value", "message"), [
+    ("min_inliers", 7, ">= 8"), ("ratio", 0.0, r"in \(0, 1\]"), ("ratio", 1.5, r"in \(0, 1\]"),
+    ("ransac_threshold_px", 0.0, "> 0"), ("confidence", 1.0, r"in \(0, 1\)"), ("max_iterations", 0, ">= 1"),
+    ("candidates", 0, ">= 1"), ("min_inliers", True, "an integer"), ("ratio", float("nan"), "finite"),
+])
+def test_config_validation(field: str, value: object, message: str) -> None:
+    with pytest.raises(ConfigError, match=f"VerificationConfig.{field}.*{message}"):
+        VerificationConfig(**{field: value})  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------- candidate walk
+
+
+class FakeVerifier:
+    """Accepts exactly the listed (query, place) pairs and records what was asked."""
+
+    def __init__(self, accepted: set[tuple[int, int]]) -> None:
+        self.accepted = accepted
+        self.calls: list[tuple[int, int]] = []
+
+    def __call__(self, query: int, place: int) -> Verification:
+        self.calls.append((query, place))
+        ok = (query, place) in self.accepted
+        return Verification(matches=50, inliers=40 if ok else 3, accepted=ok)
+
+
+def test_first_accepted_candidate_keeps_its_score_the_rest_of_the_row_is_zero() -> None:
+    scores = np.zeros((6, 6))
+    scores[5, :4] = [0.1, 0.6, 0.3, 0.0]
+    scores[4, :3] = [0.5, 0.4, 0.05]
+    verify = FakeVerifier({(5, 2), (4, 0)})
+    out = verified_scores(scores, verify, candidates=5, min_gap=2)
+    expected = np.zeros((6, 6))
+    expected[5, 2] = 0.3
+    expected[4, 0] = 0.5
+    np.testing.assert_array_equal(out, expected)
+    assert verify.calls == [(4, 0), (5, 1), (5, 2)]  # best first, stop at the first accepted
+
+
+def test_only_the_best_candidates_are_tried_and_never_ineligible_or_zero_ones() -> None:
+    scores = np.zeros((8, 8))
+    scores[7, :7] = [0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.7]  # 5 and 6 are within the gap
+    verify = FakeVerifier({(7, 0)})
+    out = verified_scores(scores, verify, candidates=3, min_gap=3)
+    assert not out.any()  # place 0 is the 5th eligible candidate: not tried
+    assert verify.calls == [(7, 4), (7, 3), (7, 2)]
+    zero_row = np.zeros((8, 8))
+    assert not verified_scores(zero_row, verify, candidates=3, min_gap=3).any() and len(verify.calls) == 3
+
+
+def test_ties_try_the_most_recent_place_first() -> None:
+    scores = np.zeros((5, 5))
+    scores[4, :3] = [0.4, 0.4, 0.2]
+    verify = FakeVerifier({(4, 0), (4, 1)})
+    out = verified_scores(scores, verify, candidates=2, min_gap=2)
+    assert out[4, 1] == 0.4 and out[4, 0] == 0.0
+
+
+def test_walk_rejects_bad_arguments() -> None:
+    with pytest.raises(DataError, match="square"):
+        verified_scores(np.zeros((3, 4)), FakeVerifier(set()), 1, 1)
+    with pytest.raises(ConfigError, match="must be >= 1"):
+        verified_scores(np.zeros((3, 3)), FakeVerifier(set()), 0, 1)
+
+
+# ----------------------------------------------------------------------------------- feature store
+
+
+def test_store_is_bounded_and_forgets_the_oldest() -> None:
+    store = FeatureStore(max_frames=2)
+    query, place, _ = _two_views(seed=10, shared=20, clutter=0)
+    store.add(100, query)
+    store.add(200, place)
+    store.add(300, query)
+    assert len(store) == 2 and store.get(100) is None and store.get(999) is None
+    restored = store.get(200)
+    assert restored is not None and restored.descriptors.dtype == np.float32
+    np.testing.assert_allclose(restored.descriptors, place.descriptors, rtol=1e-3, atol=0.2)  # float16
+    np.testing.assert_array_equal(restored.keypoints, place.keypoints[:, :2])
+    size = store.nbytes
+    store.add(300, query)  # replacing a frame does not count it twice
+    assert store.nbytes == size == 2 * (20 * 2 * 4 + 20 * 128 * 2)
+
+
+def test_store_keeps_the_strongest_keypoints_and_verification_still_works() -> None:
+    query, place, _ = _two_views(seed=11)
+    store = FeatureStore(max_frames=10, max_features_per_frame=100)
+    store.add(1, query)
+    store.add(2, place)
+    kept = store.get(1)
+    assert kept is not None and len(kept) == 100
+    strongest = np.argsort(-query.keypoints[:, 4], kind="stable")[:100]
+    np.testing.assert_array_equal(kept.keypoints, query.keypoints[np.sort(strongest), :2])
+    stored_query, stored_place = store.get(1), store.get(2)
+    assert stored_query is not None and stored_place is not None
+    assert verify_pair(stored_query, stored_place, VerificationConfig()).accepted
+    with pytest.raises(ConfigError, match="max_frames >= 1"):
+        FeatureStore(max_frames=0)
+
+
+# ------------------------------------------------------------------------------------ real corridor
+
+
+@pytest.mark.skipif(not (SHARED / "datasets" / "rtabmap_samples").is_dir(), reason="../shared is absent")
+def test_corridor_revisit_is_accepted_and_a_far_place_is_not() -> None:
+    """rtabmap_samples: frame 40 revisits frame 1 (ground truth); frame 20 is the far end of the corridor."""
+    from aefabmap_ros.core.features import FeatureConfig, extract_features
+    from aefabmap_ros.io.sources import folder_images, read_gray
+
+    images = folder_images(SHARED / "datasets" / "rtabmap_samples" / "images")
+    gt = np.load(SHARED / "datasets" / "rtabmap_samples" / "loop_gt.npz")["gt"]
+    assert gt[40, 1] and not gt[40, 20]
+    config = FeatureConfig()
+    features = {i: extract_features(read_gray(images[i]), config) for i in (1, 20, 40)}
+    revisit = verify_pair(features[40], features[1], VerificationConfig())
+    elsewhere = verify_pair(features[40], features[20], VerificationConfig())
+    assert revisit.accepted and revisit.inliers >= 40
+    assert not elsewhere.accepted
