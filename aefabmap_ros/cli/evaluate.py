@@ -27,9 +27,16 @@ the test sequence itself (each query is then left out of FAB-MAP's new-place sam
 models and features are cached in --work-dir (default OUT/.cache), so a rerun is quick; the models
 can be reused with --model.
 
+With --verify every method gets a second row, "<method> + GV": each query's best candidates
+(verification: candidates, default 5) are checked geometrically in order of score -- descriptor
+matches with the ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers
+(default 15) inliers -- and the first accepted one is the query's candidate (none accepted: no
+candidate). This is what verifier_node does online to the loop closures.
+
 Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png and OUT/scores_<method>.png (score
 matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
-vocabulary_kmeans, vocabulary_autoencoder (per-kind overrides), training, fabmap, evaluation.
+vocabulary_kmeans, vocabulary_autoencoder (per-kind overrides), training, fabmap, evaluation,
+verification.
 """
 
 from __future__ import annotations
@@ -74,6 +81,7 @@ from aefabmap_ros.core.ground_truth import loop_matrix_from_kitti
 from aefabmap_ros.core.metrics import evaluate_scores
 from aefabmap_ros.core.model import Model, load_model, save_model
 from aefabmap_ros.core.training import TrainingConfig, config_digest, evenly_spaced, train_model
+from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, cached_pair_verifier
 from aefabmap_ros.core.vocabulary import VocabularyConfig
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.config_files import build_config, read_sections
@@ -81,7 +89,7 @@ from aefabmap_ros.io.plots import Curve, plot_pr_curves, plot_score_matrix
 from aefabmap_ros.io.sources import ImageSource
 
 SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencoder", "training", "fabmap",
-            "evaluation")
+            "evaluation", "verification")
 RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
                     "loop_closures": "aefabmap_msgs/msg/LoopClosure"}
 
@@ -123,6 +131,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="evaluate a recorded run (bag with loop_closures / place_posteriors) instead")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
+    parser.add_argument("--verify", action="store_true",
+                        help="also score every method after geometric verification of its candidates (+ GV rows)")
     parser.add_argument("--threshold", type=float, help="FAB-MAP posterior threshold (default 0.99)")
     parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.6)")
     parser.add_argument("--config", type=Path, help=f"YAML with sections {', '.join(SECTIONS)}")
@@ -157,6 +167,7 @@ class Settings:
         self.evaluation = build_config(EvaluationConfig, section("evaluation", {
             "min_gap": args.min_gap, "threshold": args.threshold, "bow_threshold": args.bow_threshold,
         }), f"{origin} [evaluation]")
+        self.verification = build_config(VerificationConfig, section("verification"), f"{origin} [verification]")
         common = section("vocabulary", {"size": args.size, "seed": args.seed})
         common.pop("kind", None)  # the method decides the kind
         self.vocabulary = {
@@ -342,11 +353,14 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
 
     results: list[MethodResult] = []
     features_by_config: dict[str, list[Features]] = {}
+    verifiers: dict[str, PairVerifier] = {}  # one per feature config: methods share the pairs they verify
     for label, model, path, exclude in entries:
         key = config_digest(model.feature_config)
         if key not in features_by_config:
             features_by_config[key] = run.features(source, model.feature_config)
+            verifiers[key] = cached_pair_verifier(features_by_config[key], settings.verification)
         test_features = features_by_config[key]
+        verification = (settings.verification, verifiers[key]) if args.verify else None
         wanted = methods_of_kind(model.quantizer.kind, methods)
         fabmap_count = sum(1 for name in wanted if METHODS[name][1] == "fabmap")
         run.log(f"scoring {', '.join(wanted)} with {model.quantizer.kind} model {model.model_id}")
@@ -354,9 +368,10 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
                   file=sys.stderr) as bar:
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
-                                      on_frame=lambda _: bar.update(), label=label, model_path=str(path))
+                                      on_frame=lambda _: bar.update(), label=label, model_path=str(path),
+                                      verification=verification)
     order = {name: index for index, name in enumerate(METHODS)}
-    results.sort(key=lambda r: (order[r.name], r.label))
+    results.sort(key=lambda r: (order[r.name], r.label, r.verified))
     header = {
         "test": source.name,
         "frames": num_frames,
@@ -369,6 +384,8 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
                     if not args.model else "from the models",
         "fabmap": {k: v for k, v in asdict(settings.fabmap).items() if k in REPORTED_FABMAP_SETTINGS},
     }
+    if args.verify:
+        header["geometric_verification"] = asdict(settings.verification)
     return results, gt, header
 
 
@@ -395,9 +412,9 @@ def read_recording(path: Path) -> tuple[list[Any], list[Any]]:
 def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str]:
     args, settings = run.args, run.settings
     if args.images is not None or args.bag is not None or args.model or args.train_images or args.train_bag \
-            or args.train_on_test:
+            or args.train_on_test or args.verify:
         raise ConfigError("--recording takes only the ground truth (--gt or --poses); it evaluates recorded "
-                          "outputs, no images or models")
+                          "outputs, no images, models or --verify")
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     started = time.monotonic()

@@ -66,6 +66,7 @@ from aefabmap_ros.core.model import Model
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.tfidf import tfidf_score_matrix
 from aefabmap_ros.core.training import count_bow
+from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, verified_scores
 
 # Method name -> (vocabulary kind, scorer).
 METHODS: dict[str, tuple[str, str]] = {
@@ -241,10 +242,12 @@ class MethodResult:
     model_path: str = ""
     label: str = ""  # distinguishes several models of one kind (their directory names)
     quantize_seconds: float = 0.0  # quantizing the test features (shared by the model's methods)
+    verified: bool = False  # scores after geometric verification of the candidates
 
     @property
     def title(self) -> str:
-        return f"{self.name} ({self.label})" if self.label else self.name
+        name = f"{self.name} + GV" if self.verified else self.name
+        return f"{name} ({self.label})" if self.label else name
 
     @property
     def false_positives_at_threshold(self) -> int:
@@ -272,8 +275,13 @@ def evaluate_model(
     on_frame: FrameCallback | None = None,
     label: str = "",
     model_path: str = "",
+    verification: tuple[VerificationConfig, PairVerifier] | None = None,
 ) -> list[MethodResult]:
-    """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them."""
+    """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
+
+    With ``verification`` (its config and a verifier of the test features' pairs), every method also
+    gets a "+ GV" result: its scores after geometric verification (see ``core.verification``).
+    """
     kind = model.quantizer.kind
     for name in methods:
         if name not in METHODS:
@@ -304,7 +312,19 @@ def evaluate_model(
             scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
             new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
         ))
+        if verification is not None:
+            results.append(verified_result(results[-1], verification, gt, config.min_gap))
     return results
+
+
+def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],
+                    gt: np.ndarray, min_gap: int) -> MethodResult:
+    """``result`` after geometric verification of each query's best ``candidates`` candidates."""
+    verification_config, verify = verification
+    started = time.monotonic()
+    scores = verified_scores(result.scores, verify, verification_config.candidates, min_gap)
+    return replace(result, scores=scores, verified=True, seconds=result.seconds + time.monotonic() - started,
+                   metrics=evaluate_scores(scores, gt, min_gap, result.metrics.threshold))
 
 
 # ---------------------------------------------------------------------------------------- recordings
@@ -432,6 +452,7 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
     return {
         "method": result.name,
         "label": result.label,
+        "geometric_verification": result.verified,
         "vocabulary_kind": result.vocabulary_kind,
         "vocabulary_size": result.vocabulary_size,
         "model_id": result.model_id,

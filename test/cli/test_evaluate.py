@@ -114,6 +114,35 @@ def test_models_reused_give_the_same_numbers(data, trained, capsys):
             assert entry[key] == before[entry["method"]][key]
 
 
+def test_verify_adds_a_geometrically_verified_row_per_method(data, trained, capsys):
+    """--verify: each method also scored after verification; its rows keep at most one candidate per
+    query, never above the unverified score, so precision can only be traded for recall."""
+    test, _, _ = paths(data)
+    first = read_results(trained)
+    out = data / "verified"
+    argv = ["--images", str(test / "images"), "--gt", str(test / "loop_gt.npz"), "--out", str(out), "--quiet",
+            "--verify", "--methods", "ae-fabmap,bow"]
+    for model in sorted({m["model_path"] for m in first["methods"]}):
+        argv += ["--model", model]
+    assert main(argv) == 0
+    assert "| AE-FABMAP + GV |" in capsys.readouterr().out
+    results = check_outputs(out, ["AE-FABMAP", "AE-FABMAP", "BoW", "BoW"])
+    flags = [(m["method"], m["geometric_verification"]) for m in results["methods"]]
+    assert flags == [("AE-FABMAP", False), ("AE-FABMAP", True), ("BoW", False), ("BoW", True)]
+    assert results["geometric_verification"]["min_inliers"] == 15
+    plain, verified = results["methods"][0], results["methods"][1]
+    assert plain["recall_at_threshold"] == first["methods"][1]["recall_at_threshold"]
+    assert verified["num_predictions_at_threshold"] <= plain["num_predictions_at_threshold"]
+    assert verified["scores_plot"] != plain["scores_plot"]
+
+
+def test_error_verify_with_a_recording(data, capsys):
+    test, _, _ = paths(data)
+    code = main(["--recording", str(test), "--gt", str(test / "loop_gt.npz"), "--verify", "--out",
+                 str(data / "bad")])
+    assert code == 1 and "no images, models or --verify" in capsys.readouterr().err
+
+
 def test_train_on_test_from_a_bag_with_poses(data):
     test, _, config = paths(data)
     out = data / "on_test"
