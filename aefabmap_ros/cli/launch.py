@@ -2,7 +2,8 @@
 
 The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter file, same topics.
 Ctrl-C (or SIGTERM) stops every node cleanly, so the FAB-MAP node saves its map; if one node dies,
-the others are stopped and the exit code is 1.
+the others are stopped and the exit code is 1. With --verify, verifier_node runs beside them and
+publishes the geometrically verified loop closures on ``verified_loop_closures``.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--image-qos", choices=("sensor_data", "reliable"), default=None,
                         help="override the image subscription QoS")
     parser.add_argument("--pipeline", action="store_true", help="run all three nodes in one process instead")
+    parser.add_argument("--verify", action="store_true",
+                        help="also run verifier_node: geometrically verified closures on verified_loop_closures")
     return parser
 
 
@@ -46,10 +49,12 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
         "quantizer_node": [],
         "fabmap_node": ["-p", f"map_file:={args.map}"] if args.map else [],
     }
+    verifier = ([[sys.executable, "-m", "aefabmap_ros.nodes.verifier_node", "--ros-args", "--params-file", str(params)]]
+                if args.verify else [])
     if args.pipeline:
         merged = [arg for node in NODES for arg in extra[node]]
-        return [[sys.executable, "-m", "aefabmap_ros.nodes.pipeline", *common, *merged]]
-    return [[sys.executable, "-m", f"aefabmap_ros.nodes.{node}", *common, *extra[node]] for node in NODES]
+        return [[sys.executable, "-m", "aefabmap_ros.nodes.pipeline", *common, *merged], *verifier]
+    return [[sys.executable, "-m", f"aefabmap_ros.nodes.{node}", *common, *extra[node]] for node in NODES] + verifier
 
 
 def supervise(commands: list[list[str]]) -> int:

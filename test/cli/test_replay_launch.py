@@ -67,3 +67,11 @@ def test_launch_commands_pass_parameters_to_every_node(tmp_path: Path) -> None:
     assert "image:=/cam" in commands[0] and "map_file:=m.npz" in commands[2]
     single = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), "--pipeline"]))
     assert len(single) == 1 and single[0][2] == "aefabmap_ros.nodes.pipeline"
+
+
+def test_launch_verify_adds_the_verifier_node_in_both_modes(tmp_path: Path) -> None:
+    for extra in ([], ["--pipeline"]):
+        commands = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), "--verify",
+                                                                           *extra]))
+        assert commands[-1][2] == "aefabmap_ros.nodes.verifier_node" and "--params-file" in commands[-1]
+        assert len(commands) == (2 if extra else 4)

@@ -21,6 +21,7 @@ from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
+from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -178,12 +179,66 @@ def test_shipped_parameter_file_matches_declared_parameters(revisit_data: Revisi
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
-    for node_class in (FeatureNode, QuantizerNode, FabMapNode):
+    for node_class in (FeatureNode, QuantizerNode, FabMapNode, VerifierNode):
         values = dict(shipped[node_class.__name__.replace("Node", "").lower() + "_node"]["ros__parameters"])
-        values["model_dir"] = str(revisit_data.model_dir)  # the file leaves it for the user to set
+        if "model_dir" in values:
+            values["model_dir"] = str(revisit_data.model_dir)  # the file leaves it for the user to set
         node = node_class(parameter_overrides=_params(**values))
         try:
             declared = set(node._parameters) - {"use_sim_time", "start_type_description_service"}
             assert declared == set(values), f"{node.get_name()}: {declared ^ set(values)}"
         finally:
             node.destroy_node()
+
+
+def _features_message(features: Any, sec: int) -> Any:
+    from std_msgs.msg import Header
+
+    from aefabmap_ros.io.messages import features_to_message
+
+    return features_to_message(features, Header(stamp=Time(sec=sec)), (640, 480))
+
+
+def _closure(query_sec: int, place_sec: int, query_id: int) -> Any:
+    closure = msg.LoopClosure(query_id=query_id, matched_place_id=place_sec, probability=0.995)
+    closure.header.stamp = Time(sec=query_sec)
+    closure.matched_stamp = Time(sec=place_sec)
+    return closure
+
+
+def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
+    from test.core.test_verification import _two_views
+
+    query, place, _ = _two_views(seed=21)
+    _, unrelated, _ = _two_views(seed=22)
+    node = VerifierNode(parameter_overrides=_params(max_pending=1))
+    try:
+        verified = Captured(node.publisher)
+        for sec, features in ((1, place), (2, unrelated), (3, query)):
+            node._on_features(_features_message(features, sec))
+        node._on_loop_closure(_closure(3, 1, query_id=10))  # a true second view: republished
+        node._on_loop_closure(_closure(3, 2, query_id=11))  # unrelated place: rejected
+        node._on_loop_closure(_closure(3, 99, query_id=12))  # place never seen
+        node._on_loop_closure(_closure(5, 1, query_id=13))  # query features not there yet: waits
+        node._on_loop_closure(_closure(6, 1, query_id=14))  # pushes the waiting one out (max_pending 1)
+        node._on_features(_features_message(query, 6))  # query 14's features arrive: verified now
+        broken = _features_message(query, 7)
+        broken.x = broken.x[:-1]
+        node._on_features(broken)
+        assert [m.query_id for m in verified.messages] == [10, 14]
+        counts = node.counter.counts
+        assert counts["accepted"] == 2 and counts["rejected"] == 1
+        assert counts["dropped_place_features_unknown"] == 1
+        assert counts["dropped_query_features_never_came"] == 1
+        assert counts["dropped_bad_features"] == 1
+        assert len(node.store) == 4 and not node.pending
+        node.close()
+    finally:
+        node.destroy_node()
+
+
+def test_verifier_node_refuses_bad_parameters() -> None:
+    with pytest.raises(ConfigError, match="min_inliers"):
+        VerifierNode(parameter_overrides=_params(min_inliers=3))
+    with pytest.raises(ConfigError, match="max_stored_frames"):
+        VerifierNode(parameter_overrides=_params(max_stored_frames=0))
