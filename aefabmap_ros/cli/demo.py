@@ -7,8 +7,9 @@
 3. online: the test bag is replayed through the three ROS nodes as separate processes
    (aefabmap_launch + aefabmap_replay); loop closures are printed as they arrive and everything
    is recorded to an mcap that Foxglove opens (aefabmap_record);
-4. evaluation: the paper's four methods offline, and the online run from its recording
-   (aefabmap_eval); the table is printed and the plots written.
+4. evaluation: the paper's four methods offline, each also after geometric verification of its
+   candidates (+ GV), and the online run from its recording (aefabmap_eval); the table is printed
+   and the plots written.
 """
 
 from __future__ import annotations
@@ -199,8 +200,8 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
     gt = test / "loop_gt.npz"
     _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
-          "--model", models["kmeans"], "--model", models["autoencoder"], "--out", args.out / "evaluation"],
-         "offline evaluation of the four methods")
+          "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--out", args.out / "evaluation"],
+         "offline evaluation of the four methods (each also after geometric verification: + GV)")
     if recording is not None:
         print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)
         _run(["aefabmap_ros.cli.evaluate", "--recording", recording, "--gt", gt,
