@@ -51,20 +51,29 @@ def _replay(tmp_path: Path, bag: Path, name: str) -> None:
         assert "0 without an answer" in replay.log(), replay.log()
 
 
-def _record_replay(tmp_path: Path, bag: Path, name: str) -> list[tuple[int, int, float]]:
-    """Replay ``bag`` with a recorder running; (query stamp, matched stamp, probability) per closure."""
+Closure = tuple[int, int, float]  # (query stamp, matched stamp, probability)
+
+
+def _closures(recording: Path, topic: str) -> list[Closure]:
+    return [(m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability))
+            for m in read_messages(recording, [topic])]
+
+
+def _record_replay(tmp_path: Path, bag: Path, name: str, verified: list[Closure] | None = None) -> list[Closure]:
+    """Replay ``bag`` with a recorder running; the loop closures (and, given a list, the verified ones)."""
     recording = tmp_path / f"{name}_recording"
+    topics = ["loop_closures", "place_posteriors"] + (["verified_loop_closures"] if verified is not None else [])
     with LoggedProcess(tmp_path / f"{name}_record.log", "aefabmap_ros.cli.record", recording, "--topics",
-                       "loop_closures", "place_posteriors", "--wait-publishers", "60") as recorder:
+                       *topics, "--wait-publishers", "60") as recorder:
         recorder.wait_for_log("[record] recording", timeout_s=90)
         _replay(tmp_path, bag, name)
+        time.sleep(1.0)  # the last closure's verification runs after its posterior was answered
         assert recorder.stop(signal.SIGINT) == 0, recorder.log()
     posteriors = list(read_messages(recording, ["place_posteriors"]))
     assert len(posteriors) > 0
-    return [
-        (m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability))
-        for m in read_messages(recording, ["loop_closures"])
-    ]
+    if verified is not None:
+        verified += _closures(recording, "verified_loop_closures")
+    return _closures(recording, "loop_closures")
 
 
 def _frame_of(data: RevisitData, stamp_ns: int) -> int:
@@ -81,27 +90,34 @@ def _assert_true_revisits(data: RevisitData, closures: list[tuple[int, int, floa
     assert all(probability > 0.99 for _, _, probability in closures)
 
 
-def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool) -> list[tuple[int, int, float]]:
+def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool,
+               verified: list[Closure] | None = None) -> list[Closure]:
     name = "pipeline" if pipeline else "nodes"
     launch_args: list[str | Path] = ["--model", data.model_dir, "--params", _params_file(tmp_path)]
     if pipeline:
         launch_args.append("--pipeline")
+    if verified is not None:
+        launch_args.append("--verify")
     with LoggedProcess(tmp_path / f"{name}_launch.log", "aefabmap_ros.cli.launch", *launch_args) as suite:
-        closures = _record_replay(tmp_path, data.bag, name)
+        closures = _record_replay(tmp_path, data.bag, name, verified)
         assert suite.stop(signal.SIGINT) == 0, suite.log()
     assert "fabmap_node: 32 places" in suite.log(), suite.log()[-3000:]
     return closures
 
 
 def test_nodes_publish_true_loop_closures_and_pipeline_agrees(tmp_path: Path, revisit_data: RevisitData) -> None:
-    """Separate node processes close the revisits correctly; the one-process pipeline gives the same."""
+    """Separate node processes close the revisits correctly; the one-process pipeline gives the same, and
+    verifier_node (--verify) passes the true revisits on to verified_loop_closures unchanged."""
     (tmp_path / "separate").mkdir()
     (tmp_path / "together").mkdir()
     separate = _run_suite(tmp_path / "separate", revisit_data, pipeline=False)
     _assert_true_revisits(revisit_data, separate, minimum=FRAMES_PER_PASS * 3 // 4)
-    together = _run_suite(tmp_path / "together", revisit_data, pipeline=True)
+    verified: list[Closure] = []
+    together = _run_suite(tmp_path / "together", revisit_data, pipeline=True, verified=verified)
     assert [(q, m) for q, m, _ in together] == [(q, m) for q, m, _ in separate]
     np.testing.assert_allclose([p for *_, p in together], [p for *_, p in separate], rtol=1e-12)
+    assert set(verified) <= set(together)  # republished as they came, never invented
+    assert len(verified) >= len(together) * 3 // 4, (len(verified), len(together))
 
 
 def _wait_until(condition: Callable[[], bool], timeout_s: float) -> None:
