@@ -4,9 +4,10 @@
    with ground truth (aefabmap_synth), made once into bags/generated/;
 2. models: an autoencoder vocabulary (AE-FABMAP) and a k-means one (the FABMAP2 baseline), each
    with its Chow-Liu tree, trained on the training bag (aefabmap_train);
-3. online: the test bag is replayed through the three ROS nodes as separate processes
-   (aefabmap_launch + aefabmap_replay); loop closures are printed as they arrive and everything
-   is recorded to an mcap that Foxglove opens (aefabmap_record);
+3. online: the test bag is replayed through the three ROS nodes and verifier_node as separate
+   processes (aefabmap_launch --verify + aefabmap_replay); loop closures are printed as they
+   arrive, and everything (verified_loop_closures too) is recorded to an mcap that Foxglove opens
+   (aefabmap_record);
 4. evaluation: the paper's four methods offline, each also after geometric verification of its
    candidates (+ GV), and the online run from its recording (aefabmap_eval); the table is printed
    and the plots written.
@@ -104,11 +105,13 @@ class ClosurePrinter:
         self._gt = gt
         self.posteriors = 0
         self.closures: list[tuple[int, int, bool]] = []
+        self.verified: list[tuple[int, int, bool]] = []  # from verifier_node
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("aefabmap_demo_printer", context=self.context)
         self.node.create_subscription(LoopClosure, "loop_closures", self._on_closure, 100)
         self.node.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, 100)
+        self.node.create_subscription(LoopClosure, "verified_loop_closures", self._on_verified, 100)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
@@ -127,9 +130,16 @@ class ClosurePrinter:
         if self.posteriors % 50 == 0:
             print(f"    ... {self.posteriors}/{len(self._stamps)} images processed", flush=True)
 
-    def _on_closure(self, message: Any) -> None:
+    def _judged(self, message: Any) -> tuple[int, int, bool]:
         query, matched = self._frame(message.header.stamp), self._frame(message.matched_stamp)
         true = bool(self._gt[query, matched]) if query < len(self._gt) and matched < len(self._gt) else False
+        return query, matched, true
+
+    def _on_verified(self, message: Any) -> None:
+        self.verified.append(self._judged(message))
+
+    def _on_closure(self, message: Any) -> None:
+        query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
         verdict = "true revisit" if true else "NOT a revisit in the ground truth"
         print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  ({verdict})",
@@ -168,10 +178,11 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(args.out / "map.npz")], stdout=nodes_log, stderr=subprocess.STDOUT))
+                 "--map", str(args.out / "map.npz"), "--verify"], stdout=nodes_log, stderr=subprocess.STDOUT))
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", "loop_closures",
-                 "place_posteriors", "--wait-publishers", "120"], stdout=record_log, stderr=subprocess.STDOUT))
+                 "place_posteriors", "verified_loop_closures", "--wait-publishers", "120"],
+                stdout=record_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt)
             _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images", flush=True)
@@ -192,8 +203,11 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             printer.close()
     if printer is not None:
         true = sum(1 for *_, ok in printer.closures if ok)
+        verified_true = sum(1 for *_, ok in printer.verified if ok)
         print(f"    {len(printer.closures)} loop closures published, {true} of them true revisits; "
-              f"{printer.posteriors} posteriors", flush=True)
+              f"{printer.posteriors} posteriors\n"
+              f"    {len(printer.verified)} passed geometric verification (verified_loop_closures), "
+              f"{verified_true} of them true revisits", flush=True)
     return recording
 
 

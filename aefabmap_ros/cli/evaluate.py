@@ -301,6 +301,27 @@ class Run:
         return model, directory
 
 
+class _ProgressFromFirstTick:
+    """A progress bar that starts at its first tick, so the quantization before the first FAB-MAP
+    query (seconds with the autoencoder) does not show up as the first query's time."""
+
+    def __init__(self, total: int, description: str, quiet: bool) -> None:
+        self._arguments = {"total": total, "desc": description, "unit": "img", "disable": quiet, "file": sys.stderr}
+        self._bar: tqdm[Any] | None = None
+
+    def tick(self, _frame: int) -> None:
+        if self._bar is None:
+            self._bar = tqdm(**self._arguments)
+        self._bar.update()
+
+    def __enter__(self) -> _ProgressFromFirstTick:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
 def _fingerprint(sources: list[ImageSource]) -> str:
     """Identifies the training images (their sources' fingerprints, in order)."""
     return hashlib.sha256("\n".join(s.fingerprint() for s in sources).encode()).hexdigest()[:12]
@@ -363,12 +384,12 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
         verification = (settings.verification, verifiers[key]) if args.verify else None
         wanted = methods_of_kind(model.quantizer.kind, methods)
         fabmap_count = sum(1 for name in wanted if METHODS[name][1] == "fabmap")
-        run.log(f"scoring {', '.join(wanted)} with {model.quantizer.kind} model {model.model_id}")
-        with tqdm(total=num_frames * fabmap_count, desc="FAB-MAP queries", unit="img", disable=args.quiet,
-                  file=sys.stderr) as bar:
+        run.log(f"quantizing the {num_frames} test images, then scoring {', '.join(wanted)} with "
+                f"{model.quantizer.kind} model {model.model_id}")
+        with _ProgressFromFirstTick(num_frames * fabmap_count, "FAB-MAP queries", args.quiet) as progress:
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
-                                      on_frame=lambda _: bar.update(), label=label, model_path=str(path),
+                                      on_frame=progress.tick, label=label, model_path=str(path),
                                       verification=verification)
     order = {name: index for index, name in enumerate(METHODS)}
     results.sort(key=lambda r: (order[r.name], r.label, r.verified))
