@@ -23,3 +23,10 @@ def test_pipeline_quick(capsys: pytest.CaptureFixture[str]) -> None:
 def test_fabmap_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench.main(["fabmap", "--quick"]) == 0
     assert "ms" in capsys.readouterr().out
+
+
+def test_verify_quick(capsys: pytest.CaptureFixture[str]) -> None:
+    assert bench.main(["verify", "--quick", "--features", "sift"]) == 0
+    out = capsys.readouterr().out
+    for part in ("verify overlapping", "verify distant", "KiB per frame", "feature extraction"):
+        assert part in out

@@ -1,0 +1,93 @@
+"""Geometric verification benchmark: cost per verified candidate, and the verifier's memory per frame.
+
+On synthetic 640 x 480 frames along a trajectory, for each feature type and keypoint budget: the
+time to verify a candidate (descriptor matching, then the MAGSAC++ fundamental matrix) for pairs
+of overlapping frames (2 frames apart: the geometry should be found) and of distant frames (camera
+centres more than --distance metres apart: it should not, except where the town repeats a facade
+exactly, which fools geometry too), and the bytes verifier_node keeps per frame. For scale,
+the feature extraction of one frame is timed too: verification runs once per loop closure
+(evaluation: up to ``candidates`` times per query), extraction once per image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from aefabmap_ros.core.features import FeatureConfig, Features, extract_features
+from aefabmap_ros.core.synth import SynthConfig, generate_sequence
+from aefabmap_ros.core.verification import FeatureStore, VerificationConfig, match_descriptors, verify_pair
+
+
+def _ms(values_s: list[float]) -> str:
+    values = np.asarray(values_s) * 1e3
+    return f"median {np.median(values):7.2f} ms  p95 {np.percentile(values, 95):7.2f} ms"
+
+
+def _timed_pairs(features: list[Features], pairs: list[tuple[int, int]],
+                 config: VerificationConfig) -> tuple[list[float], list[float], list[int]]:
+    """(matching seconds, whole-verification seconds, inliers) per pair."""
+    matching, total, inliers = [], [], []
+    for query, place in pairs:
+        started = time.perf_counter()
+        match_descriptors(features[query], features[place], config.ratio)
+        matching.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        result = verify_pair(features[query], features[place], config)
+        total.append(time.perf_counter() - started)
+        inliers.append(result.inliers)
+    return matching, total, inliers
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="aefabmap_bench verify", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=60, help="synthetic frames (default 60)")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--features", nargs="+", default=["sift", "orb"], choices=["sift", "rootsift", "orb"])
+    parser.add_argument("--max-features", nargs="+", type=int, default=[500, 1000],
+                        help="keypoint budgets per image (default 500 1000)")
+    parser.add_argument("--distance", type=float, default=25.0, help="distant pairs: metres apart at least")
+    parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (small frames)")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.frames, args.width, args.height, args.max_features = 12, 320, 240, [200]
+
+    sequence = generate_sequence(SynthConfig(num_frames=args.frames, width=args.width, height=args.height))
+    images = sequence.images
+    near = [(i + 2, i) for i in range(len(images) - 2)]
+    apart = np.linalg.norm(sequence.positions[:, None, :] - sequence.positions[None, :, :], axis=2)
+    far = [(int(i), int(j)) for i, j in zip(*np.nonzero(np.tril(apart > args.distance)), strict=True)]
+    far = far[:: max(1, len(far) // 60)]  # about 60 of them, spread over the sequence
+    config = VerificationConfig()
+    print(f"{len(images)} synthetic frames {args.width}x{args.height}; {len(near)} overlapping pairs "
+          f"(2 frames apart), {len(far)} distant pairs (> {args.distance:g} m); min_inliers {config.min_inliers}")
+    for kind in args.features:
+        for budget in args.max_features:
+            feature_config = FeatureConfig(type=kind, max_features=budget)
+            extraction, features = [], []
+            for image in images:
+                started = time.perf_counter()
+                features.append(extract_features(image, feature_config))
+                extraction.append(time.perf_counter() - started)
+            store = FeatureStore(max_frames=len(features), max_features_per_frame=500)
+            for stamp, frame in enumerate(features):
+                store.add(stamp, frame)
+            count = np.mean([len(f) for f in features])
+            print(f"\n[{kind}, at most {budget} keypoints: {count:.0f} per frame on average]")
+            print(f"  feature extraction     {_ms(extraction)}  (per image, for scale)")
+            for name, pairs in (("overlapping", near), ("distant", far)):
+                matching, total, inliers = _timed_pairs(features, pairs, config)
+                accepted = sum(1 for n in inliers if n >= config.min_inliers)
+                print(f"  verify {name:12s}   {_ms(total)}  (matching {np.median(matching) * 1e3:.2f} ms); "
+                      f"accepted {accepted}/{len(pairs)}, median inliers {np.median(inliers):.0f}")
+            print(f"  verifier_node memory   {store.nbytes / len(store) / 1024:.0f} KiB per frame "
+                  f"(500 strongest keypoints kept)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
