@@ -30,8 +30,8 @@ can be reused with --model.
 With --verify every method gets a second row, "<method> + GV": each query's best candidates
 (verification: candidates, default 5) are checked geometrically in order of score -- descriptor
 matches with the ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers
-(default 15) inliers -- and the first accepted one is the query's candidate (none accepted: no
-candidate). This is what verifier_node does online to the loop closures.
+(default 20) inliers -- and the first accepted one is the query's candidate (none accepted: no
+candidate). verifier_node applies the same check online to every published loop closure.
 
 Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png and OUT/scores_<method>.png (score
 matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
@@ -91,7 +91,8 @@ from aefabmap_ros.io.sources import ImageSource
 SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencoder", "training", "fabmap",
             "evaluation", "verification")
 RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
-                    "loop_closures": "aefabmap_msgs/msg/LoopClosure"}
+                    "loop_closures": "aefabmap_msgs/msg/LoopClosure",
+                    "verified_loop_closures": "aefabmap_msgs/msg/LoopClosure"}
 
 
 class _UsageError(Exception):
@@ -410,8 +411,8 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     return results, gt, header
 
 
-def read_recording(path: Path) -> tuple[list[Any], list[Any]]:
-    """PlacePosterior and LoopClosure messages of a recording (topics with or without a leading '/')."""
+def read_recording(path: Path) -> dict[str, list[Any]]:
+    """Messages of a recording by topic name (``RECORDING_TOPICS``; with or without a leading '/')."""
     topics = bags.list_topics(path)
     found: dict[str, str] = {}
     for topic, msgtype in topics.items():
@@ -423,11 +424,12 @@ def read_recording(path: Path) -> tuple[list[Any], list[Any]]:
     if not found:
         raise DataError(f"recording {path} has neither place_posteriors nor loop_closures; "
                         f"its topics: {sorted(topics) or 'none'}")
-    posteriors: list[Any] = []
-    closures: list[Any] = []
+    messages: dict[str, list[Any]] = {name: [] for name in RECORDING_TOPICS}
     for message in bags.read_messages(path, list(found.values())):
-        (posteriors if message.topic.lstrip("/") == "place_posteriors" else closures).append(message.message)
-    return posteriors, closures
+        messages[message.topic.lstrip("/")].append(message.message)
+    if "verified_loop_closures" not in found:
+        del messages["verified_loop_closures"]  # no verifier ran, which differs from one that passed nothing
+    return messages
 
 
 def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str]:
@@ -439,8 +441,8 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     started = time.monotonic()
-    posteriors, closures = read_recording(args.recording)
-    recorded = scores_from_recording(posteriors, closures, gt.shape[0])
+    messages = read_recording(args.recording)
+    recorded = scores_from_recording(messages["place_posteriors"], messages["loop_closures"], gt.shape[0])
     metrics = evaluate_scores(recorded.scores, gt, min_gap, settings.evaluation.threshold)
     result = MethodResult(name="recording", vocabulary_kind="recorded", vocabulary_size=0, model_id="",
                           scores=recorded.scores, metrics=metrics, seconds=time.monotonic() - started,
@@ -459,6 +461,15 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
     }
     extra = (f"The detector's own decisions ({recorded.num_loop_closures} loop closures): precision "
              f"{'n/a' if np.isnan(precision) else f'{precision:.3f}'}, recall {recall:.3f}.\n")
+    if "verified_loop_closures" in messages:
+        verified = scores_from_recording(messages["place_posteriors"], messages["verified_loop_closures"],
+                                         gt.shape[0]).closures
+        precision, recall = closure_precision_recall(verified, gt, min_gap)
+        header["verified_loop_closures"] = len(verified)
+        header["verified_loop_closures_precision"] = None if np.isnan(precision) else precision
+        header["verified_loop_closures_recall"] = recall
+        extra += (f"After geometric verification ({len(verified)} verified_loop_closures): precision "
+                  f"{'n/a' if np.isnan(precision) else f'{precision:.3f}'}, recall {recall:.3f}.\n")
     return [result], gt, header, extra
 
 

@@ -129,7 +129,7 @@ def test_verify_adds_a_geometrically_verified_row_per_method(data, trained, caps
     results = check_outputs(out, ["AE-FABMAP", "AE-FABMAP", "BoW", "BoW"])
     flags = [(m["method"], m["geometric_verification"]) for m in results["methods"]]
     assert flags == [("AE-FABMAP", False), ("AE-FABMAP", True), ("BoW", False), ("BoW", True)]
-    assert results["geometric_verification"]["min_inliers"] == 15
+    assert results["geometric_verification"]["min_inliers"] == 20
     plain, verified = results["methods"][0], results["methods"][1]
     assert plain["recall_at_threshold"] == first["methods"][1]["recall_at_threshold"]
     assert verified["num_predictions_at_threshold"] <= plain["num_predictions_at_threshold"]
@@ -259,7 +259,8 @@ def test_error_unknown_config_key(base, tmp_path, capsys):
 
 
 def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
-                    closures: list[tuple[int, int, float]]) -> None:
+                    closures: list[tuple[int, int, float]],
+                    verified: list[tuple[int, int, float]] | None = None) -> None:
     from aefabmap_ros.io import bags
 
     types = bags.get_typestore().types
@@ -268,6 +269,8 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
     with bags.BagWriter(path) as writer:
         writer.add_topic("/place_posteriors", "aefabmap_msgs/msg/PlacePosterior")
         writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
+        if verified is not None:
+            writer.add_topic("/verified_loop_closures", "aefabmap_msgs/msg/LoopClosure")
         for query, places, probabilities in posteriors:
             message = types["aefabmap_msgs/msg/PlacePosterior"](
                 header=bags.make_header(start + query * period), query_id=query, assigned_place_id=query,
@@ -278,13 +281,14 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                 log_likelihoods=np.zeros(len(places), dtype=np.float64),
             )
             writer.write("/place_posteriors", start + query * period, message)
-        for query, place, probability in closures:
-            message = types["aefabmap_msgs/msg/LoopClosure"](
-                header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
-                matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
-                probability=probability, log_likelihood=0.0,
-            )
-            writer.write("/loop_closures", start + query * period, message)
+        for topic, entries in (("/loop_closures", closures), ("/verified_loop_closures", verified or [])):
+            for query, place, probability in entries:
+                message = types["aefabmap_msgs/msg/LoopClosure"](
+                    header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
+                    matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
+                    probability=probability, log_likelihood=0.0,
+                )
+                writer.write(topic, start + query * period, message)
 
 
 def test_recording_metrics(tmp_path, capsys):
@@ -308,7 +312,8 @@ def test_recording_metrics(tmp_path, capsys):
         posteriors.append((i, places, probabilities))
     closures = [(12, 0, 0.999), (16, 4, 0.999), (18, 2, 0.9995)]  # the last one is wrong
     expected[18, 2] = 0.9995
-    write_recording(tmp_path / "run", posteriors, closures)
+    verified = [(12, 0, 0.999)]  # the verifier passed one true closure and held back the other two
+    write_recording(tmp_path / "run", posteriors, closures, verified)
     np.savez(tmp_path / "gt.npz", gt=gt)
     assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--threshold", "0.99",
                  "--out", str(tmp_path / "out"), "--quiet"]) == 0
@@ -328,6 +333,10 @@ def test_recording_metrics(tmp_path, capsys):
     assert results["recorded_loop_closures_precision"] == pytest.approx(2 / 3)
     assert results["recorded_loop_closures_recall"] == pytest.approx(2 / 8)
     assert results["loop_closures"] == 3 and results["place_posteriors"] == frames
+    assert results["verified_loop_closures"] == 1
+    assert results["verified_loop_closures_precision"] == 1.0
+    assert results["verified_loop_closures_recall"] == pytest.approx(1 / 8)
+    assert "After geometric verification (1 verified_loop_closures): precision 1.000" in printed
     assert (tmp_path / "out" / "scores_recording.png").is_file()
 
 
