@@ -2,8 +2,8 @@
 
 Keeps the features of recent frames (``aefabmap/features``, by image stamp). For every loop
 closure from fabmap_node it matches the query image's features against the matched place's and
-republishes the closure unchanged when enough matches fit one fundamental matrix
-(``min_inliers``); otherwise it is counted and logged as rejected. A SLAM backend that cannot
+republishes the closure, with its ``inliers`` count filled in, when enough matches fit one
+fundamental matrix (``min_inliers``); otherwise it is counted and logged as rejected. A SLAM backend that cannot
 afford a false loop subscribes to ``verified_loop_closures`` instead of ``loop_closures``.
 
 A closure can arrive before its query's features (separate topics): it waits, up to
@@ -105,6 +105,7 @@ class VerifierNode(Node):
                 f"{result.inliers} inliers of {result.matches} matches")
         if result.accepted:
             self.get_logger().info(text)
+            message.inliers = result.inliers
             self.publisher.publish(message)
         else:  # a stream of aliased candidates must not flood the log
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)

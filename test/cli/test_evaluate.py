@@ -286,7 +286,7 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                 message = types["aefabmap_msgs/msg/LoopClosure"](
                     header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
                     matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
-                    probability=probability, log_likelihood=0.0,
+                    probability=probability, log_likelihood=0.0, inliers=-1,
                 )
                 writer.write(topic, start + query * period, message)
 

@@ -38,6 +38,7 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
         matched_stamp=bags.make_time(1_000_000_456),
         probability=0.995,
         log_likelihood=-12.5,
+        inliers=37,
     )
     features = types["aefabmap_msgs/msg/Features"](
         header=bags.make_header(5_000_000_123, "cam"),
@@ -63,7 +64,7 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
         writer.write("/image", 5_000_000_123, bags.make_image_message(np.zeros((4, 4, 3), np.uint8), 5_000_000_123))
     read = {m.topic: m.message for m in bags.read_messages(path, ["/loop_closures", "/aefabmap/features", "/image"])}
     got_loop = read["/loop_closures"]
-    assert (got_loop.query_id, got_loop.matched_place_id, got_loop.probability) == (42, 7, 0.995)
+    assert (got_loop.query_id, got_loop.matched_place_id, got_loop.probability, got_loop.inliers) == (42, 7, 0.995, 37)
     assert bags.stamp_to_ns(got_loop.matched_stamp) == 1_000_000_456
     assert got_loop.header.frame_id == "cam"
     got_features = read["/aefabmap/features"]

@@ -226,6 +226,7 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
         broken.x = broken.x[:-1]
         node._on_features(broken)
         assert [m.query_id for m in verified.messages] == [10, 14]
+        assert all(m.inliers >= 100 for m in verified.messages)  # 120 shared scene points
         counts = node.counter.counts
         assert counts["accepted"] == 2 and counts["rejected"] == 1
         assert counts["dropped_place_features_unknown"] == 1

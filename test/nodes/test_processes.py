@@ -46,7 +46,8 @@ def _params_file(tmp_path: Path) -> Path:
 
 def _replay(tmp_path: Path, bag: Path, name: str) -> None:
     with LoggedProcess(tmp_path / f"{name}.log", "aefabmap_ros.cli.replay", bag, "--topic", "/image",
-                       "--lockstep", "place_posteriors", "--quiet", "--wait-timeout", "60") as replay:
+                       "--lockstep", "place_posteriors", "--lockstep-timeout", "60", "--quiet",
+                       "--wait-timeout", "60") as replay:  # generous: a loaded CI machine, first imports
         assert replay.wait(timeout_s=240) == 0, replay.log()
         assert "0 without an answer" in replay.log(), replay.log()
 
