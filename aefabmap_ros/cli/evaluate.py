@@ -314,6 +314,8 @@ class _ProgressFromFirstTick:
         if self._bar is None:
             self._bar = tqdm(**self._arguments)
         self._bar.update()
+        if self._bar.n >= self._bar.total:  # done: the bar's time must not run on through tf-idf and GV
+            self._bar.close()
 
     def __enter__(self) -> _ProgressFromFirstTick:
         return self
