@@ -2,9 +2,10 @@
 
 On synthetic 640 x 480 frames along a trajectory, for each feature type and keypoint budget: the
 time to verify a candidate (descriptor matching, then the MAGSAC++ fundamental matrix) for pairs
-of overlapping frames (2 frames apart: the geometry should be found) and of distant frames (camera
-centres more than --distance metres apart: it should not, except where the town repeats a facade
-exactly, which fools geometry too), and the bytes verifier_node keeps per frame. For scale,
+of nearby frames (2 frames apart: mostly overlapping views, where the geometry should be found)
+and of distant frames (camera centres more than --distance metres apart: it should not, except
+where the town repeats a facade exactly, which fools geometry too), and the bytes verifier_node
+keeps per frame. For scale,
 the feature extraction of one frame is timed too: verification runs once per loop closure
 (evaluation: up to ``candidates`` times per query), extraction once per image.
 """
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     far = [(int(i), int(j)) for i, j in zip(*np.nonzero(np.tril(apart > args.distance)), strict=True)]
     far = far[:: max(1, len(far) // 60)]  # about 60 of them, spread over the sequence
     config = VerificationConfig()
-    print(f"{len(images)} synthetic frames {args.width}x{args.height}; {len(near)} overlapping pairs "
+    print(f"{len(images)} synthetic frames {args.width}x{args.height}; {len(near)} nearby pairs "
           f"(2 frames apart), {len(far)} distant pairs (> {args.distance:g} m); min_inliers {config.min_inliers}")
     for kind in args.features:
         for budget in args.max_features:
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             count = np.mean([len(f) for f in features])
             print(f"\n[{kind}, at most {budget} keypoints: {count:.0f} per frame on average]")
             print(f"  feature extraction     {_ms(extraction)}  (per image, for scale)")
-            for name, pairs in (("overlapping", near), ("distant", far)):
+            for name, pairs in (("nearby", near), ("distant", far)):
                 matching, total, inliers = _timed_pairs(features, pairs, config)
                 accepted = sum(1 for n in inliers if n >= config.min_inliers)
                 print(f"  verify {name:12s}   {_ms(total)}  (matching {np.median(matching) * 1e3:.2f} ms); "
