@@ -229,6 +229,9 @@ class FeatureStore:
     def __len__(self) -> int:
         return len(self._frames)
 
+    def __contains__(self, stamp_ns: object) -> bool:
+        return stamp_ns in self._frames
+
     @property
     def nbytes(self) -> int:
         return self._nbytes

@@ -3,8 +3,9 @@
 Keeps the features of recent frames (``aefabmap/features``, by image stamp). For every loop
 closure from fabmap_node it matches the query image's features against the matched place's and
 republishes the closure, with its ``inliers`` count filled in, when enough matches fit one
-fundamental matrix (``min_inliers``); otherwise it is counted and logged as rejected. A SLAM backend that cannot
-afford a false loop subscribes to ``verified_loop_closures`` instead of ``loop_closures``.
+fundamental matrix (``min_inliers``); otherwise it is counted and logged as rejected. A SLAM
+backend that cannot afford a false loop subscribes to ``verified_loop_closures`` instead of
+``loop_closures``.
 
 A closure can arrive before its query's features (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
@@ -77,7 +78,7 @@ class VerifierNode(Node):
 
     def _on_loop_closure(self, message: LoopClosure) -> None:
         query_ns = stamp_to_ns(message.header.stamp)
-        if self.store.get(query_ns) is None:
+        if query_ns not in self.store:
             self.pending[query_ns] = message
             while len(self.pending) > self.max_pending:
                 _, oldest = self.pending.popitem(last=False)

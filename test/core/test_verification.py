@@ -249,6 +249,7 @@ def test_store_is_bounded_and_forgets_the_oldest() -> None:
     store.add(200, place)
     store.add(300, query)
     assert len(store) == 2 and store.get(100) is None and store.get(999) is None
+    assert 100 not in store and 200 in store and 300 in store
     restored = store.get(200)
     assert restored is not None and restored.descriptors.dtype == np.float32
     np.testing.assert_allclose(restored.descriptors, place.descriptors, rtol=1e-3, atol=0.2)  # float16
