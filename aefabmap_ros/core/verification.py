@@ -212,9 +212,9 @@ class FeatureStore:
 
     Bounded: at most ``max_frames`` frames (the oldest is forgotten first) and, when
     ``max_features_per_frame`` > 0, only each frame's strongest keypoints (by detector response).
-    Float descriptors are kept as float16 (half the memory; nearest-neighbour ranks are unchanged
-    to well below SIFT's quantisation), binary ones as they are. About 128 KiB per frame of
-    500 SIFT features.
+    Float descriptors are kept as float16: half the memory, and exact for OpenCV's SIFT, whose
+    values are integers below 256 (RootSIFT loses about 1e-4 of its unit-norm values); binary ones
+    are kept as they are. About 128 KiB per frame of 500 SIFT features.
     """
 
     def __init__(self, max_frames: int, max_features_per_frame: int = 0) -> None:

@@ -259,6 +259,16 @@ def test_store_is_bounded_and_forgets_the_oldest() -> None:
     assert store.nbytes == size == 2 * (20 * 2 * 4 + 20 * 128 * 2)
 
 
+def test_store_keeps_integer_sift_values_exactly() -> None:
+    """OpenCV's SIFT descriptors are integers below 256, which float16 represents exactly."""
+    _, place, _ = _two_views(seed=12, shared=20, clutter=0)
+    integral = Features(keypoints=place.keypoints, descriptors=np.round(place.descriptors), descriptor_type="sift")
+    store = FeatureStore(max_frames=1)
+    store.add(1, integral)
+    kept = store.get(1)
+    assert kept is not None and np.array_equal(kept.descriptors, integral.descriptors)
+
+
 def test_store_keeps_the_strongest_keypoints_and_verification_still_works() -> None:
     query, place, _ = _two_views(seed=11)
     store = FeatureStore(max_frames=10, max_features_per_frame=100)
