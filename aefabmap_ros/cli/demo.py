@@ -24,6 +24,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -161,10 +162,27 @@ def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s:
         time.sleep(0.2)
 
 
+def _stop(process: subprocess.Popen[bytes], grace_s: float = 20.0) -> None:
+    """Stop a child still running: SIGINT first, so aefabmap_launch stops its own node processes
+    (a SIGKILL would orphan them), then SIGKILL if it does not exit within ``grace_s``."""
+    if process.poll() is not None:
+        return
+    process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
 def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     """Replay the test bag through the nodes; returns the recording."""
     recording = args.out / "online_recording"
     shutil.rmtree(recording, ignore_errors=True)
+    map_file = args.out / "map.npz"
+    # Every run replays the same bag from an empty map: a map saved by the last run would make the
+    # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
+    map_file.unlink(missing_ok=True)
     stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
     gt = np.load(test / "loop_gt.npz")["gt"]
     logs = args.out / "logs"
@@ -178,7 +196,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(args.out / "map.npz"), "--verify"], stdout=nodes_log, stderr=subprocess.STDOUT))
+                 "--map", str(map_file), "--verify"], stdout=nodes_log, stderr=subprocess.STDOUT))
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", "loop_closures",
                  "place_posteriors", "verified_loop_closures", "--wait-publishers", "120"],
@@ -196,9 +214,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         raise AefabmapError(f"replay failed (exit {exc.returncode})") from exc
     finally:
         for process in processes:
-            if process.poll() is None:
-                process.kill()
-                process.wait()
+            _stop(process)
         if printer is not None:
             printer.close()
     if printer is not None:
@@ -248,9 +264,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _interrupt(_signum: int, _frame: FrameType | None) -> None:
+    raise KeyboardInterrupt  # SIGTERM (a timeout, a CI runner) cleans up the node processes like Ctrl-C
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    signal.signal(signal.SIGTERM, _interrupt)
     return report_errors(lambda: run(args))
 
 
