@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.launch import verifier_store_path
 from aefabmap_ros.core.errors import AefabmapError
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
 
@@ -183,6 +184,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     # Every run replays the same bag from an empty map: a map saved by the last run would make the
     # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
     map_file.unlink(missing_ok=True)
+    verifier_store_path(map_file).unlink(missing_ok=True)  # the verifier's features of those places
     stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
     gt = np.load(test / "loop_gt.npz")["gt"]
     logs = args.out / "logs"

@@ -3,7 +3,8 @@
 The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter file, same topics.
 Ctrl-C (or SIGTERM) stops every node cleanly, so the FAB-MAP node saves its map; if one node dies,
 the others are stopped and the exit code is 1. With --verify, verifier_node runs beside them and
-publishes the geometrically verified loop closures on ``verified_loop_closures``.
+publishes the geometrically verified loop closures on ``verified_loop_closures``; with --map too,
+its feature store is saved beside the map (``<map>.features.npz``), so both survive a restart.
 """
 
 from __future__ import annotations
@@ -23,6 +24,11 @@ def default_params_file() -> Path:
     candidates = [Path(__file__).resolve().parents[2] / "config" / "aefabmap.yaml",
                   Path(sys.prefix) / "share" / "aefabmap_ros" / "config" / "aefabmap.yaml"]
     return next((path for path in candidates if path.exists()), candidates[0])
+
+
+def verifier_store_path(map_path: Path) -> Path:
+    """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features.npz."""
+    return map_path.with_suffix(".features.npz")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,8 +55,9 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
         "quantizer_node": [],
         "fabmap_node": ["-p", f"map_file:={args.map}"] if args.map else [],
     }
-    verifier = ([[sys.executable, "-m", "aefabmap_ros.nodes.verifier_node", "--ros-args", "--params-file", str(params)]]
-                if args.verify else [])
+    store = ["-p", f"store_file:={verifier_store_path(args.map)}"] if args.map else []
+    verifier = ([[sys.executable, "-m", "aefabmap_ros.nodes.verifier_node", "--ros-args", "--params-file", str(params),
+                  *store]] if args.verify else [])
     if args.pipeline:
         merged = [arg for node in NODES for arg in extra[node]]
         return [[sys.executable, "-m", "aefabmap_ros.nodes.pipeline", *common, *merged], *verifier]

@@ -20,15 +20,20 @@ average precision than 15 or 10, and random matches between distant frames fit 1
 
 from __future__ import annotations
 
+import io
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from aefabmap_ros.core.errors import ConfigError, DataError
+from aefabmap_ros.core.atomic import atomic_write_bytes
+from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.features import Features
 
+STORE_FORMAT_VERSION = 1
 MIN_MODEL_MATCHES = 8  # the fundamental matrix needs 8 correspondences (7 with a cubic, OpenCV uses 8)
 
 
@@ -264,7 +269,83 @@ class FeatureStore:
             descriptors = descriptors.astype(np.float32)
         return Features(keypoints=stored.keypoints, descriptors=descriptors, descriptor_type=stored.descriptor_type)
 
+    def save(self, path: Path) -> None:
+        """Write the store atomically (.npz): a restarted verifier can still verify old places."""
+        frames = list(self._frames.items())
+        kinds = {(f.descriptor_type, f.descriptors.dtype.str, f.descriptors.shape[1]) for _, f in frames}
+        if len(kinds) > 1:
+            raise DataError(f"the feature store mixes descriptor kinds {sorted(kinds)}; it cannot be saved as one")
+        kind, dtype, width = kinds.pop() if kinds else ("", np.dtype(np.float16).str, 0)
+        arrays = {
+            "format_version": np.array(STORE_FORMAT_VERSION, dtype=np.int64),
+            "descriptor_type": np.array(kind),
+            "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
+            "counts": np.array([len(f) for _, f in frames], dtype=np.int64),
+            "keypoints": np.concatenate([f.keypoints for _, f in frames]) if frames else np.zeros((0, 2), np.float32),
+            "descriptors": (np.concatenate([f.descriptors for _, f in frames]) if frames
+                            else np.zeros((0, width), np.dtype(dtype))),
+        }
+        buffer = io.BytesIO()
+        np.savez(buffer, **arrays)  # type: ignore[arg-type]
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(Path(path), buffer.getvalue())
+
+    def load(self, path: Path) -> None:
+        """Replace the contents by the store saved at ``path`` (its newest ``max_frames`` frames).
+
+        Raises ModelError naming the file if it is missing, corrupt or of another format version;
+        the store is unchanged then.
+        """
+        try:
+            with np.load(Path(path), allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except FileNotFoundError as error:
+            raise ModelError(f"feature store file not found: {path}") from error
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+            raise ModelError(f"cannot read feature store file {path}: {error}") from error
+        frames = _stored_frames(Path(path), arrays)
+        self._frames.clear()
+        self._nbytes = 0
+        for stamp_ns, features in frames[-self.max_frames:]:
+            self._frames[stamp_ns] = features
+            self._nbytes += features.keypoints.nbytes + features.descriptors.nbytes
+
     def _forget(self, stamp_ns: int) -> None:
         stored = self._frames.pop(stamp_ns, None)
         if stored is not None:
             self._nbytes -= stored.keypoints.nbytes + stored.descriptors.nbytes
+
+
+def _stored_frames(path: Path, arrays: dict[str, np.ndarray]) -> list[tuple[int, Features]]:
+    """The frames of a saved store, checked; ModelError naming what is wrong."""
+    required = ("format_version", "descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")
+    missing = [key for key in required if key not in arrays]
+    if missing:
+        raise ModelError(f"{path} is not a feature store (missing {missing})")
+    version = int(arrays["format_version"])
+    if version != STORE_FORMAT_VERSION:
+        raise ModelError(f"feature store {path} has format version {version}, expected {STORE_FORMAT_VERSION}")
+    stamps, counts = arrays["stamps_ns"], arrays["counts"]
+    keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
+    problems = []
+    if stamps.ndim != 1 or counts.shape != stamps.shape or np.unique(stamps).size != stamps.size:
+        problems.append("stamps and counts must be equally long, the stamps unique")
+    if counts.size and counts.min() < 0:
+        problems.append("negative keypoint counts")
+    if keypoints.ndim != 2 or keypoints.shape[1] != 2 or keypoints.dtype != np.float32:
+        problems.append(f"keypoints must be (K, 2) float32, got {keypoints.shape} {keypoints.dtype}")
+    if descriptors.ndim != 2 or descriptors.dtype not in (np.float16, np.uint8):
+        problems.append(f"descriptors must be (K, D) float16 or uint8, got {descriptors.shape} {descriptors.dtype}")
+    if not problems and not (int(counts.sum()) == keypoints.shape[0] == descriptors.shape[0]):
+        problems.append(f"{int(counts.sum())} keypoints counted, {keypoints.shape[0]} keypoints and "
+                        f"{descriptors.shape[0]} descriptors stored")
+    if problems:
+        raise ModelError(f"feature store {path} is corrupt: {'; '.join(problems)}")
+    kind = str(arrays["descriptor_type"])
+    ends = np.cumsum(counts)
+    return [
+        # Copies, not views of the file's arrays: forgetting a frame must free its memory.
+        (int(stamp), Features(keypoints=keypoints[end - count : end].copy(),
+                              descriptors=descriptors[end - count : end].copy(), descriptor_type=kind))
+        for stamp, count, end in zip(stamps.tolist(), counts.tolist(), ends.tolist(), strict=True)
+    ]

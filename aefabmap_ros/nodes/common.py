@@ -12,6 +12,7 @@ import signal
 import sys
 from collections import Counter
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from types import FrameType
 from typing import Any, TypeVar
 
@@ -98,6 +99,37 @@ class DropCounter:
 
     def summary(self) -> str:
         return ", ".join(f"{key}={value}" for key, value in sorted(self.counts.items())) or "no input"
+
+
+class PeriodicSave:
+    """A node's state file: saved when it changed, every ``period_s`` and at shutdown (``save_if_changed``).
+
+    ``path`` None keeps the state in memory only. A failed save is logged (throttled) and retried at
+    the next period; the old file stays whole (the savers write atomically).
+    """
+
+    def __init__(self, node: Node, path: Path | None, save: Callable[[Path], None], what: str,
+                 period_s: float) -> None:
+        self._node = node
+        self.path = path
+        self._save = save
+        self._what = what
+        self.unsaved_changes = False
+        if path is not None and period_s > 0:
+            node.create_timer(period_s, self.save_if_changed)
+
+    def mark_changed(self) -> None:
+        self.unsaved_changes = True
+
+    def save_if_changed(self) -> None:
+        if self.path is None or not self.unsaved_changes:
+            return
+        try:
+            self._save(self.path)
+            self.unsaved_changes = False
+        except (AefabmapError, OSError) as exc:
+            self._node.get_logger().error(f"cannot save {self._what} to {self.path}: {exc}",
+                                          throttle_duration_sec=30.0)
 
 
 class _StopSignalError(Exception):

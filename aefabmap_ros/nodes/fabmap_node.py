@@ -24,7 +24,15 @@ from aefabmap_ros.io.messages import (
     recognition_to_loop_closure,
     recognition_to_posterior,
 )
-from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, pipeline_qos, run_node
+from aefabmap_ros.nodes.common import (
+    RESULT_QOS,
+    DropCounter,
+    PeriodicSave,
+    declare_config,
+    declare_parameter,
+    pipeline_qos,
+    run_node,
+)
 
 
 class FabMapNode(Node):
@@ -50,21 +58,19 @@ class FabMapNode(Node):
             ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.model_id
         )
         warm_up_kernels()  # compile/load FAB-MAP's kernels now, not on the first image
-        self.map_path = Path(map_file) if map_file else None
-        if self.map_path is not None and self.map_path.exists():
-            self.recognizer.load_map(self.map_path)
-            self.get_logger().info(f"reloaded {self.recognizer.num_places} places from {self.map_path}")
+        map_path = Path(map_file) if map_file else None
+        if map_path is not None and map_path.exists():
+            self.recognizer.load_map(map_path)
+            self.get_logger().info(f"reloaded {self.recognizer.num_places} places from {map_path}")
         # Frames at or before the newest saved place are already in the map: replaying them after a
         # restart must not add them twice.
         places = self.recognizer.num_places
         self.last_stamp_ns = self.recognizer.place_stamp_ns(places - 1) if places else -1
-        self.unsaved_changes = False
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
         self.loop_publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
         self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
-        if self.map_path is not None and save_period_s > 0:
-            self.create_timer(save_period_s, self._save_if_changed)
+        self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.get_logger().info(
             f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
@@ -85,7 +91,7 @@ class FabMapNode(Node):
         if not recognition.informative:  # too few words to say anything: no posterior, no place
             self.counter.ok("frames_below_min_words")
             return
-        self.unsaved_changes = True
+        self.map_saver.mark_changed()
         self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
         loop_closure = recognition_to_loop_closure(recognition, message.header)
         if loop_closure is not None:
@@ -97,17 +103,8 @@ class FabMapNode(Node):
             )
         self.counter.ok()
 
-    def _save_if_changed(self) -> None:
-        if self.map_path is None or not self.unsaved_changes:
-            return
-        try:
-            self.recognizer.save_map(self.map_path)
-            self.unsaved_changes = False
-        except (AefabmapError, OSError) as exc:
-            self.get_logger().error(f"cannot save map to {self.map_path}: {exc}", throttle_duration_sec=30.0)
-
     def close(self) -> None:
-        self._save_if_changed()
+        self.map_saver.save_if_changed()
         self.get_logger().info(f"fabmap_node: {self.recognizer.num_places} places; {self.counter.summary()}")
 
 

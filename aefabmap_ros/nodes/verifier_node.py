@@ -9,12 +9,15 @@ backend that cannot afford a false loop subscribes to ``verified_loop_closures``
 
 A closure can arrive before its query's features (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
-(``max_stored_frames``) or was seen before this node started cannot be verified and is dropped.
+(``max_stored_frames``) cannot be verified and is dropped. With ``store_file`` the store is saved
+atomically (every ``save_period_s`` when it changed, and on shutdown) and reloaded on start, so
+after a restart the places seen before it can still be verified.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 from aefabmap_msgs.msg import Features, LoopClosure
@@ -28,6 +31,7 @@ from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
     RESULT_QOS,
     DropCounter,
+    PeriodicSave,
     declare_config,
     declare_parameter,
     pipeline_qos,
@@ -50,16 +54,27 @@ class VerifierNode(Node):
         self.max_pending = declare_parameter(
             self, "max_pending", 100, "Loop closures waiting for their query's features at most."
         )
+        store_file = declare_parameter(
+            self, "store_file", "", "File the feature store is saved to and reloaded from ('' = memory only)."
+        )
+        save_period_s = declare_parameter(
+            self, "save_period_s", 10.0, "Save the store this often when it changed (seconds; 0 = only on shutdown)."
+        )
         self.config = declare_config(self, VerificationConfig)
         if max_frames < 1 or max_features < 0 or self.max_pending < 1:
             raise ConfigError(f"verifier_node: max_stored_frames ({max_frames}) and max_pending "
                               f"({self.max_pending}) must be >= 1, max_stored_features ({max_features}) >= 0")
         self.store = FeatureStore(max_frames, max_features)
+        store_path = Path(store_file) if store_file else None
+        if store_path is not None and store_path.exists():
+            self.store.load(store_path)  # a corrupt file stops start-up (ERROR) rather than be overwritten
+            self.get_logger().info(f"reloaded the features of {len(self.store)} frames from {store_path}")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "verified_loop_closures", RESULT_QOS)
         self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        self.store_saver = PeriodicSave(self, store_path, self.store.save, "the feature store", save_period_s)
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers, "
             f"features of the last {max_frames} frames"
@@ -72,6 +87,7 @@ class VerifierNode(Node):
         except AefabmapError as exc:
             self.counter.drop("bad_features", str(exc))
             return
+        self.store_saver.mark_changed()
         waiting = self.pending.pop(stamp_ns, None)
         if waiting is not None:
             self._verify(waiting)
@@ -112,6 +128,7 @@ class VerifierNode(Node):
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
 
     def close(self) -> None:
+        self.store_saver.save_if_changed()
         self.get_logger().info(
             f"verifier_node: {len(self.store)} frames stored ({self.store.nbytes / 2**20:.1f} MiB), "
             f"{len(self.pending)} closures still waiting; {self.counter.summary()}"

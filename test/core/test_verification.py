@@ -3,6 +3,8 @@ answer, the candidate walk of the evaluation, the bounded feature store, and the
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -303,3 +305,73 @@ def test_corridor_revisit_is_accepted_and_a_far_place_is_not() -> None:
     elsewhere = verify_pair(features[40], features[20], VerificationConfig())
     assert revisit.accepted and revisit.inliers >= 40
     assert not elsewhere.accepted
+
+
+def test_store_round_trips_through_its_file_and_keeps_the_newest_frames(tmp_path: Path) -> None:
+    query, place, _ = _two_views(seed=13, shared=30, clutter=10)
+    store = FeatureStore(max_frames=5, max_features_per_frame=25)
+    for stamp, features in ((10, query), (20, place), (30, query)):
+        store.add(stamp, features)
+    path = tmp_path / "sub" / "store.features.npz"
+    store.save(path)
+    assert [p.name for p in path.parent.iterdir()] == ["store.features.npz"]  # no temporary file left
+    again = FeatureStore(max_frames=5)
+    again.load(path)
+    assert len(again) == 3 and again.nbytes == store.nbytes
+    for stamp in (10, 20, 30):
+        a, b = store.get(stamp), again.get(stamp)
+        assert a is not None and b is not None
+        np.testing.assert_array_equal(a.keypoints, b.keypoints)
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)
+        assert b.descriptor_type == "sift"
+    newest = FeatureStore(max_frames=2)
+    newest.load(path)
+    assert 10 not in newest and 20 in newest and 30 in newest
+    second_view, first_view = again.get(20), again.get(10)
+    assert second_view is not None and first_view is not None
+    assert verify_pair(first_view, second_view, VerificationConfig()).accepted
+
+
+def test_binary_and_empty_stores_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(14)
+    orb = _features(rng.uniform(0, 600, (12, 2)), rng.integers(0, 256, (12, 32), dtype=np.uint8))
+    store = FeatureStore(max_frames=3)
+    store.add(1, orb)
+    store.save(tmp_path / "orb.npz")
+    loaded = FeatureStore(max_frames=3)
+    loaded.load(tmp_path / "orb.npz")
+    got = loaded.get(1)
+    assert got is not None and got.descriptors.dtype == np.uint8 and np.array_equal(got.descriptors, orb.descriptors)
+    FeatureStore(max_frames=3).save(tmp_path / "empty.npz")
+    empty = FeatureStore(max_frames=3)
+    empty.load(tmp_path / "empty.npz")
+    assert len(empty) == 0 and empty.nbytes == 0
+
+
+def test_store_refuses_bad_files_and_mixed_kinds(tmp_path: Path) -> None:
+    from aefabmap_ros.core.errors import ModelError
+
+    store = FeatureStore(max_frames=3)
+    query, _, _ = _two_views(seed=15, shared=10, clutter=0)
+    store.add(1, query)
+    with pytest.raises(ModelError, match="not found"):
+        store.load(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file")
+    with pytest.raises(ModelError, match="cannot read feature store file"):
+        store.load(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", weights=np.zeros(3))
+    with pytest.raises(ModelError, match="is not a feature store"):
+        store.load(tmp_path / "other.npz")
+    store.save(tmp_path / "good.npz")
+    with np.load(tmp_path / "good.npz") as data:
+        arrays = {key: data[key] for key in data.files}
+    np.savez(tmp_path / "short.npz", **{**arrays, "counts": arrays["counts"] + 1})
+    with pytest.raises(ModelError, match="corrupt: 11 keypoints counted, 10 keypoints"):
+        store.load(tmp_path / "short.npz")
+    np.savez(tmp_path / "future.npz", **{**arrays, "format_version": np.array(99)})
+    with pytest.raises(ModelError, match="format version 99"):
+        store.load(tmp_path / "future.npz")
+    assert len(store) == 1  # every failed load left the store as it was
+    store.add(2, _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8)))
+    with pytest.raises(DataError, match="mixes descriptor kinds"):
+        store.save(tmp_path / "mixed.npz")

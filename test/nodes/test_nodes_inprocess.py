@@ -243,3 +243,30 @@ def test_verifier_node_refuses_bad_parameters() -> None:
         VerifierNode(parameter_overrides=_params(min_inliers=3))
     with pytest.raises(ConfigError, match="max_stored_frames"):
         VerifierNode(parameter_overrides=_params(max_stored_frames=0))
+
+
+def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
+    from test.core.test_verification import _two_views
+
+    query, place, _ = _two_views(seed=23)
+    store_file = tmp_path / "map.features.npz"
+    first = VerifierNode(parameter_overrides=_params(store_file=str(store_file), save_period_s=0.0))
+    try:
+        first._on_features(_features_message(place, 1))
+        first.close()  # saves on shutdown
+    finally:
+        first.destroy_node()
+    assert store_file.exists()
+    second = VerifierNode(parameter_overrides=_params(store_file=str(store_file)))
+    try:
+        verified = Captured(second.publisher)
+        assert 1_000_000_000 in second.store
+        second._on_features(_features_message(query, 2))
+        second._on_loop_closure(_closure(2, 1, query_id=30))  # its place was seen before the restart
+        assert [m.query_id for m in verified.messages] == [30]
+    finally:
+        second.destroy_node()
+    store_file.write_bytes(b"corrupt")
+    with pytest.raises(ModelError, match="cannot read feature store file"):
+        VerifierNode(parameter_overrides=_params(store_file=str(store_file)))
+    assert store_file.read_bytes() == b"corrupt"  # refused, not overwritten
