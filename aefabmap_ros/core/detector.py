@@ -34,16 +34,13 @@ The map (places' words, stamps, frames, counters, last posterior) is saved atomi
 
 from __future__ import annotations
 
-import io
 import json
-import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
-from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import (
@@ -56,8 +53,11 @@ from aefabmap_ros.core.fabmap import (
     posterior,
     top_k_indices,
 )
+from aefabmap_ros.core.npz_files import read_versioned_npz, write_npz_atomically
 
 MAP_FORMAT_VERSION = 1
+_MAP_KEYS = ("vocabulary_id", "vocabulary_size", "word_indptr", "word_indices", "place_stamps_ns", "place_frames",
+             "next_query_id", "previous_posterior", "has_previous_posterior")
 
 
 @dataclass(frozen=True)
@@ -282,7 +282,6 @@ class PlaceRecognizer:
 
     def save_map(self, path: Path) -> None:
         """Write the map atomically (temporary file in the same directory, then os.replace)."""
-        path = Path(path)
         indptr, indices = self._engine.places.word_csr()
         arrays = {
             "format_version": np.array(MAP_FORMAT_VERSION, dtype=np.int64),
@@ -299,10 +298,7 @@ class PlaceRecognizer:
             "has_previous_posterior": np.array(self._previous_posterior is not None),
             "config_json": np.array(json.dumps(asdict(self.config), sort_keys=True)),
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        buffer = io.BytesIO()
-        np.savez(buffer, **arrays)  # type: ignore[arg-type]
-        atomic_write_bytes(path, buffer.getvalue())
+        write_npz_atomically(path, arrays)
 
     def load_map(self, path: Path) -> None:
         """Replace the map by the one saved at ``path``.
@@ -310,15 +306,8 @@ class PlaceRecognizer:
         Raises VocabularyMismatchError (naming both ids) if it belongs to another vocabulary,
         ModelError if it is missing, corrupt or of another format version.
         """
-        path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except FileNotFoundError as error:
-            raise ModelError(f"map file not found: {path}") from error
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
-            raise ModelError(f"cannot read map file {path}: {error}") from error
-        state = self._validated_state(path, arrays)
+        arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, MAP_FORMAT_VERSION)
+        state = self._validated_state(Path(path), arrays)
         self._reset()
         self._engine.places.add_many(state["word_indptr"], state["word_indices"])
         self._place_stamps_ns.extend(state["place_stamps_ns"].astype(np.int64))
@@ -327,16 +316,6 @@ class PlaceRecognizer:
         self._previous_posterior = state["previous_posterior"] if bool(state["has_previous_posterior"]) else None
 
     def _validated_state(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        required = (
-            "format_version", "vocabulary_id", "vocabulary_size", "word_indptr", "word_indices",
-            "place_stamps_ns", "place_frames", "next_query_id", "previous_posterior", "has_previous_posterior",
-        )
-        missing = [key for key in required if key not in arrays]
-        if missing:
-            raise ModelError(f"map file {path} is not a place map (missing {missing})")
-        version = int(arrays["format_version"])
-        if version != MAP_FORMAT_VERSION:
-            raise ModelError(f"map file {path} has format version {version}, expected {MAP_FORMAT_VERSION}")
         map_vocabulary_id = str(arrays["vocabulary_id"])
         if map_vocabulary_id != self.vocabulary_id:
             raise VocabularyMismatchError(

@@ -20,8 +20,6 @@ average precision than 15 or 10, and random matches between distant frames fit 1
 
 from __future__ import annotations
 
-import io
-import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +27,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.features import Features
+from aefabmap_ros.core.npz_files import read_versioned_npz, write_npz_atomically
 
 STORE_FORMAT_VERSION = 1
 MIN_MODEL_MATCHES = 8  # the fundamental matrix needs 8 correspondences (7 with a cubic, OpenCV uses 8)
@@ -285,10 +283,7 @@ class FeatureStore:
             "descriptors": (np.concatenate([f.descriptors for _, f in frames]) if frames
                             else np.zeros((0, width), np.dtype(dtype))),
         }
-        buffer = io.BytesIO()
-        np.savez(buffer, **arrays)  # type: ignore[arg-type]
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(Path(path), buffer.getvalue())
+        write_npz_atomically(path, arrays)
 
     def load(self, path: Path) -> None:
         """Replace the contents by the store saved at ``path`` (its newest ``max_frames`` frames).
@@ -296,13 +291,7 @@ class FeatureStore:
         Raises ModelError naming the file if it is missing, corrupt or of another format version;
         the store is unchanged then.
         """
-        try:
-            with np.load(Path(path), allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except FileNotFoundError as error:
-            raise ModelError(f"feature store file not found: {path}") from error
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
-            raise ModelError(f"cannot read feature store file {path}: {error}") from error
+        arrays = read_versioned_npz(path, "feature store file", "feature store", _STORE_KEYS, STORE_FORMAT_VERSION)
         frames = _stored_frames(Path(path), arrays)
         self._frames.clear()
         self._nbytes = 0
@@ -316,15 +305,11 @@ class FeatureStore:
             self._nbytes -= stored.keypoints.nbytes + stored.descriptors.nbytes
 
 
+_STORE_KEYS = ("descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")
+
+
 def _stored_frames(path: Path, arrays: dict[str, np.ndarray]) -> list[tuple[int, Features]]:
-    """The frames of a saved store, checked; ModelError naming what is wrong."""
-    required = ("format_version", "descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")
-    missing = [key for key in required if key not in arrays]
-    if missing:
-        raise ModelError(f"{path} is not a feature store (missing {missing})")
-    version = int(arrays["format_version"])
-    if version != STORE_FORMAT_VERSION:
-        raise ModelError(f"feature store {path} has format version {version}, expected {STORE_FORMAT_VERSION}")
+    """The frames of a saved store (keys and version already checked); ModelError naming what is wrong."""
     stamps, counts = arrays["stamps_ns"], arrays["counts"]
     keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
     problems = []
