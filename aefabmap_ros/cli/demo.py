@@ -184,7 +184,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     # Every run replays the same bag from an empty map: a map saved by the last run would make the
     # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
     map_file.unlink(missing_ok=True)
-    verifier_store_path(map_file).unlink(missing_ok=True)  # the verifier's features of those places
+    shutil.rmtree(verifier_store_path(map_file), ignore_errors=True)  # the verifier's features of those places
     stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
     gt = np.load(test / "loop_gt.npz")["gt"]
     logs = args.out / "logs"
@@ -205,6 +205,8 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                 stdout=record_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt)
             _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
+            # The verifier must hear every frame's features: a place it never saw cannot be verified.
+            _wait_for(logs / "nodes.log", "verifying loop closures", processes[0], timeout_s=180)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images", flush=True)
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
                             "--lockstep", "place_posteriors", "--quiet"], check=True)

@@ -4,7 +4,7 @@ The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter f
 Ctrl-C (or SIGTERM) stops every node cleanly, so the FAB-MAP node saves its map; if one node dies,
 the others are stopped and the exit code is 1. With --verify, verifier_node runs beside them and
 publishes the geometrically verified loop closures on ``verified_loop_closures``; with --map too,
-its feature store is saved beside the map (``<map>.features.npz``), so both survive a restart.
+its feature store is saved beside the map (folder ``<map>.features``), so both survive a restart.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ def default_params_file() -> Path:
 
 
 def verifier_store_path(map_path: Path) -> Path:
-    """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features.npz."""
-    return map_path.with_suffix(".features.npz")
+    """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features/."""
+    return map_path.with_suffix(".features")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,7 +55,7 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
         "quantizer_node": [],
         "fabmap_node": ["-p", f"map_file:={args.map}"] if args.map else [],
     }
-    store = ["-p", f"store_file:={verifier_store_path(args.map)}"] if args.map else []
+    store = ["-p", f"store_dir:={verifier_store_path(args.map)}"] if args.map else []
     verifier = ([[sys.executable, "-m", "aefabmap_ros.nodes.verifier_node", "--ros-args", "--params-file", str(params),
                   *store]] if args.verify else [])
     if args.pipeline:

@@ -9,9 +9,10 @@ backend that cannot afford a false loop subscribes to ``verified_loop_closures``
 
 A closure can arrive before its query's features (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
-(``max_stored_frames``) cannot be verified and is dropped. With ``store_file`` the store is saved
-atomically (every ``save_period_s`` when it changed, and on shutdown) and reloaded on start, so
-after a restart the places seen before it can still be verified.
+(``max_stored_frames``) cannot be verified and is dropped. With ``store_dir`` the store is saved
+to that folder (every ``save_period_s`` the frames added since the last save, as one more chunk
+file, and on shutdown) and reloaded on start, so after a restart the places seen before it can
+still be verified.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from rclpy.node import Node
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.stamps import stamp_to_ns
-from aefabmap_ros.core.verification import FeatureStore, VerificationConfig, verify_pair
+from aefabmap_ros.core.verification import FeatureStore, FeatureStoreFolder, VerificationConfig, verify_pair
 from aefabmap_ros.io.messages import message_to_features
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
@@ -54,27 +55,33 @@ class VerifierNode(Node):
         self.max_pending = declare_parameter(
             self, "max_pending", 100, "Loop closures waiting for their query's features at most."
         )
-        store_file = declare_parameter(
-            self, "store_file", "", "File the feature store is saved to and reloaded from ('' = memory only)."
+        store_dir = declare_parameter(
+            self, "store_dir", "", "Folder the feature store is saved to and reloaded from ('' = memory only)."
         )
         save_period_s = declare_parameter(
-            self, "save_period_s", 10.0, "Save the store this often when it changed (seconds; 0 = only on shutdown)."
+            self, "save_period_s", 10.0,
+            "Save the frames added since the last save this often (seconds; 0 = only on shutdown).",
         )
         self.config = declare_config(self, VerificationConfig)
         if max_frames < 1 or max_features < 0 or self.max_pending < 1:
             raise ConfigError(f"verifier_node: max_stored_frames ({max_frames}) and max_pending "
                               f"({self.max_pending}) must be >= 1, max_stored_features ({max_features}) >= 0")
         self.store = FeatureStore(max_frames, max_features)
-        store_path = Path(store_file) if store_file else None
-        if store_path is not None and store_path.exists():
-            self.store.load(store_path)  # a corrupt file stops start-up (ERROR) rather than be overwritten
-            self.get_logger().info(f"reloaded the features of {len(self.store)} frames from {store_path}")
+        self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
+        if self.store_folder is not None:
+            self.store_folder.load_into(self.store)  # a corrupt chunk stops start-up (ERROR), is not overwritten
+            if len(self.store):
+                self.get_logger().info(
+                    f"reloaded the features of {len(self.store)} frames from {self.store_folder.folder}")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "verified_loop_closures", RESULT_QOS)
         self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
-        self.store_saver = PeriodicSave(self, store_path, self.store.save, "the feature store", save_period_s)
+        self.store_saver = PeriodicSave(
+            self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
+            "the feature store", save_period_s,
+        )
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers, "
             f"features of the last {max_frames} frames"
@@ -126,6 +133,10 @@ class VerifierNode(Node):
             self.publisher.publish(message)
         else:  # a stream of aliased candidates must not flood the log
             self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
+
+    def _save_store(self, _folder: Path) -> None:
+        if self.store_folder is not None:
+            self.store_folder.save(self.store)
 
     def close(self) -> None:
         self.store_saver.save_if_changed()

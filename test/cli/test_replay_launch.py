@@ -75,7 +75,7 @@ def test_launch_verify_adds_the_verifier_node_in_both_modes(tmp_path: Path) -> N
                                                                            *extra]))
         assert commands[-1][2] == "aefabmap_ros.nodes.verifier_node" and "--params-file" in commands[-1]
         assert len(commands) == (2 if extra else 4)
-        assert not any("store_file" in arg for arg in commands[-1])  # no map: the store stays in memory
+        assert not any("store_dir" in arg for arg in commands[-1])  # no map: the store stays in memory
     with_map = launch.node_commands(launch.build_parser().parse_args(
         ["--model", str(tmp_path), "--verify", "--map", str(tmp_path / "office.npz")]))
-    assert f"store_file:={tmp_path / 'office.features.npz'}" in with_map[-1]
+    assert f"store_dir:={tmp_path / 'office.features'}" in with_map[-1]

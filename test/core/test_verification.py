@@ -12,6 +12,7 @@ from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.verification import (
     FeatureStore,
+    FeatureStoreFolder,
     Verification,
     VerificationConfig,
     count_epipolar_inliers,
@@ -307,29 +308,63 @@ def test_corridor_revisit_is_accepted_and_a_far_place_is_not() -> None:
     assert not elsewhere.accepted
 
 
-def test_store_round_trips_through_its_file_and_keeps_the_newest_frames(tmp_path: Path) -> None:
+def test_store_folder_appends_only_new_frames_and_reloads_the_newest(tmp_path: Path) -> None:
     query, place, _ = _two_views(seed=13, shared=30, clutter=10)
     store = FeatureStore(max_frames=5, max_features_per_frame=25)
-    for stamp, features in ((10, query), (20, place), (30, query)):
-        store.add(stamp, features)
-    path = tmp_path / "sub" / "store.features.npz"
-    store.save(path)
-    assert [p.name for p in path.parent.iterdir()] == ["store.features.npz"]  # no temporary file left
+    folder = FeatureStoreFolder(tmp_path / "map.features")
+    store.add(10, query)
+    store.add(20, place)
+    folder.save(store)
+    store.add(30, query)
+    folder.save(store)
+    folder.save(store)  # nothing new: no chunk
+    chunks = sorted(p.name for p in folder.folder.iterdir())
+    assert chunks == ["chunk-000000000.npz", "chunk-000000001.npz"]  # no temporary file left either
+    with np.load(folder.folder / chunks[1]) as second:
+        assert second["stamps_ns"].tolist() == [30]  # the second save wrote only the new frame
     again = FeatureStore(max_frames=5)
-    again.load(path)
-    assert len(again) == 3 and again.nbytes == store.nbytes
+    FeatureStoreFolder(folder.folder).load_into(again)
+    assert len(again) == 3 and again.nbytes == store.nbytes and not again.unsaved()
     for stamp in (10, 20, 30):
         a, b = store.get(stamp), again.get(stamp)
-        assert a is not None and b is not None
+        assert a is not None and b is not None and b.descriptor_type == "sift"
         np.testing.assert_array_equal(a.keypoints, b.keypoints)
         np.testing.assert_array_equal(a.descriptors, b.descriptors)
-        assert b.descriptor_type == "sift"
-    newest = FeatureStore(max_frames=2)
-    newest.load(path)
-    assert 10 not in newest and 20 in newest and 30 in newest
-    second_view, first_view = again.get(20), again.get(10)
-    assert second_view is not None and first_view is not None
+    first_view, second_view = again.get(10), again.get(20)
+    assert first_view is not None and second_view is not None
     assert verify_pair(first_view, second_view, VerificationConfig()).accepted
+    newest = FeatureStore(max_frames=2)
+    FeatureStoreFolder(folder.folder).load_into(newest)
+    assert 10 not in newest and 20 in newest and 30 in newest
+
+
+def test_store_folder_deletes_chunks_whose_frames_were_all_forgotten(tmp_path: Path) -> None:
+    query, place, _ = _two_views(seed=16, shared=10, clutter=0)
+    store = FeatureStore(max_frames=2)
+    folder = FeatureStoreFolder(tmp_path / "store")
+    store.add(1, query)
+    folder.save(store)  # chunk 0: frame 1
+    store.add(2, place)
+    store.add(1, place)  # frame 1 again, newer features: chunk 1 holds them
+    folder.save(store)
+    store.add(3, query)  # forgets frame 2 (the oldest now), frame 1 stays
+    store.add(4, query)  # forgets frame 1
+    folder.save(store)
+    assert sorted(p.name for p in folder.folder.iterdir()) == ["chunk-000000002.npz"]
+    reloaded = FeatureStore(max_frames=2)
+    loader = FeatureStoreFolder(folder.folder)
+    loader.load_into(reloaded)
+    assert sorted(s for s in (1, 2, 3, 4) if s in reloaded) == [3, 4]
+    replaced = FeatureStore(max_frames=5)
+    two = FeatureStoreFolder(tmp_path / "replace")
+    replaced.add(1, query)
+    two.save(replaced)
+    replaced.add(1, place)
+    two.save(replaced)
+    later = FeatureStore(max_frames=5)
+    FeatureStoreFolder(two.folder).load_into(later)
+    got = later.get(1)
+    assert got is not None and np.array_equal(got.keypoints, place.keypoints[:, :2])  # the later copy wins
 
 
 def test_binary_and_empty_stores_round_trip(tmp_path: Path) -> None:
@@ -337,41 +372,48 @@ def test_binary_and_empty_stores_round_trip(tmp_path: Path) -> None:
     orb = _features(rng.uniform(0, 600, (12, 2)), rng.integers(0, 256, (12, 32), dtype=np.uint8))
     store = FeatureStore(max_frames=3)
     store.add(1, orb)
-    store.save(tmp_path / "orb.npz")
+    FeatureStoreFolder(tmp_path / "orb").save(store)
     loaded = FeatureStore(max_frames=3)
-    loaded.load(tmp_path / "orb.npz")
+    FeatureStoreFolder(tmp_path / "orb").load_into(loaded)
     got = loaded.get(1)
     assert got is not None and got.descriptors.dtype == np.uint8 and np.array_equal(got.descriptors, orb.descriptors)
-    FeatureStore(max_frames=3).save(tmp_path / "empty.npz")
     empty = FeatureStore(max_frames=3)
-    empty.load(tmp_path / "empty.npz")
-    assert len(empty) == 0 and empty.nbytes == 0
+    FeatureStoreFolder(tmp_path / "never-saved").load_into(empty)  # no folder yet: an empty store
+    FeatureStoreFolder(tmp_path / "never-saved").save(empty)  # nothing to write
+    assert len(empty) == 0 and empty.nbytes == 0 and not (tmp_path / "never-saved").exists()
 
 
-def test_store_refuses_bad_files_and_mixed_kinds(tmp_path: Path) -> None:
+def test_store_folder_refuses_bad_chunks_and_mixed_kinds(tmp_path: Path) -> None:
     from aefabmap_ros.core.errors import ModelError
 
     store = FeatureStore(max_frames=3)
     query, _, _ = _two_views(seed=15, shared=10, clutter=0)
     store.add(1, query)
-    with pytest.raises(ModelError, match="not found"):
-        store.load(tmp_path / "missing.npz")
-    (tmp_path / "junk.npz").write_bytes(b"not a zip file")
-    with pytest.raises(ModelError, match="cannot read feature store file"):
-        store.load(tmp_path / "junk.npz")
-    np.savez(tmp_path / "other.npz", weights=np.zeros(3))
-    with pytest.raises(ModelError, match="is not a feature store"):
-        store.load(tmp_path / "other.npz")
-    store.save(tmp_path / "good.npz")
-    with np.load(tmp_path / "good.npz") as data:
+    (tmp_path / "a-file").write_bytes(b"")
+    with pytest.raises(ModelError, match="is not a folder"):
+        FeatureStoreFolder(tmp_path / "a-file").load_into(store)
+    good = FeatureStoreFolder(tmp_path / "good")
+    good.save(store)
+    with np.load(good.folder / "chunk-000000000.npz") as data:
         arrays = {key: data[key] for key in data.files}
-    np.savez(tmp_path / "short.npz", **{**arrays, "counts": arrays["counts"] + 1})
-    with pytest.raises(ModelError, match="corrupt: 11 keypoints counted, 10 keypoints"):
-        store.load(tmp_path / "short.npz")
-    np.savez(tmp_path / "future.npz", **{**arrays, "format_version": np.array(99)})
-    with pytest.raises(ModelError, match="format version 99"):
-        store.load(tmp_path / "future.npz")
-    assert len(store) == 1  # every failed load left the store as it was
-    store.add(2, _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8)))
-    with pytest.raises(DataError, match="mixes descriptor kinds"):
-        store.save(tmp_path / "mixed.npz")
+    cases = {
+        "junk": (None, "cannot read feature store chunk"),
+        "other": ({"weights": np.zeros(3), "format_version": np.array(1)}, "is not a feature store chunk"),
+        "short": ({**arrays, "counts": arrays["counts"] + 1}, "corrupt: 11 keypoints counted, 10 keypoints"),
+        "future": ({**arrays, "format_version": np.array(99)}, "format version 99"),
+    }
+    for name, (content, message) in cases.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        if content is None:
+            (folder / "chunk-000000000.npz").write_bytes(b"not a zip file")
+        else:
+            np.savez(folder / "chunk-000000000.npz", **content)
+        with pytest.raises(ModelError, match=message):
+            FeatureStoreFolder(folder).load_into(store)
+    assert len(store) == 1 and 1 in store  # every failed load left the store as it was
+    mixed = FeatureStore(max_frames=3)
+    mixed.add(1, query)
+    mixed.add(2, _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8)))
+    with pytest.raises(DataError, match="mixes descriptor kinds"):  # one chunk holds one kind
+        FeatureStoreFolder(tmp_path / "mixed").save(mixed)

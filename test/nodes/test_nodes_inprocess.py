@@ -249,15 +249,15 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
     from test.core.test_verification import _two_views
 
     query, place, _ = _two_views(seed=23)
-    store_file = tmp_path / "map.features.npz"
-    first = VerifierNode(parameter_overrides=_params(store_file=str(store_file), save_period_s=0.0))
+    store_dir = tmp_path / "map.features"
+    first = VerifierNode(parameter_overrides=_params(store_dir=str(store_dir), save_period_s=0.0))
     try:
         first._on_features(_features_message(place, 1))
         first.close()  # saves on shutdown
     finally:
         first.destroy_node()
-    assert store_file.exists()
-    second = VerifierNode(parameter_overrides=_params(store_file=str(store_file)))
+    assert len(list(store_dir.glob("chunk-*.npz"))) == 1
+    second = VerifierNode(parameter_overrides=_params(store_dir=str(store_dir)))
     try:
         verified = Captured(second.publisher)
         assert 1_000_000_000 in second.store
@@ -266,7 +266,8 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
         assert [m.query_id for m in verified.messages] == [30]
     finally:
         second.destroy_node()
-    store_file.write_bytes(b"corrupt")
-    with pytest.raises(ModelError, match="cannot read feature store file"):
-        VerifierNode(parameter_overrides=_params(store_file=str(store_file)))
-    assert store_file.read_bytes() == b"corrupt"  # refused, not overwritten
+    chunk = next(store_dir.glob("chunk-*.npz"))
+    chunk.write_bytes(b"corrupt")
+    with pytest.raises(ModelError, match="cannot read feature store chunk"):
+        VerifierNode(parameter_overrides=_params(store_dir=str(store_dir)))
+    assert chunk.read_bytes() == b"corrupt"  # refused, not overwritten
