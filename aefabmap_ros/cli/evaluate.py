@@ -28,10 +28,11 @@ models and features are cached in --work-dir (default OUT/.cache), so a rerun is
 can be reused with --model.
 
 With --verify every method gets a second row, "<method> + GV": each query's best candidates
-(verification: candidates, default 5) are checked geometrically in order of score -- descriptor
-matches with the ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers
-(default 20) inliers -- and the first accepted one is the query's candidate (none accepted: no
-candidate). verifier_node applies the same check online to every published loop closure.
+(verification: candidates, default 5) are checked geometrically -- descriptor matches with the
+ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers (default 20)
+inliers. Of the accepted ones, the candidate with the most inliers is the query's match and it
+carries the score of the best-ranked accepted one (none accepted: no candidate). verifier_node
+does the same online for every published loop closure.
 
 Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png and OUT/scores_<method>.png (score
 matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),

@@ -16,13 +16,25 @@ corridors. An 8-point model fits a handful of random matches by chance, so the i
 compared with a floor of matches well above 8: the default, 20 inliers, is RTAB-Map's
 (``Vis/MinInliers``); on our selection data (the synthetic test town) 20 and 30 give a higher
 average precision than 15 or 10, and random matches between distant frames fit 10-13 "inliers".
+
+Re-ranking: verification decides *whether* a query closes a loop, geometry decides *where*. The
+best ``candidates`` of a query are all verified, and among the accepted ones the candidate with
+the most inliers becomes the match (spatial re-ranking, as in image retrieval: Philbin et al.,
+CVPR 2007). FAB-MAP's posterior over a stretch of similar consecutive frames piles up on one of
+them for reasons of word sampling, not viewpoint: on the rtabmap corridor the top candidate of a
+confident revisit is often 3-4 frames ahead of the closest view. The inlier count measures the
+shared scene directly. The confidence of the match stays the appearance score of the best-ranked
+accepted candidate, so re-ranking changes which place a query is matched to, not how confident
+the detection is.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -30,6 +42,8 @@ import numpy as np
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.npz_files import read_versioned_npz, write_npz_atomically
+
+CandidateT = TypeVar("CandidateT")
 
 STORE_FORMAT_VERSION = 1
 MIN_MODEL_MATCHES = 8  # the fundamental matrix needs 8 correspondences (7 with a cubic, OpenCV uses 8)
@@ -61,8 +75,9 @@ class VerificationConfig:
     )
     candidates: int = field(
         default=5,
-        metadata={"description": "Evaluation: the best this many candidates of a query are tried in order of "
-                  "score; the first accepted one is its loop candidate (>= 1)."},
+        metadata={"description": "The best this many candidates of a query are verified; of those accepted, the "
+                  "one with the most inliers is the match (re-ranking; 1 = verify only the best; online, "
+                  "fabmap_node's top_k bounds it) (>= 1)."},
     )
 
     def __post_init__(self) -> None:
@@ -183,13 +198,48 @@ def cached_pair_verifier(features: Sequence[Features], config: VerificationConfi
     return verify
 
 
-def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, min_gap: int) -> np.ndarray:
-    """Score matrix after verification: per query, its first accepted candidate keeps its score.
+@dataclass(frozen=True)
+class Reranked:
+    """Outcome of verifying a query's candidates, ranked best first."""
 
-    For query i, the eligible places j <= i - min_gap with a positive score are tried best first
-    (ties: the most recent first, as the metrics pick them), at most ``candidates`` of them; the
-    first that ``verify(i, j)`` accepts keeps ``scores[i, j]`` and every other entry of row i is 0.
-    A query whose candidates all fail has no loop candidate.
+    winner: int  # rank of the accepted candidate with the most inliers: the match
+    verification: Verification  # the winner's
+    best_accepted: int  # rank of the best-ranked accepted candidate: its score is the match's confidence
+
+
+def rerank_by_inliers(
+    candidates: Sequence[CandidateT], verify: Callable[[CandidateT], Verification], require_best: bool = False
+) -> Reranked | None:
+    """Verify ``candidates`` (ranked best first); the accepted one with the most inliers wins.
+
+    Ranks in the result index ``candidates``. Ties in inliers go to the better-ranked candidate. With
+    ``require_best`` a rejected best candidate rejects the query and nothing else is tried (the
+    online verifier: the detection is the best candidate's). None when no candidate is accepted.
+    """
+    winner: tuple[int, Verification] | None = None
+    best_accepted = -1
+    for rank, candidate in enumerate(candidates):
+        result = verify(candidate)
+        if not result.accepted:
+            if rank == 0 and require_best:
+                return None
+            continue
+        if best_accepted < 0:
+            best_accepted = rank
+        if winner is None or result.inliers > winner[1].inliers:
+            winner = (rank, result)
+    if winner is None:
+        return None
+    return Reranked(winner=winner[0], verification=winner[1], best_accepted=best_accepted)
+
+
+def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, min_gap: int) -> np.ndarray:
+    """Score matrix after verification and re-ranking: one entry per query that has an accepted candidate.
+
+    For query i, the eligible places j <= i - min_gap with a positive score are ranked best first
+    (ties: the most recent first, as the metrics pick them) and the best ``candidates`` of them are
+    verified. The accepted place with the most inliers gets the score of the best-ranked accepted
+    place; every other entry of row i is 0. A query whose candidates all fail has no loop candidate.
     """
     matrix = np.asarray(scores, dtype=np.float64)
     if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
@@ -200,13 +250,11 @@ def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, m
     for query in range(min_gap, matrix.shape[0]):
         row = matrix[query, : query - min_gap + 1]
         # Best first; among equal scores the most recent place (the metrics' tie rule).
-        order = np.lexsort((-np.arange(row.size), -row))
-        for place in order[:candidates]:
-            if not row[place] > 0.0:
-                break
-            if verify(query, int(place)).accepted:
-                out[query, place] = row[place]
-                break
+        order = np.lexsort((-np.arange(row.size), -row))[:candidates]
+        ranked = order[row[order] > 0.0]
+        outcome = rerank_by_inliers(ranked.tolist(), partial(verify, query))
+        if outcome is not None:
+            out[query, ranked[outcome.winner]] = row[ranked[outcome.best_accepted]]
     return out
 
 

@@ -1,5 +1,5 @@
 """Geometric verification: matches against a brute-force reference, two-view geometry with a known
-answer, the candidate walk of the evaluation, the bounded feature store, and the real corridor."""
+answer, the candidate re-ranking, the bounded feature store, and the real corridor."""
 
 from __future__ import annotations
 
@@ -7,16 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.verification import (
     FeatureStore,
     FeatureStoreFolder,
+    Reranked,
     Verification,
     VerificationConfig,
     count_epipolar_inliers,
     match_descriptors,
+    rerank_by_inliers,
     verified_scores,
     verify_pair,
 )
@@ -191,29 +195,67 @@ def test_config_validation(field: str, value: object, message: str) -> None:
 
 
 class FakeVerifier:
-    """Accepts exactly the listed (query, place) pairs and records what was asked."""
+    """Gives each listed (query, place) pair its inlier count (accepted at >= 20) and records the calls."""
 
-    def __init__(self, accepted: set[tuple[int, int]]) -> None:
-        self.accepted = accepted
+    def __init__(self, inliers: dict[tuple[int, int], int] | set[tuple[int, int]]) -> None:
+        self.inliers = inliers if isinstance(inliers, dict) else dict.fromkeys(inliers, 40)
         self.calls: list[tuple[int, int]] = []
 
     def __call__(self, query: int, place: int) -> Verification:
         self.calls.append((query, place))
-        ok = (query, place) in self.accepted
-        return Verification(matches=50, inliers=40 if ok else 3, accepted=ok)
+        inliers = self.inliers.get((query, place), 3)
+        return Verification(matches=50, inliers=inliers, accepted=inliers >= 20)
 
 
-def test_first_accepted_candidate_keeps_its_score_the_rest_of_the_row_is_zero() -> None:
+def test_the_accepted_candidate_with_most_inliers_gets_the_best_accepted_score() -> None:
     scores = np.zeros((6, 6))
     scores[5, :4] = [0.1, 0.6, 0.3, 0.0]
     scores[4, :3] = [0.5, 0.4, 0.05]
-    verify = FakeVerifier({(5, 2), (4, 0)})
+    verify = FakeVerifier({(5, 2): 25, (5, 0): 60, (4, 0): 30, (4, 2): 25})
     out = verified_scores(scores, verify, candidates=5, min_gap=2)
     expected = np.zeros((6, 6))
-    expected[5, 2] = 0.3
-    expected[4, 0] = 0.5
+    expected[5, 0] = 0.3  # place 0 has the most inliers; 0.3 is the best accepted place's (2) score
+    expected[4, 0] = 0.5  # the best candidate is also the best verified one
     np.testing.assert_array_equal(out, expected)
-    assert verify.calls == [(4, 0), (5, 1), (5, 2)]  # best first, stop at the first accepted
+    # Every positive candidate among the best 5 is verified, best first; zero scores never are.
+    assert verify.calls == [(4, 0), (4, 1), (4, 2), (5, 1), (5, 2), (5, 0)]
+
+
+def test_rerank_ties_go_to_the_better_ranked_and_require_best_stops_at_a_rejected_best() -> None:
+    results = {"a": Verification(50, 30, True), "b": Verification(50, 30, True), "c": Verification(50, 5, False)}
+    calls: list[str] = []
+
+    def verify(name: str) -> Verification:
+        calls.append(name)
+        return results[name]
+
+    outcome = rerank_by_inliers(["c", "a", "b"], verify)
+    assert outcome == Reranked(winner=1, verification=results["a"], best_accepted=1)
+    assert calls == ["c", "a", "b"]
+    calls.clear()
+    assert rerank_by_inliers(["c", "a", "b"], verify, require_best=True) is None and calls == ["c"]
+    assert rerank_by_inliers(["c"], verify) is None and rerank_by_inliers([], verify) is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 6), st.integers(1, 4))
+def test_verified_scores_equal_a_brute_force_reranking(seed: int, candidates: int, min_gap: int) -> None:
+    """Reference: sort each row's eligible places in plain Python (score, then recency), verify the
+    best K with a positive score, keep the accepted one with most inliers (first on ties)."""
+    rng = np.random.default_rng(seed)
+    size = 9
+    scores = np.round(rng.random((size, size)), 1) * (rng.random((size, size)) < 0.7)  # ties and zeros
+    inliers = {(q, p): int(rng.integers(0, 60)) for q in range(size) for p in range(size)}
+    out = verified_scores(scores, FakeVerifier(inliers), candidates, min_gap)
+    expected = np.zeros((size, size))
+    for query in range(min_gap, size):
+        eligible = sorted(range(query - min_gap + 1), key=lambda p: (-scores[query, p], -p))
+        tried = [p for p in eligible[:candidates] if scores[query, p] > 0]
+        accepted = [p for p in tried if inliers[query, p] >= 20]
+        if accepted:
+            best = max(accepted, key=lambda p: (inliers[query, p], -tried.index(p)))
+            expected[query, best] = scores[query, accepted[0]]
+    np.testing.assert_array_equal(out, expected)
 
 
 def test_only_the_best_candidates_are_tried_and_never_ineligible_or_zero_ones() -> None:
