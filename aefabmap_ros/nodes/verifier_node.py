@@ -7,7 +7,12 @@ fundamental matrix (``min_inliers``); otherwise it is counted and logged as reje
 backend that cannot afford a false loop subscribes to ``verified_loop_closures`` instead of
 ``loop_closures``.
 
-A closure can arrive before its query's features (separate topics): it waits, up to
+Re-ranking (``candidates`` > 1, see core/verification.py): once the matched place is accepted, the
+query's other top candidates from its ``place_posteriors`` message are verified too, and the
+closure is republished to the accepted one with the most inliers -- the view that shares the most
+scene with the query. ``probability`` and ``log_likelihood`` stay those of the detection.
+
+A closure can arrive before its query's features or posterior (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
 (``max_stored_frames``) cannot be verified and is dropped. With ``store_dir`` the store is saved
 to that folder (every ``save_period_s`` the frames added since the last save, as one more chunk
@@ -19,14 +24,21 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-from aefabmap_msgs.msg import Features, LoopClosure
+from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from rclpy.node import Node
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.core.features import Features as CoreFeatures
 from aefabmap_ros.core.stamps import stamp_to_ns
-from aefabmap_ros.core.verification import FeatureStore, FeatureStoreFolder, VerificationConfig, verify_pair
+from aefabmap_ros.core.verification import (
+    FeatureStore,
+    FeatureStoreFolder,
+    VerificationConfig,
+    rerank_by_inliers,
+    verify_pair,
+)
 from aefabmap_ros.io.messages import message_to_features
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
@@ -38,6 +50,18 @@ from aefabmap_ros.nodes.common import (
     pipeline_qos,
     run_node,
 )
+
+# Posteriors kept by query stamp: a closure is published right after its query's posterior, so
+# only the last few are ever looked up; the rest bounds memory when no closures come.
+POSTERIOR_HISTORY = 1000
+
+
+class Candidate(NamedTuple):
+    """A place to verify the query against."""
+
+    place_id: int
+    stamp: Any  # builtin_interfaces/Time, as republished in matched_stamp
+    features: CoreFeatures
 
 
 class VerifierNode(Node):
@@ -53,7 +77,7 @@ class VerifierNode(Node):
             "Strongest keypoints kept per frame (0 = all); ~128 KiB per frame of 500 SIFT features.",
         )
         self.max_pending = declare_parameter(
-            self, "max_pending", 100, "Loop closures waiting for their query's features at most."
+            self, "max_pending", 100, "Loop closures waiting for their query's features (and posterior) at most."
         )
         store_dir = declare_parameter(
             self, "store_dir", "", "Folder the feature store is saved to and reloaded from ('' = memory only)."
@@ -74,17 +98,21 @@ class VerifierNode(Node):
                 self.get_logger().info(
                     f"reloaded the features of {len(self.store)} frames from {self.store_folder.folder}")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
+        self.rerank = self.config.candidates > 1
+        self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "verified_loop_closures", RESULT_QOS)
         self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        if self.rerank:
+            self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
         self.store_saver = PeriodicSave(
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
             "the feature store", save_period_s,
         )
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers, "
-            f"features of the last {max_frames} frames"
+            f"re-ranking the best {self.config.candidates} candidates, features of the last {max_frames} frames"
         )
 
     def _on_features(self, message: Features) -> None:
@@ -95,44 +123,86 @@ class VerifierNode(Node):
             self.counter.drop("bad_features", str(exc))
             return
         self.store_saver.mark_changed()
-        waiting = self.pending.pop(stamp_ns, None)
-        if waiting is not None:
-            self._verify(waiting)
+        self._verify_if_ready(stamp_ns)
+
+    def _on_posterior(self, message: PlacePosterior) -> None:
+        stamp_ns = stamp_to_ns(message.header.stamp)
+        self.posteriors[stamp_ns] = message
+        self.posteriors.move_to_end(stamp_ns)
+        while len(self.posteriors) > POSTERIOR_HISTORY:
+            self.posteriors.popitem(last=False)
+        self._verify_if_ready(stamp_ns)
 
     def _on_loop_closure(self, message: LoopClosure) -> None:
         query_ns = stamp_to_ns(message.header.stamp)
-        if query_ns not in self.store:
-            self.pending[query_ns] = message
-            while len(self.pending) > self.max_pending:
-                _, oldest = self.pending.popitem(last=False)
+        self.pending[query_ns] = message
+        self.pending.move_to_end(query_ns)
+        while len(self.pending) > self.max_pending:
+            oldest_ns, oldest = self.pending.popitem(last=False)
+            if oldest_ns not in self.store:
                 self.counter.drop("query_features_never_came",
                                   f"no features stamped like the closure of query {oldest.query_id}")
-            return
-        self._verify(message)
+            else:
+                self.counter.drop("query_posterior_never_came",
+                                  f"no place_posteriors message for query {oldest.query_id} "
+                                  "(candidates: 1 verifies without them)")
+        self._verify_if_ready(query_ns)
 
-    def _verify(self, message: LoopClosure) -> None:
+    def _verify_if_ready(self, query_ns: int) -> None:
+        """Verify the closure of this query once its features (and posterior, to re-rank) are in."""
+        if query_ns not in self.pending or query_ns not in self.store:
+            return
+        if self.rerank and query_ns not in self.posteriors:
+            return
+        self._verify(self.pending.pop(query_ns), self.posteriors.get(query_ns))
+
+    def _candidates(self, message: LoopClosure, posterior: PlacePosterior | None) -> list[Candidate] | None:
+        """The matched place first, then the posterior's next best with stored features; None: place unknown."""
+        matched = self.store.get(stamp_to_ns(message.matched_stamp))
+        if matched is None:
+            return None
+        candidates = [Candidate(int(message.matched_place_id), message.matched_stamp, matched)]
+        if posterior is not None:
+            for place_id, stamp in zip(posterior.place_ids, posterior.place_stamps, strict=False):
+                if len(candidates) >= self.config.candidates:
+                    break
+                features = self.store.get(stamp_to_ns(stamp))
+                if int(place_id) != candidates[0].place_id and features is not None:
+                    candidates.append(Candidate(int(place_id), stamp, features))
+        return candidates
+
+    def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
         query = self.store.get(stamp_to_ns(message.header.stamp))
-        place = self.store.get(stamp_to_ns(message.matched_stamp))
-        if query is None or place is None:
+        candidates = self._candidates(message, posterior)
+        if query is None or candidates is None:
             self.counter.drop("place_features_unknown",
                               f"no stored features of place {message.matched_place_id} (before this node started, "
                               "or older than max_stored_frames)")
             return
         try:
-            result = verify_pair(query, place, self.config)
+            outcome = rerank_by_inliers(
+                candidates, lambda candidate: verify_pair(query, candidate.features, self.config), require_best=True
+            )
         except AefabmapError as exc:
             self.counter.drop("unverifiable", str(exc))
             return
-        outcome = "accepted" if result.accepted else "rejected"
-        self.counter.ok(outcome)
-        text = (f"loop closure query {message.query_id} -> place {message.matched_place_id} {outcome}: "
-                f"{result.inliers} inliers of {result.matches} matches")
-        if result.accepted:
-            self.get_logger().info(text)
-            message.inliers = result.inliers
-            self.publisher.publish(message)
-        else:  # a stream of aliased candidates must not flood the log
-            self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
+        text = f"loop closure query {message.query_id} -> place {message.matched_place_id}"
+        if outcome is None:
+            self.counter.ok("rejected")
+            # A stream of aliased candidates must not flood the log.
+            self.get_logger().info(f"{text} rejected: too few inliers", throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        self.counter.ok("accepted")
+        winner = candidates[outcome.winner]
+        if outcome.winner > 0:
+            self.counter.ok("moved_to_better_verified_place")
+            text += f" moved to place {winner.place_id} (candidate {outcome.winner + 1})"
+            message.matched_place_id = winner.place_id
+            message.matched_stamp = winner.stamp
+        self.get_logger().info(f"{text} accepted: {outcome.verification.inliers} inliers of "
+                               f"{outcome.verification.matches} matches")
+        message.inliers = outcome.verification.inliers
+        self.publisher.publish(message)
 
     def _save_store(self, _folder: Path) -> None:
         if self.store_folder is not None:

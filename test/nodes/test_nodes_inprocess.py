@@ -211,7 +211,7 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
 
     query, place, _ = _two_views(seed=21)
     _, unrelated, _ = _two_views(seed=22)
-    node = VerifierNode(parameter_overrides=_params(max_pending=1))
+    node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1))  # no re-ranking: no posteriors
     try:
         verified = Captured(node.publisher)
         for sec, features in ((1, place), (2, unrelated), (3, query)):
@@ -234,6 +234,53 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
         assert counts["dropped_bad_features"] == 1
         assert len(node.store) == 4 and not node.pending
         node.close()
+    finally:
+        node.destroy_node()
+
+
+def _posterior(query_sec: int, place_secs: list[int]) -> Any:
+    posterior = msg.PlacePosterior(place_ids=place_secs, probabilities=[0.9 / 2**k for k in range(len(place_secs))])
+    posterior.header.stamp = Time(sec=query_sec)
+    posterior.place_stamps = [Time(sec=sec) for sec in place_secs]
+    return posterior
+
+
+def _weaker_view(features: Any, shared: int, keep: int) -> Any:
+    """The same view with only ``keep`` of its ``shared`` scene points (its clutter kept): less overlap."""
+    from aefabmap_ros.core.features import Features as CoreFeatures
+
+    rows = np.r_[0:keep, shared:len(features)]
+    return CoreFeatures(features.keypoints[rows], features.descriptors[rows], features.descriptor_type)
+
+
+def test_verifier_node_moves_a_closure_to_the_best_verified_candidate() -> None:
+    from test.core.test_verification import _two_views
+
+    query, place, shared = _two_views(seed=24)
+    _, unrelated, _ = _two_views(seed=25)
+    node = VerifierNode(parameter_overrides=_params(max_pending=2))  # candidates: 5, re-ranking
+    try:
+        verified = Captured(node.publisher)
+        for sec, features in ((1, _weaker_view(place, shared, 35)), (2, unrelated), (3, place), (4, query)):
+            node._on_features(_features_message(features, sec))
+        # FAB-MAP matched place 1 (a view sharing 35 points); the posterior also ranks 2 and 3.
+        node._on_loop_closure(_closure(4, 1, query_id=40))
+        assert not verified.messages and len(node.pending) == 1  # waits for the query's posterior
+        node._on_posterior(_posterior(4, [1, 2, 3]))
+        (moved,) = verified.messages
+        assert (moved.query_id, moved.matched_place_id, moved.matched_stamp.sec) == (40, 3, 3)
+        assert moved.inliers >= 100 and moved.probability == 0.995  # the detection's confidence is kept
+        # A rejected matched place rejects the closure, even when a lower candidate would pass.
+        node._on_posterior(_posterior(4, [2, 3]))
+        node._on_loop_closure(_closure(4, 2, query_id=41))
+        # Posteriors that never come: the closure is dropped once max_pending newer ones wait.
+        for query_sec in (5, 6, 7):
+            node._on_features(_features_message(query, query_sec))
+            node._on_loop_closure(_closure(query_sec, 3, query_id=50 + query_sec))
+        assert len(verified.messages) == 1
+        counts = node.counter.counts
+        assert counts["accepted"] == 1 and counts["moved_to_better_verified_place"] == 1 and counts["rejected"] == 1
+        assert counts["dropped_query_posterior_never_came"] == 1 and len(node.pending) == 2
     finally:
         node.destroy_node()
 
@@ -262,6 +309,7 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
         verified = Captured(second.publisher)
         assert 1_000_000_000 in second.store
         second._on_features(_features_message(query, 2))
+        second._on_posterior(_posterior(2, [1]))
         second._on_loop_closure(_closure(2, 1, query_id=30))  # its place was seen before the restart
         assert [m.query_id for m in verified.messages] == [30]
     finally:
