@@ -18,14 +18,14 @@ compared with a floor of matches well above 8: the default, 20 inliers, is RTAB-
 average precision than 15 or 10, and random matches between distant frames fit 10-13 "inliers".
 
 Re-ranking: verification decides *whether* a query closes a loop, geometry decides *where*. The
-best ``candidates`` of a query are all verified, and among the accepted ones the candidate with
-the most inliers becomes the match (spatial re-ranking, as in image retrieval: Philbin et al.,
-CVPR 2007). FAB-MAP's posterior over a stretch of similar consecutive frames piles up on one of
-them for reasons of word sampling, not viewpoint: on the rtabmap corridor the top candidate of a
-confident revisit is often 3-4 frames ahead of the closest view. The inlier count measures the
-shared scene directly. The confidence of the match stays the appearance score of the best-ranked
-accepted candidate, so re-ranking changes which place a query is matched to, not how confident
-the detection is.
+best ``candidates`` of a query are all verified, and among the accepted ones the candidate with the
+most inliers becomes the match (spatial re-ranking, as in image retrieval: Philbin et al., CVPR
+2007). FAB-MAP's posterior over a stretch of similar consecutive frames piles up on one of them for
+reasons of word sampling, not viewpoint: on the rtabmap corridor the confident top candidates of
+queries 60 and 68 are 4 and 3 frames ahead of the view with the most inliers, just outside the
+labelled revisit. The inlier count measures the shared scene directly. The confidence of the match
+stays the appearance score of the best-ranked accepted candidate, so re-ranking changes which place
+a query is matched to, not how confident the detection is.
 """
 
 from __future__ import annotations
