@@ -190,7 +190,8 @@ class VerifierNode(Node):
         if outcome is None:
             self.counter.ok("rejected")
             # A stream of aliased candidates must not flood the log.
-            self.get_logger().info(f"{text} rejected: too few inliers", throttle_duration_sec=LOG_THROTTLE_S)
+            self.get_logger().info(f"{text} rejected: fewer than {self.config.min_inliers} inliers",
+                                   throttle_duration_sec=LOG_THROTTLE_S)
             return
         self.counter.ok("accepted")
         winner = candidates[outcome.winner]
