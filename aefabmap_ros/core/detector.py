@@ -35,13 +35,14 @@ The map (places' words, stamps, frames, counters, last posterior) is saved atomi
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.consistency import TemporalConsistency
 from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import (
     FabMapConfig,
@@ -80,12 +81,20 @@ class Recognition:
     is_new_place: bool  # no known place exceeded the match threshold
     new_place_probability: float
     candidates: tuple[Candidate, ...]  # top-K places by posterior, best first
-    loop_closure: Candidate | None  # the matched place, if any
+    loop_closure: Candidate | None  # the match, once it is temporally consistent (see consistency_matches)
     added_place_id: int = -1  # place created from this frame, -1 if none (policy / keyframing)
     new_place_log_likelihood: float = 0.0
     # False: fewer than ``min_words`` words; nothing was decided (no candidates, no place, and
     # ``new_place_probability`` is nan).
     informative: bool = True
+    match: Candidate | None = None  # best place above match_threshold, consistent or not
+    # The place of the map this frame belongs to: the one it created, else the current (last added)
+    # place it joined because the scene had not changed; -1 while the map is empty.
+    current_place_id: int = -1
+    # Every hypothesis of the posterior: (H,) place ids (increasing) and their probabilities (arrays:
+    # left out of ==, which compares the decision).
+    hypothesis_place_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), compare=False)
+    hypothesis_probabilities: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
 
 
 def jaccard(a: np.ndarray, b: np.ndarray) -> float:
@@ -129,6 +138,7 @@ class PlaceRecognizer:
         self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
+        self._consistency = TemporalConsistency(self.config.consistency_matches, self.config.island_seconds)
 
     # -- read-only views ----------------------------------------------------------------------
 
@@ -178,11 +188,11 @@ class PlaceRecognizer:
             return Recognition(
                 query_id=query_id, stamp_ns=stamp_ns, assigned_place_id=-1, is_new_place=False,
                 new_place_probability=float("nan"), candidates=(), loop_closure=None,
-                new_place_log_likelihood=float("nan"), informative=False,
+                new_place_log_likelihood=float("nan"), informative=False, current_place_id=self.num_places - 1,
             )
 
         new_ll, place_ll = self._engine.log_likelihoods(words, exclude_sample)
-        included = np.flatnonzero(self._included(query_id, stamp_ns))
+        included = np.flatnonzero(self._included(query_id, stamp_ns, words))
         hypotheses = np.concatenate([[new_ll], place_ll[included]])
         log_prior = None
         if self.config.motion_model:
@@ -208,39 +218,47 @@ class PlaceRecognizer:
             )
             for k in order[: self.config.top_k]
         )
-        loop_closure = None
+        match = None
         if order.size and place_p[order[0]] > self.config.match_threshold:
             best = int(order[0])
-            loop_closure = Candidate(
+            match = Candidate(
                 place_id=int(included[best]),
                 stamp_ns=int(self._place_stamps_ns.view()[included[best]]),
                 probability=float(place_p[best]),
                 log_likelihood=float(place_ll[included[best]]),
             )
+        consistent = self._consistency.observe(None if match is None else match.stamp_ns)
+        loop_closure = match if consistent else None
 
         added = -1
-        wants_place = self.config.add_policy == "all" or loop_closure is None
-        if wants_place and self._is_keyframe(words, query_id):
+        wants_place = self.config.add_policy == "all" or match is None
+        if wants_place and self._is_keyframe(words, query_id, stamp_ns):
             added = self._engine.add(words)
             self._place_stamps_ns.extend(np.array([stamp_ns], dtype=np.int64))
             self._place_frames.extend(np.array([query_id], dtype=np.int64))
-        assigned = loop_closure.place_id if loop_closure is not None else added
+        assigned = match.place_id if match is not None else added
         return Recognition(
             query_id=query_id,
             stamp_ns=stamp_ns,
             assigned_place_id=assigned,
-            is_new_place=loop_closure is None,
+            is_new_place=match is None,
             new_place_probability=float(p[0]),
             candidates=candidates,
             loop_closure=loop_closure,
             added_place_id=added,
             new_place_log_likelihood=float(new_ll),
+            match=match,
+            current_place_id=self.num_places - 1,
+            hypothesis_place_ids=included,
+            hypothesis_probabilities=place_p,
         )
 
-    def _included(self, query_id: int, stamp_ns: int) -> np.ndarray:
+    def _included(self, query_id: int, stamp_ns: int, words: np.ndarray) -> np.ndarray:
         """(P,) bool: places that are hypotheses for this query (not too recent)."""
         frames = self._place_frames.view()
         keep = np.ones(frames.size, dtype=bool)
+        if self.config.exclude_linked_overlap > 0.0:
+            keep[self._linked_places(words) :] = False
         if self.config.exclude_recent_frames > 0:
             keep &= query_id - frames > self.config.exclude_recent_frames
         if self.config.exclude_recent_seconds > 0.0:
@@ -249,13 +267,23 @@ class PlaceRecognizer:
             keep &= (stamp_ns - stamps) >= window_ns
         return keep
 
-    def _is_keyframe(self, words: np.ndarray, query_id: int) -> bool:
+    def _linked_places(self, words: np.ndarray) -> int:
+        """First place of the newest run of places that each overlap the query by >= exclude_linked_overlap."""
+        first, places = self.num_places, self._engine.places
+        while first > 0 and jaccard(words, places.place_words(first - 1)) >= self.config.exclude_linked_overlap:
+            first -= 1
+        return first
+
+    def _is_keyframe(self, words: np.ndarray, query_id: int, stamp_ns: int) -> bool:
         if len(self._place_frames) == 0:
             return True
         since = query_id - int(self._place_frames.view()[-1])
         if since < self.config.keyframe_min_frames:
             return False
         if self.config.keyframe_max_frames > 0 and since >= self.config.keyframe_max_frames:
+            return True
+        seconds = (stamp_ns - int(self._place_stamps_ns.view()[-1])) / 1e9
+        if self.config.keyframe_max_seconds > 0.0 and seconds >= self.config.keyframe_max_seconds:
             return True
         return jaccard(words, self._engine.places.place_words(self.num_places - 1)) <= self.config.keyframe_max_overlap
 

@@ -113,6 +113,14 @@ class FabMapConfig:
             "hypotheses of the posterior (0 = off)."
         },
     )
+    exclude_linked_overlap: float = field(
+        default=0.0,
+        metadata={
+            "description": "Walking back from the newest place, places whose Jaccard word overlap with the "
+            "query is at least this are not hypotheses, up to the first that overlaps less: the stretch "
+            "the camera is still in (a corridor seen moving along it) is no loop (0 = off)."
+        },
+    )
     keyframe_min_frames: int = field(
         default=1,
         metadata={
@@ -132,6 +140,28 @@ class FabMapConfig:
         metadata={
             "description": "Force a place once this many frames passed since the last added place, "
             "whatever the overlap (0 = never force)."
+        },
+    )
+    keyframe_max_seconds: float = field(
+        default=0.0,
+        metadata={
+            "description": "Force a place once this many seconds passed since the last added place, "
+            "whatever the overlap (0 = never force): a long stay still becomes several places."
+        },
+    )
+    consistency_matches: int = field(
+        default=1,
+        metadata={
+            "description": "Temporal consistency: a match is a loop closure only when this many consecutive "
+            "informative frames (this one included) matched places within island_seconds of each other "
+            "(1 = every match)."
+        },
+    )
+    island_seconds: float = field(
+        default=2.0,
+        metadata={
+            "description": "Temporal consistency: largest gap in map time (stamps of the matched places) "
+            "between the matches of two consecutive frames."
         },
     )
     top_k: int = field(
@@ -175,12 +205,20 @@ class FabMapConfig:
             raise bad("exclude_recent_frames", ">= 0")
         if not (np.isfinite(self.exclude_recent_seconds) and self.exclude_recent_seconds >= 0.0):
             raise bad("exclude_recent_seconds", "finite and >= 0")
+        if not 0.0 <= self.exclude_linked_overlap <= 1.0:
+            raise bad("exclude_linked_overlap", "in [0, 1]")
         if self.keyframe_min_frames < 1:
             raise bad("keyframe_min_frames", ">= 1")
         if not 0.0 <= self.keyframe_max_overlap <= 1.0:
             raise bad("keyframe_max_overlap", "in [0, 1]")
         if self.keyframe_max_frames < 0:
             raise bad("keyframe_max_frames", ">= 0")
+        if not (np.isfinite(self.keyframe_max_seconds) and self.keyframe_max_seconds >= 0.0):
+            raise bad("keyframe_max_seconds", "finite and >= 0")
+        if self.consistency_matches < 1:
+            raise bad("consistency_matches", ">= 1")
+        if not (np.isfinite(self.island_seconds) and self.island_seconds >= 0.0):
+            raise bad("island_seconds", "finite and >= 0")
         if self.top_k < 0:
             raise bad("top_k", ">= 0")
         if self.min_words < 0:

@@ -230,3 +230,42 @@ def test_bulk_added_places_equal_processed_ones():
         bulk.add_places(sp.csr_matrix((2, V + 1)), np.arange(2))
     with pytest.raises(DataError, match="stamps_ns"):
         bulk.add_places(sp.csr_matrix((2, V)), np.arange(3))
+
+
+def _place_recognizer(**overrides) -> PlaceRecognizer:
+    return PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(**overrides), "v")
+
+
+def test_consistency_holds_back_a_single_match():
+    """A revisit of places 0..2 by frames 4..6: with consistency_matches 2 the first match is no closure."""
+    frames = [np.arange(0, 10), np.arange(10, 20), np.arange(20, 30), np.arange(30, 40)]
+    for required, closures in ((1, [True, True, True]), (2, [False, True, True]), (4, [False, False, False])):
+        recognizer = _place_recognizer(consistency_matches=required, island_seconds=1.5, match_threshold=0.5)
+        for i, words in enumerate(frames):
+            recognizer.process(words, i * 10**9)
+        results = [recognizer.process(frames[k], (4 + k) * 10**9) for k in range(3)]
+        assert [r.match.place_id for r in results] == [0, 1, 2]  # every frame matches ...
+        assert [r.loop_closure is not None for r in results] == closures  # ... but only consistent ones close
+
+
+def test_linked_overlap_excludes_the_stretch_still_in_view():
+    """Frames that share words with the query back to the last break are no hypotheses, older ones are."""
+    view = np.arange(0, 10)
+    frames = [view, np.arange(10, 20), view[:8], np.r_[view[:6], 30, 31], np.r_[view[:7], 32]]
+    recognizer = _place_recognizer(exclude_linked_overlap=0.3)
+    for i, words in enumerate(frames):
+        recognizer.process(words, i)
+    query = recognizer.process(view, 5)
+    # Places 2..4 overlap the query by >= 0.3 (0.8, 0.5, 0.64) up to place 1 (overlap 0): excluded.
+    # Place 0 lies beyond that break: it is a hypothesis although it overlaps fully.
+    np.testing.assert_array_equal(query.hypothesis_place_ids, [0, 1])
+    assert query.candidates[0].place_id == 0
+    assert query.hypothesis_probabilities.shape == (2,)
+
+
+def test_keyframe_max_seconds_splits_a_long_stay_and_maps_frames_to_places():
+    recognizer = _place_recognizer(keyframe_max_overlap=0.5, keyframe_max_seconds=2.0)
+    still = np.arange(10)
+    results = [recognizer.process(still, int(t * 10**9)) for t in (0.0, 0.5, 1.0, 1.9, 2.0, 2.5, 4.1)]
+    assert [r.added_place_id for r in results] == [0, -1, -1, -1, 1, -1, 2]
+    assert [r.current_place_id for r in results] == [0, 0, 0, 0, 1, 1, 2]
