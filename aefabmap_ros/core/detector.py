@@ -200,7 +200,7 @@ class PlaceRecognizer:
                 self._previous_posterior, self.num_places, self.config.p_new, self.config.motion_bias
             )
             log_prior = full_prior[np.concatenate([[0], included + 1])]
-        p = posterior(hypotheses, log_prior, self.config.smoothing)
+        p = posterior(hypotheses / self.config.likelihood_temperature, log_prior, self.config.smoothing)
         previous = np.zeros(self.num_places + 1)
         previous[0] = p[0]
         previous[included + 1] = p[1:]

@@ -156,7 +156,10 @@ def fabmap_evaluation_config(base: FabMapConfig, exclude_recent_frames: int) -> 
         keyframe_min_frames=1,
         keyframe_max_overlap=1.0,
         keyframe_max_frames=0,
-        top_k=2**31 - 1,
+        keyframe_max_seconds=0.0,
+        exclude_linked_overlap=0.0,
+        consistency_matches=1,  # the score matrix holds every frame's posterior; consistency is the online chain's
+        top_k=1,  # the scores come from the full hypothesis arrays, not from the reported candidates
     )
 
 
@@ -191,16 +194,17 @@ def fabmap_posterior_matrix(
                                  "evaluation")
     scores = np.zeros((num_frames, num_frames))
     new_place = np.zeros(num_frames)
+    place_frames = np.zeros(num_frames, dtype=np.int64)  # place id -> frame (uninformative frames are no place)
     for i in range(num_frames):
         words = matrix.indices[matrix.indptr[i] : matrix.indptr[i + 1]].astype(np.int64)
         exclude = None if exclude_samples is None or exclude_samples[i] < 0 else int(exclude_samples[i])
-        # The frame index is the stamp: a candidate's stamp is its frame (uninformative frames
-        # become no place, so place ids and frames differ after the first of them).
         recognition = recognizer.process(words, i, exclude_sample=exclude)
         new_place[i] = recognition.new_place_probability
-        if recognition.candidates:
-            frames = np.fromiter((c.stamp_ns for c in recognition.candidates), np.int64)
-            scores[i, frames] = np.fromiter((c.probability for c in recognition.candidates), np.float64)
+        # Every hypothesis, as arrays: one Python object per place and query would make a 5,000-frame
+        # sequence take minutes.
+        scores[i, place_frames[recognition.hypothesis_place_ids]] = recognition.hypothesis_probabilities
+        if recognition.added_place_id >= 0:
+            place_frames[recognition.added_place_id] = i
         if on_frame is not None:
             on_frame(i)
     return scores, new_place

@@ -84,6 +84,14 @@ class FabMapConfig:
         default=0.5,
         metadata={"description": "Motion model: forward bias in [0, 1]; 0.5 spreads evenly [mBias]."},
     )
+    likelihood_temperature: float = field(
+        default=1.0,
+        metadata={
+            "description": "Log-likelihoods are divided by this before the posterior (1 = FAB-MAP as published). "
+            "FAB-MAP's independence assumptions make its likelihood ratios overconfident; a temperature "
+            "> 1 calibrates the posterior (temperature scaling)."
+        },
+    )
     smoothing: float = field(
         default=0.99,
         metadata={"description": "Posterior smoothing s in (0, 1]: p <- s p + (1 - s) / n [sFactor]."},
@@ -195,6 +203,8 @@ class FabMapConfig:
             raise bad("p_new", "in (0, 1)")
         if not 0.0 <= self.motion_bias <= 1.0:
             raise bad("motion_bias", "in [0, 1]")
+        if not (np.isfinite(self.likelihood_temperature) and self.likelihood_temperature > 0.0):
+            raise bad("likelihood_temperature", "finite and > 0")
         if not 0.0 < self.smoothing <= 1.0:
             raise bad("smoothing", "in (0, 1]")
         if not 0.0 <= self.match_threshold <= 1.0:
@@ -974,7 +984,7 @@ def fabmap_score_matrices(
         log_prior = (
             motion_log_prior(previous, i, config.p_new, config.motion_bias) if config.motion_model else None
         )
-        p = posterior(hypotheses, log_prior, config.smoothing)
+        p = posterior(hypotheses / config.likelihood_temperature, log_prior, config.smoothing)
         previous = p
         probabilities[i, :i] = p[1:]
         probabilities[i, i] = p[0]

@@ -269,3 +269,20 @@ def test_keyframe_max_seconds_splits_a_long_stay_and_maps_frames_to_places():
     results = [recognizer.process(still, int(t * 10**9)) for t in (0.0, 0.5, 1.0, 1.9, 2.0, 2.5, 4.1)]
     assert [r.added_place_id for r in results] == [0, -1, -1, -1, 1, -1, 2]
     assert [r.current_place_id for r in results] == [0, 0, 0, 0, 1, 1, 2]
+
+
+def test_likelihood_temperature_is_a_softmax_of_scaled_log_likelihoods():
+    """Closed form: p = s * softmax([new_ll, place_ll] / T) + (1 - s) / n, from the reported log-likelihoods."""
+    frames = _frames(8)
+    recognizer = _place_recognizer(likelihood_temperature=3.0, top_k=100)
+    for i, words in enumerate(frames[:-1]):
+        recognizer.process(words, i)
+    result = recognizer.process(frames[2], 7)
+    lls = np.r_[result.new_place_log_likelihood, [c.log_likelihood for c in result.candidates]]
+    expected = np.exp((lls - lls.max()) / 3.0)
+    expected = 0.99 * expected / expected.sum() + 0.01 / lls.size
+    actual = np.r_[result.new_place_probability, [c.probability for c in result.candidates]]
+    np.testing.assert_allclose(actual, expected, rtol=1e-12)
+    assert result.candidates[0].place_id == 2
+    with pytest.raises(ConfigError, match="likelihood_temperature = 0.0"):
+        FabMapConfig(likelihood_temperature=0.0)

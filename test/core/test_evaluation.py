@@ -139,9 +139,12 @@ def test_leave_one_out_with_a_subsample_of_frames():
 def test_evaluation_config_fixes_what_the_protocol_needs():
     config = fabmap_evaluation_config(
         FabMapConfig(add_policy="new_only", keyframe_min_frames=3, exclude_recent_seconds=2.0, top_k=5,
-                     p_z_given_e=0.3), 4)
+                     p_z_given_e=0.3, keyframe_max_seconds=1.0, exclude_linked_overlap=0.2, consistency_matches=3,
+                     likelihood_temperature=3.0), 4)
     assert (config.add_policy, config.keyframe_min_frames, config.exclude_recent_seconds) == ("all", 1, 0.0)
-    assert config.exclude_recent_frames == 4 and config.top_k > 10**9 and config.p_z_given_e == 0.3
+    assert (config.keyframe_max_seconds, config.exclude_linked_overlap, config.consistency_matches) == (0.0, 0.0, 1)
+    assert config.exclude_recent_frames == 4 and config.p_z_given_e == 0.3
+    assert config.likelihood_temperature == 3.0  # the posterior is the node's, only the protocol's policies change
     with pytest.raises(ConfigError, match="exclude_recent_frames=-1"):
         fabmap_evaluation_config(FabMapConfig(), -1)
 
