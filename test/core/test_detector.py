@@ -284,5 +284,5 @@ def test_likelihood_temperature_is_a_softmax_of_scaled_log_likelihoods():
     actual = np.r_[result.new_place_probability, [c.probability for c in result.candidates]]
     np.testing.assert_allclose(actual, expected, rtol=1e-12)
     assert result.candidates[0].place_id == 2
-    with pytest.raises(ConfigError, match="likelihood_temperature = 0.0"):
+    with pytest.raises(ConfigError, match=r"likelihood_temperature = 0\.0"):
         FabMapConfig(likelihood_temperature=0.0)
