@@ -1,0 +1,109 @@
+"""The nodes' decision chain, run offline on a sequence: what a backend would receive on /loop_closures.
+
+fabmap_node runs :class:`~aefabmap_ros.core.detector.PlaceRecognizer` on every frame with the
+node's own config (places from dense video, recent places excluded by time, the calibrated
+posterior, temporal consistency) and publishes each consistent match as a candidate; verifier_node
+verifies the candidate's matched place and, once accepted, re-ranks the query's top candidates by
+inliers (``rerank_by_inliers(..., require_best=True)``). This module does exactly that on recorded
+features and words, with the sequence's own stamps, so the online figures (closures published,
+false ones, revisits closed) can be measured and tuned in seconds instead of a replay through ROS.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.detector import Candidate, PlaceRecognizer
+from aefabmap_ros.core.errors import DataError
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.features import Features
+from aefabmap_ros.core.verification import VerificationConfig, rerank_by_inliers, verify_pair
+
+
+@dataclass(frozen=True)
+class ChainClosure:
+    """One loop closure of the chain, in frame indices of the sequence."""
+
+    query_frame: int
+    matched_frame: int  # the frame the matched place was created from
+    probability: float  # FAB-MAP posterior of the detection (kept when verification re-ranks)
+    inliers: int = -1  # geometric verification's inliers; -1 = not verified
+
+
+@dataclass
+class ChainResult:
+    candidates: list[ChainClosure]  # what fabmap_node publishes (loop_closure_candidates)
+    published: list[ChainClosure]  # what reaches /loop_closures (verified, or the candidates without verification)
+    num_places: int
+
+
+def run_online_chain(
+    observations: sp.csr_matrix,
+    stamps_ns: np.ndarray,
+    tree: ChowLiuTree,
+    new_place_samples: sp.csr_matrix | None,
+    config: FabMapConfig,
+    features: Sequence[Features] | None = None,
+    verification: VerificationConfig | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> ChainResult:
+    """Run the chain over (N, V) observations stamped ``stamps_ns`` (N,) increasing nanoseconds.
+
+    With ``verification`` (and the frames' ``features``), candidates are verified as verifier_node
+    does; without it the candidates are published as they are (``aefabmap_launch --no-verify``).
+    """
+    matrix = sp.csr_matrix(observations)
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    num_frames = matrix.shape[0]
+    if stamps.shape != (num_frames,):
+        raise DataError(f"{stamps.size} stamps for {num_frames} frames")
+    if num_frames > 1 and np.any(np.diff(stamps) <= 0):
+        raise DataError("stamps must increase strictly (the nodes drop out-of-order frames)")
+    if verification is not None and (features is None or len(features) != num_frames):
+        raise DataError(f"verification needs the features of all {num_frames} frames")
+    matrix.sort_indices()
+    recognizer = PlaceRecognizer(tree, new_place_samples, config, "online-chain")
+    place_frames: list[int] = []
+    result = ChainResult([], [], 0)
+    for frame in range(num_frames):
+        words = matrix.indices[matrix.indptr[frame] : matrix.indptr[frame + 1]].astype(np.int64)
+        recognition = recognizer.process(words, int(stamps[frame]))
+        if recognition.added_place_id >= 0:
+            place_frames.append(frame)
+        closure = recognition.loop_closure
+        if closure is not None:
+            candidate = ChainClosure(frame, place_frames[closure.place_id], closure.probability)
+            result.candidates.append(candidate)
+            if verification is None or features is None:  # (features are there whenever verification is)
+                result.published.append(candidate)
+            else:
+                published = _verified(frame, closure, recognition.candidates, place_frames, features, verification)
+                if published is not None:
+                    result.published.append(published)
+        if on_frame is not None:
+            on_frame(frame)
+    result.num_places = recognizer.num_places
+    return result
+
+
+def _verified(
+    frame: int,
+    closure: Candidate,
+    candidates: Sequence[Candidate],
+    place_frames: list[int],
+    features: Sequence[Features],
+    config: VerificationConfig,
+) -> ChainClosure | None:
+    """verifier_node's decision: the matched place first, then the query's other top candidates."""
+    ranked = [closure, *(c for c in candidates if c.place_id != closure.place_id)][: config.candidates]
+    frames = [place_frames[c.place_id] for c in ranked]
+    outcome = rerank_by_inliers(frames, lambda place: verify_pair(features[frame], features[place], config),
+                                require_best=True)
+    if outcome is None:
+        return None
+    return ChainClosure(frame, frames[outcome.winner], closure.probability, outcome.verification.inliers)

@@ -1,0 +1,70 @@
+"""The nodes' decision chain offline: consistency holds back single matches, verification gates what is published."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from aefabmap_ros.core.errors import DataError
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.features import Features
+from aefabmap_ros.core.online_chain import ChainClosure, run_online_chain
+from aefabmap_ros.core.verification import VerificationConfig
+from test.core.test_detector import SAMPLES, V, _tree
+from test.core.test_verification import HEIGHT, WIDTH, _two_views
+
+SECOND = 10**9
+
+
+def _scene_words(scene: int) -> np.ndarray:
+    return np.arange(5 * scene, 5 * scene + 5)
+
+
+def _sequence() -> tuple[sp.csr_matrix, list[Features]]:
+    """Scenes 0..6 at 1 Hz, then scenes 1 and 2 seen again from another pose (true revisits), then
+    scene 3's words on keypoints scattered at random (an aliased look-alike that geometry rejects)."""
+    views = [_two_views(seed=scene) for scene in range(7)]
+    words = [_scene_words(s) for s in range(7)] + [_scene_words(1), _scene_words(2), _scene_words(3)]
+    features = [view[0] for view in views] + [views[1][1], views[2][1]]
+    aliased = views[3][1]
+    scattered = aliased.keypoints.copy()
+    scattered[:, :2] = np.random.default_rng(3).uniform([0, 0], [WIDTH, HEIGHT], (scattered.shape[0], 2))
+    features.append(Features(keypoints=scattered, descriptors=aliased.descriptors, descriptor_type="sift"))
+    rows = np.zeros((len(words), V))
+    for row, ids in enumerate(words):
+        rows[row, ids] = 1
+    return sp.csr_matrix(rows), features
+
+
+CONFIG = FabMapConfig(exclude_recent_seconds=3.0, consistency_matches=2, island_seconds=1.5, match_threshold=0.5)
+
+
+def test_consistent_candidates_and_verified_closures():
+    observations, features = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG, features, VerificationConfig())
+    # Frame 7 matches place 1 but is the first of its run: no candidate. Frames 8 and 9 continue it.
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
+    assert all(c.probability > 0.5 and c.inliers == -1 for c in result.candidates)
+    # The aliased frame 9 fails geometry: only the true revisit reaches /loop_closures.
+    assert [(c.query_frame, c.matched_frame) for c in result.published] == [(8, 2)]
+    assert result.published[0].inliers >= 100
+    assert result.num_places == 10
+
+
+def test_without_verification_the_candidates_are_published():
+    observations, _ = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG)
+    assert result.published == result.candidates and len(result.published) == 2
+    assert isinstance(result.published[0], ChainClosure)
+
+
+def test_bad_input():
+    observations, features = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    with pytest.raises(DataError, match="9 stamps for 10 frames"):
+        run_online_chain(observations, stamps[:9], _tree(), SAMPLES, CONFIG)
+    with pytest.raises(DataError, match="increase strictly"):
+        run_online_chain(observations, stamps[::-1].copy(), _tree(), SAMPLES, CONFIG)
+    with pytest.raises(DataError, match="features of all 10 frames"):
+        run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG, features[:3], VerificationConfig())
