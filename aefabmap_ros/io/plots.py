@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
 
+from aefabmap_ros.core.calibration import Reliability
 from aefabmap_ros.core.errors import DataError
 
 
@@ -94,5 +95,25 @@ def plot_score_matrix(scores: np.ndarray, gt: np.ndarray, min_gap: int, path: Pa
     for axes in (left, right):
         axes.set_xlabel("earlier frame j")
         axes.set_ylabel("query frame i")
+    figure.tight_layout()
+    _save(figure, path)
+
+
+def plot_reliability(diagrams: Sequence[tuple[str, Reliability]], path: Path,
+                     title: str = "Reliability of the best candidate's posterior") -> None:
+    """Reliability diagrams: observed fraction of right best candidates against mean posterior per bin."""
+    figure, axes = plt.subplots(figsize=(6.0, 4.8))
+    axes.plot([0.0, 1.0], [0.0, 1.0], color="grey", linestyle="--", linewidth=1.0, label="calibrated")
+    for label, diagram in diagrams:
+        filled = diagram.counts > 0
+        axes.plot(diagram.mean_confidence[filled], diagram.accuracy[filled], marker="o", linewidth=1.4,
+                  label=f"{label} (ECE {diagram.expected_calibration_error:.3f})")
+    axes.set_xlim(0.0, 1.0)
+    axes.set_ylim(0.0, 1.02)
+    axes.set_xlabel("posterior of the best candidate (bin mean)")
+    axes.set_ylabel("fraction that revisit it (ground truth)")
+    axes.set_title(title)
+    axes.grid(True, alpha=0.3)
+    axes.legend(loc="upper left", fontsize="small")
     figure.tight_layout()
     _save(figure, path)
