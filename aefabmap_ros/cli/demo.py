@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
-from aefabmap_ros.cli.launch import verifier_store_path
 from aefabmap_ros.core.errors import AefabmapError
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from aefabmap_ros.launch_table import verifier_store_path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
