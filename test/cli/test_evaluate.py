@@ -2,6 +2,7 @@
 every bad input (ERROR: ..., exit 1)."""
 
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -262,7 +263,7 @@ RecordedClosure = tuple[int, int, float] | tuple[int, int, float, int]  # query,
 
 
 def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
-                    closures: dict[str, list[RecordedClosure]]) -> None:
+                    closures: Mapping[str, Sequence[RecordedClosure]]) -> None:
     """A recording with ``/place_posteriors`` and one LoopClosure topic per key of ``closures``."""
     from aefabmap_ros.io import bags
 
