@@ -1,43 +1,56 @@
-"""Launch feature, quantizer and FAB-MAP nodes (full ROS 2 Jazzy install; pip users: aefabmap_launch).
+"""Launch the loop-closure nodes (full ROS 2 Jazzy install; pip users: aefabmap_launch).
 
     ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model image_topic:=/camera/image_raw
-    # also verify the loop closures geometrically (verified_loop_closures)
-    ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model verify:=true
+    # without geometric verification: FAB-MAP's raw closures on loop_closures (inliers -1)
+    ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model verify:=false
+
+The nodes, their parameters and remaps come from ``aefabmap_ros.launch_table``, the same table
+``aefabmap_launch`` uses: by default verifier_node runs and ``loop_closures`` carries only
+geometrically verified closures (FAB-MAP's raw ones: ``loop_closure_candidates``).
 """
 
+from typing import Any
+
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
+from aefabmap_ros.launch_table import PACKAGE, SuiteOptions, parse_bool, suite_nodes
+
+
+def _nodes(context: Any) -> list[Node]:
+    def value(name: str) -> str:
+        return LaunchConfiguration(name).perform(context)
+
+    options = SuiteOptions(model_dir=value("model_dir"), map_file=value("map_file"),
+                           image_topic=value("image_topic"), image_qos=value("image_qos"),
+                           verify=parse_bool(value("verify"), "verify"))
+    params_file = value("params_file")
+    return [
+        Node(package=PACKAGE, executable=node.name, name=node.name,
+             parameters=[params_file, dict(node.parameters)], remappings=list(node.remaps.items()),
+             output="screen")
+        for node in suite_nodes(options)
+    ]
+
 
 def generate_launch_description() -> LaunchDescription:
-    model_dir = LaunchConfiguration("model_dir")
-    params_file = LaunchConfiguration("params_file")
-    map_file = LaunchConfiguration("map_file")
-    image_topic = LaunchConfiguration("image_topic")
-    image_qos = LaunchConfiguration("image_qos")
-    common = [params_file, {"model_dir": model_dir}]
     return LaunchDescription([
         DeclareLaunchArgument("model_dir", description="model directory made by aefabmap_train"),
         DeclareLaunchArgument(
             "params_file",
-            default_value=PathJoinSubstitution([FindPackageShare("aefabmap_ros"), "config", "aefabmap.yaml"]),
-            description="parameter YAML for the three nodes",
+            default_value=PathJoinSubstitution([FindPackageShare(PACKAGE), "config", "aefabmap.yaml"]),
+            description="parameter YAML of the nodes",
         ),
-        DeclareLaunchArgument("map_file", default_value="", description="map file to save to / reload from"),
+        DeclareLaunchArgument("map_file", default_value="",
+                              description="map file to save to / reload from (the verifier's features beside it)"),
         DeclareLaunchArgument("image_topic", default_value="image", description="camera image topic"),
-        DeclareLaunchArgument("image_qos", default_value="sensor_data", description="sensor_data or reliable"),
-        DeclareLaunchArgument("verify", default_value="false",
-                              description="also run verifier_node (geometric verification -> verified_loop_closures)"),
-        Node(package="aefabmap_ros", executable="feature_node", name="feature_node",
-             parameters=[*common, {"image_qos": image_qos}], remappings=[("image", image_topic)], output="screen"),
-        Node(package="aefabmap_ros", executable="quantizer_node", name="quantizer_node",
-             parameters=common, output="screen"),
-        Node(package="aefabmap_ros", executable="fabmap_node", name="fabmap_node",
-             parameters=[*common, {"map_file": map_file}], output="screen"),
-        Node(package="aefabmap_ros", executable="verifier_node", name="verifier_node",
-             parameters=[params_file], output="screen", condition=IfCondition(LaunchConfiguration("verify"))),
+        DeclareLaunchArgument("image_qos", default_value="",
+                              description="sensor_data or reliable ('' = the parameter file's)"),
+        DeclareLaunchArgument("verify", default_value="true",
+                              description="run verifier_node: only geometrically verified closures on loop_closures; "
+                              "false: FAB-MAP's raw closures on loop_closures (inliers -1)"),
+        OpaqueFunction(function=_nodes),
     ])

@@ -5,9 +5,10 @@
 2. models: an autoencoder vocabulary (AE-FABMAP) and a k-means one (the FABMAP2 baseline), each
    with its Chow-Liu tree, trained on the training bag (aefabmap_train);
 3. online: the test bag is replayed through the three ROS nodes and verifier_node as separate
-   processes (aefabmap_launch --verify + aefabmap_replay); loop closures are printed as they
-   arrive, and everything (verified_loop_closures too) is recorded to an mcap that Foxglove opens
-   (aefabmap_record);
+   processes (aefabmap_launch, verification on by default, + aefabmap_replay); every closure on
+   /loop_closures (verified) is printed as it arrives and checked against the ground truth, FAB-MAP's
+   raw candidates are counted; loop_closures, loop_closure_candidates and place_posteriors are
+   recorded to an mcap that Foxglove opens (aefabmap_record);
 4. evaluation: the paper's four methods offline, each also after geometric verification of its
    candidates (+ GV), and the online run from its recording (aefabmap_eval); the table is printed
    and the plots written.
@@ -30,9 +31,10 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
-from aefabmap_ros.cli.launch import verifier_store_path
 from aefabmap_ros.core.errors import AefabmapError
+from aefabmap_ros.core.metrics import event_scores
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from aefabmap_ros.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -95,7 +97,8 @@ def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
 
 
 class ClosurePrinter:
-    """Prints loop closures and progress as the FAB-MAP node publishes them (spun in a thread)."""
+    """Prints the published (verified) loop closures as they arrive, counts FAB-MAP's raw candidates
+    and the posteriors (spun in a thread)."""
 
     def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray) -> None:
         import rclpy
@@ -106,14 +109,14 @@ class ClosurePrinter:
         self._stamps = stamps_ns
         self._gt = gt
         self.posteriors = 0
-        self.closures: list[tuple[int, int, bool]] = []
-        self.verified: list[tuple[int, int, bool]] = []  # from verifier_node
+        self.closures: list[tuple[int, int, bool]] = []  # /loop_closures: what a backend gets
+        self.candidates: list[tuple[int, int, bool]] = []  # /loop_closure_candidates: FAB-MAP's raw closures
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("aefabmap_demo_printer", context=self.context)
-        self.node.create_subscription(LoopClosure, "loop_closures", self._on_closure, 100)
-        self.node.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, 100)
-        self.node.create_subscription(LoopClosure, "verified_loop_closures", self._on_verified, 100)
+        self.node.create_subscription(LoopClosure, CLOSURES_TOPIC, self._on_closure, 100)
+        self.node.create_subscription(LoopClosure, CANDIDATES_TOPIC, self._on_candidate, 100)
+        self.node.create_subscription(PlacePosterior, POSTERIORS_TOPIC, self._on_posterior, 100)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
@@ -137,15 +140,27 @@ class ClosurePrinter:
         true = bool(self._gt[query, matched]) if query < len(self._gt) and matched < len(self._gt) else False
         return query, matched, true
 
-    def _on_verified(self, message: Any) -> None:
-        self.verified.append(self._judged(message))
+    def _on_candidate(self, message: Any) -> None:
+        self.candidates.append(self._judged(message))
 
     def _on_closure(self, message: Any) -> None:
         query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
         verdict = "true revisit" if true else "NOT a revisit in the ground truth"
-        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  ({verdict})",
-              flush=True)
+        checked = f"{message.inliers} inliers" if message.inliers >= 0 else "not verified"
+        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}  "
+              f"({verdict})", flush=True)
+
+    def summary(self, min_gap: int) -> str:
+        """Published closures, false ones and revisit events closed; the raw candidates for comparison."""
+        in_range = [(q, m) for q, m, _ in self.closures if q < len(self._gt) and m < len(self._gt)]
+        events = event_scores(in_range, self._gt, min_gap)
+        false = sum(1 for *_, ok in self.closures if not ok)
+        false_candidates = sum(1 for *_, ok in self.candidates if not ok)
+        return (f"    {len(self.closures)} loop closures published on /{CLOSURES_TOPIC} (verified), {false} false; "
+                f"{events.num_events_closed} of {events.num_events} revisit events closed\n"
+                f"    {len(self.candidates)} raw FAB-MAP candidates on /{CANDIDATES_TOPIC}, {false_candidates} false; "
+                f"{self.posteriors} posteriors")
 
     def close(self) -> None:
         self._stop.set()
@@ -198,10 +213,10 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(map_file), "--verify"], stdout=nodes_log, stderr=subprocess.STDOUT))
+                 "--map", str(map_file)], stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
             processes.append(subprocess.Popen(
-                [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", "loop_closures",
-                 "place_posteriors", "verified_loop_closures", "--wait-publishers", "120"],
+                [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", CLOSURES_TOPIC,
+                 CANDIDATES_TOPIC, POSTERIORS_TOPIC, "--wait-publishers", "120"],
                 stdout=record_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt)
             _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
@@ -222,12 +237,9 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         if printer is not None:
             printer.close()
     if printer is not None:
-        true = sum(1 for *_, ok in printer.closures if ok)
-        verified_true = sum(1 for *_, ok in printer.verified if ok)
-        print(f"    {len(printer.closures)} loop closures published, {true} of them true revisits; "
-              f"{printer.posteriors} posteriors\n"
-              f"    {len(printer.verified)} passed geometric verification (verified_loop_closures), "
-              f"{verified_true} of them true revisits", flush=True)
+        from aefabmap_ros.core.evaluation import EvaluationConfig  # torch: only once the nodes are done
+
+        print(printer.summary(EvaluationConfig().min_gap), flush=True)
     return recording
 
 
@@ -257,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     models = train_models(args, train)
     recording = None
     if not args.skip_ros:
-        _step("3/4 online: test bag -> feature, quantizer and FAB-MAP nodes -> /loop_closures")
+        _step("3/4 online: test bag -> feature, quantizer, FAB-MAP and verifier nodes -> /loop_closures")
         recording = run_online(args, models["autoencoder"], test)
     _step("4/4 evaluation of FABMAP2, AE-FABMAP, BoW and AE-BoW (and the online run)")
     evaluate(args, models, test, recording)

@@ -7,7 +7,7 @@
         --train-bag train/bag --train-topic /image --out results/
     # models trained earlier (aefabmap_train); each gives its FAB-MAP and its BoW method
     aefabmap_eval --images test/images --gt test/loop_gt.npz --model models/ae --model models/kmeans --out r/
-    # metrics of a recorded run of the nodes (aefabmap_record: loop_closures, place_posteriors)
+    # a recorded run of the nodes (aefabmap_record: loop_closures, loop_closure_candidates, place_posteriors)
     aefabmap_eval --recording run.mcap_dir --gt test/loop_gt.npz --out r/
 
 Per method: precision-recall curve, average precision, max F1, recall at 100 % precision, and the
@@ -49,7 +49,7 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +65,8 @@ from aefabmap_ros.core.evaluation import (
     EvaluationConfig,
     MethodResult,
     check_gt_matches,
-    closure_precision_recall,
+    closure_scores_markdown,
+    closure_scores_to_dict,
     evaluate_model,
     leave_one_out_samples,
     load_gt_npz,
@@ -73,13 +74,14 @@ from aefabmap_ros.core.evaluation import (
     parse_methods,
     result_to_dict,
     results_markdown,
+    score_recorded_closures,
     scores_from_recording,
     unique_slugs,
 )
 from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.features import FeatureConfig, Features
 from aefabmap_ros.core.ground_truth import loop_matrix_from_kitti
-from aefabmap_ros.core.metrics import evaluate_scores
+from aefabmap_ros.core.metrics import DEFAULT_EVENT_GAP, evaluate_scores
 from aefabmap_ros.core.model import Model, load_model, save_model
 from aefabmap_ros.core.training import TrainingConfig, config_digest, evenly_spaced, train_model
 from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, cached_pair_verifier
@@ -93,6 +95,8 @@ SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencode
             "evaluation", "verification")
 RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
                     "loop_closures": "aefabmap_msgs/msg/LoopClosure",
+                    "loop_closure_candidates": "aefabmap_msgs/msg/LoopClosure",
+                    # recordings made before loop_closures carried the verified closures:
                     "verified_loop_closures": "aefabmap_msgs/msg/LoopClosure"}
 
 
@@ -130,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--model", type=Path, action="append", default=[],
                        help="an already trained model directory (repeatable)")
     parser.add_argument("--recording", type=Path,
-                        help="evaluate a recorded run (bag with loop_closures / place_posteriors) instead")
+                        help="evaluate a recorded run instead (bag with place_posteriors, loop_closure_candidates, "
+                        "loop_closures): each closure topic scored per closure and per revisit event")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
     parser.add_argument("--verify", action="store_true",
@@ -194,7 +199,7 @@ def prepare_output(out: Path) -> None:
 
 
 def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header: dict[str, Any],
-                  extra_markdown: str = "") -> list[Path]:
+                  extra_markdown: str = "", extra_json: dict[str, Any] | None = None) -> list[Path]:
     """results.md, results.json, pr_curves.png and scores_<method>.png; returns the written paths."""
     min_gap = int(header["min_gap"])
     slugs = unique_slugs(results)
@@ -214,7 +219,7 @@ def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header
     atomic_write_text(out / "results.md", "\n".join(lines))
     payload = {**header, "methods": [
         {**result_to_dict(r), "scores_plot": f"scores_{slug}.png"} for r, slug in zip(results, slugs, strict=True)
-    ]}
+    ], **(extra_json or {})}
     atomic_write_text(out / "results.json", json.dumps(payload, indent=2, sort_keys=False) + "\n")
     written += [out / "results.md", out / "results.json"]
     return written
@@ -414,8 +419,24 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     return results, gt, header
 
 
-def read_recording(path: Path) -> dict[str, list[Any]]:
-    """Messages of a recording by topic name (``RECORDING_TOPICS``; with or without a leading '/')."""
+@dataclass
+class Recording:
+    """A recording's messages, by what they are."""
+
+    posteriors: list[Any]
+    candidates: tuple[str, list[Any]] | None  # (topic, messages): FAB-MAP's raw closures
+    published: tuple[str, list[Any]] | None  # (topic, messages): what a backend got on loop_closures
+    note: str = ""
+
+
+def read_recording(path: Path) -> Recording:
+    """A recorded run's messages (``RECORDING_TOPICS``, with or without a leading '/').
+
+    Today's layout: ``loop_closure_candidates`` (FAB-MAP's raw closures) and ``loop_closures``
+    (what was published: verified by default). Recordings made before verification moved onto
+    ``loop_closures`` have ``verified_loop_closures``: their ``loop_closures`` are then read as the
+    candidates and ``verified_loop_closures`` as the published, verified closures.
+    """
     topics = bags.list_topics(path)
     found: dict[str, str] = {}
     for topic, msgtype in topics.items():
@@ -425,17 +446,28 @@ def read_recording(path: Path) -> dict[str, list[Any]]:
                 raise DataError(f"topic {topic!r} in recording {path} is {msgtype}, expected {RECORDING_TOPICS[name]}")
             found[name] = topic
     if not found:
-        raise DataError(f"recording {path} has neither place_posteriors nor loop_closures; "
+        raise DataError(f"recording {path} has none of place_posteriors, loop_closures, loop_closure_candidates; "
                         f"its topics: {sorted(topics) or 'none'}")
-    messages: dict[str, list[Any]] = {name: [] for name in RECORDING_TOPICS}
+    if "verified_loop_closures" in found and "loop_closure_candidates" in found:
+        raise DataError(f"recording {path} has both verified_loop_closures (recordings before loop_closures carried "
+                        "the verified closures) and loop_closure_candidates (after): record one run only")
+    messages: dict[str, list[Any]] = {name: [] for name in found}
     for message in bags.read_messages(path, list(found.values())):
         messages[message.topic.lstrip("/")].append(message.message)
-    if "verified_loop_closures" not in found:
-        del messages["verified_loop_closures"]  # no verifier ran, which differs from one that passed nothing
-    return messages
+
+    def closures_on(name: str) -> tuple[str, list[Any]] | None:
+        return (name, messages[name]) if name in found else None
+
+    if "verified_loop_closures" in found:
+        return Recording(messages.get("place_posteriors", []), closures_on("loop_closures"),
+                         closures_on("verified_loop_closures"),
+                         note="An older recording: its loop_closures are read as FAB-MAP's candidates, its "
+                              "verified_loop_closures as the published (verified) closures.\n")
+    return Recording(messages.get("place_posteriors", []), closures_on("loop_closure_candidates"),
+                     closures_on("loop_closures"))
 
 
-def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str]:
+def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str, dict[str, Any]]:
     args, settings = run.args, run.settings
     if args.images is not None or args.bag is not None or args.model or args.train_images or args.train_bag \
             or args.train_on_test or args.verify:
@@ -444,36 +476,32 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     started = time.monotonic()
-    messages = read_recording(args.recording)
-    recorded = scores_from_recording(messages["place_posteriors"], messages["loop_closures"], gt.shape[0])
+    recording = read_recording(args.recording)
+    # The score matrix: the posteriors and FAB-MAP's own decisions (verified closures may have moved).
+    raw = recording.candidates[1] if recording.candidates is not None else []
+    recorded = scores_from_recording(recording.posteriors, raw, gt.shape[0])
     metrics = evaluate_scores(recorded.scores, gt, min_gap, settings.evaluation.threshold)
     result = MethodResult(name="recording", vocabulary_kind="recorded", vocabulary_size=0, model_id="",
                           scores=recorded.scores, metrics=metrics, seconds=time.monotonic() - started,
                           model_path=str(args.recording))
-    precision, recall = closure_precision_recall(recorded.closures, gt, min_gap)
+    rows = [score_recorded_closures(role, *topic_messages, recording.posteriors, gt, min_gap)
+            for role, topic_messages in (("FAB-MAP candidates", recording.candidates),
+                                         ("published", recording.published)) if topic_messages is not None]
     header = {
         "test": str(args.recording),
         "frames": int(gt.shape[0]),
         "positive_queries": metrics.num_positive_queries,
         "min_gap": min_gap,
         "place_posteriors": recorded.num_posteriors,
-        "loop_closures": recorded.num_loop_closures,
-        "recorded_loop_closures_precision": None if np.isnan(precision) else precision,
-        "recorded_loop_closures_recall": recall,
         "candidates_aligned_by_stamp": recorded.stamp_aligned_candidates,
+        "event_gap_frames": DEFAULT_EVENT_GAP,
     }
-    extra = (f"The detector's own decisions ({recorded.num_loop_closures} loop closures): precision "
-             f"{'n/a' if np.isnan(precision) else f'{precision:.3f}'}, recall {recall:.3f}.\n")
-    if "verified_loop_closures" in messages:
-        verified = scores_from_recording(messages["place_posteriors"], messages["verified_loop_closures"],
-                                         gt.shape[0]).closures
-        precision, recall = closure_precision_recall(verified, gt, min_gap)
-        header["verified_loop_closures"] = len(verified)
-        header["verified_loop_closures_precision"] = None if np.isnan(precision) else precision
-        header["verified_loop_closures_recall"] = recall
-        extra += (f"After geometric verification ({len(verified)} verified_loop_closures): precision "
-                  f"{'n/a' if np.isnan(precision) else f'{precision:.3f}'}, recall {recall:.3f}.\n")
-    return [result], gt, header, extra
+    extra = ("\nLoop closures per topic. A closure (i, j) is false when gt[i, j] = 0. A revisit event is a run "
+             "of revisiting frames (a ground-truth loop at least min_gap frames back), gaps of up to "
+             f"{DEFAULT_EVENT_GAP} frames bridged; it is closed by one true closure from one of its frames.\n\n"
+             + (closure_scores_markdown(rows) if rows else "No loop-closure topic in the recording.\n")
+             + recording.note)
+    return [result], gt, header, extra, {"closures": [closure_scores_to_dict(row) for row in rows]}
 
 
 def run_evaluation(args: argparse.Namespace) -> int:
@@ -483,13 +511,14 @@ def run_evaluation(args: argparse.Namespace) -> int:
     prepare_output(args.out)
     run = Run(args, settings)
     extra = ""
+    extra_json: dict[str, Any] = {}
     if args.recording is not None:
-        results, gt, header, extra = evaluate_recording(run)
+        results, gt, header, extra, extra_json = evaluate_recording(run)
     else:
         results, gt, header = evaluate_images(run, methods)
     header["wall_seconds"] = round(time.monotonic() - started, 1)
     header["stage_seconds"] = {k: round(v, 1) for k, v in run.seconds.items()}
-    written = write_results(args.out, results, gt, header, extra)
+    written = write_results(args.out, results, gt, header, extra, extra_json)
     print(results_markdown(results), end="")
     if extra:
         print(extra, end="")

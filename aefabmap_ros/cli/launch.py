@@ -1,10 +1,13 @@
-"""aefabmap_launch: start feature, quantizer and FAB-MAP nodes as separate processes (no ros2 launch needed).
+"""aefabmap_launch: start the loop-closure nodes as separate processes (no ros2 launch needed).
 
-The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter file, same topics.
-Ctrl-C (or SIGTERM) stops every node cleanly, so the FAB-MAP node saves its map; if one node dies,
-the others are stopped and the exit code is 1. With --verify, verifier_node runs beside them and
-publishes the geometrically verified loop closures on ``verified_loop_closures``; with --map too,
-its feature store is saved beside the map (folder ``<map>.features``), so both survive a restart.
+The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter file, same topics,
+same nodes (both take them from ``aefabmap_ros.launch_table``). By default verifier_node runs
+beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
+``loop_closure_candidates`` and only the geometrically verified ones reach ``loop_closures``.
+--no-verify leaves the verifier out and remaps FAB-MAP's candidates onto ``loop_closures``
+(``inliers`` -1: not verified). With --map, the map and the verifier's feature store (folder
+``<map>.features``) are saved and reloaded, so both survive a restart. Ctrl-C (or SIGTERM) stops
+every node cleanly; if one node dies, the others are stopped and the exit code is 1.
 """
 
 from __future__ import annotations
@@ -17,18 +20,15 @@ import time
 from pathlib import Path
 from types import FrameType
 
-NODES = ("feature_node", "quantizer_node", "fabmap_node")
+from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes
+
+NODES = DETECTION_NODES
 
 
 def default_params_file() -> Path:
     candidates = [Path(__file__).resolve().parents[2] / "config" / "aefabmap.yaml",
                   Path(sys.prefix) / "share" / "aefabmap_ros" / "config" / "aefabmap.yaml"]
     return next((path for path in candidates if path.exists()), candidates[0])
-
-
-def verifier_store_path(map_path: Path) -> Path:
-    """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features/."""
-    return map_path.with_suffix(".features")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,27 +41,36 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--image-qos", choices=("sensor_data", "reliable"), default=None,
                         help="override the image subscription QoS")
     parser.add_argument("--pipeline", action="store_true", help="run all three nodes in one process instead")
-    parser.add_argument("--verify", action="store_true",
-                        help="also run verifier_node: geometrically verified closures on verified_loop_closures")
+    parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
+                        help="run verifier_node: only geometrically verified closures on loop_closures (default); "
+                        "--no-verify: FAB-MAP's raw closures on loop_closures instead (inliers -1)")
     return parser
 
 
+def _ros_args(params: Path, parameters: dict[str, str], remaps: dict[str, str]) -> list[str]:
+    return (["--ros-args", "--params-file", str(params)]
+            + [arg for name, value in parameters.items() for arg in ("-p", f"{name}:={value}")]
+            + [arg for topic, target in remaps.items() for arg in ("-r", f"{topic}:={target}")])
+
+
 def node_commands(args: argparse.Namespace) -> list[list[str]]:
+    """One command per process: the nodes of ``launch_table.suite_nodes``, the three detection
+    nodes merged into one aefabmap_pipeline process with --pipeline."""
     params = args.params or default_params_file()
-    common = ["--ros-args", "--params-file", str(params), "-p", f"model_dir:={args.model}"]
-    extra = {
-        "feature_node": ["-r", f"image:={args.image_topic}"]
-        + (["-p", f"image_qos:={args.image_qos}"] if args.image_qos else []),
-        "quantizer_node": [],
-        "fabmap_node": ["-p", f"map_file:={args.map}"] if args.map else [],
-    }
-    store = ["-p", f"store_dir:={verifier_store_path(args.map)}"] if args.map else []
-    verifier = ([[sys.executable, "-m", "aefabmap_ros.nodes.verifier_node", "--ros-args", "--params-file", str(params),
-                  *store]] if args.verify else [])
-    if args.pipeline:
-        merged = [arg for node in NODES for arg in extra[node]]
-        return [[sys.executable, "-m", "aefabmap_ros.nodes.pipeline", *common, *merged], *verifier]
-    return [[sys.executable, "-m", f"aefabmap_ros.nodes.{node}", *common, *extra[node]] for node in NODES] + verifier
+    nodes = suite_nodes(SuiteOptions(model_dir=str(args.model), map_file=str(args.map) if args.map else "",
+                                     image_topic=args.image_topic, image_qos=args.image_qos or "",
+                                     verify=args.verify))
+    if not args.pipeline:
+        return [[sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
+                for node in nodes]
+    # In one process, -p and -r apply to all three nodes; each uses only the names it knows.
+    detection = [node for node in nodes if node.name in NODES]
+    merged = NodeLaunch("pipeline", {k: v for node in detection for k, v in node.parameters.items()},
+                        {k: v for node in detection for k, v in node.remaps.items()})
+    return [[sys.executable, "-m", merged.module, *_ros_args(params, merged.parameters, merged.remaps)]] + [
+        [sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
+        for node in nodes if node.name not in NODES
+    ]
 
 
 def supervise(commands: list[list[str]]) -> int:

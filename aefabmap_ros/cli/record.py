@@ -18,11 +18,14 @@ from aefabmap_ros.io import bags
 # The suite's topics and their types; other topics' types are discovered from the graph.
 KNOWN_TYPES = {
     "loop_closures": "aefabmap_msgs/msg/LoopClosure",
+    "loop_closure_candidates": "aefabmap_msgs/msg/LoopClosure",
     "place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
     "aefabmap/words": "aefabmap_msgs/msg/BagOfWords",
     "aefabmap/features": "aefabmap_msgs/msg/Features",
 }
-DEFAULT_TOPICS = ("loop_closures", "place_posteriors")
+# What aefabmap_eval --recording scores: the published (by default verified) closures, FAB-MAP's raw
+# candidates, and the posteriors.
+DEFAULT_TOPICS = ("loop_closures", "loop_closure_candidates", "place_posteriors")
 
 
 def build_parser() -> argparse.ArgumentParser:

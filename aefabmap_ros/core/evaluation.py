@@ -42,7 +42,10 @@ the mean, so it is left out of query i's mean (``exclude_samples``).
 indices (the detector numbers every frame it receives). A candidate place is mapped to a frame
 by its stamp when that stamp is a query stamp of the recording (robust to keyframing and the
 "new_only" policy); otherwise its place id is taken as the frame index, which holds under the
-default policy "all" without keyframing. Places missing from a query's top-K score 0.
+default policy "all" without keyframing. Places missing from a query's top-K score 0. The loop
+closures of each recorded topic (FAB-MAP's candidates, the published and by default verified
+closures) are scored on their own by :func:`score_recorded_closures`: precision, and per revisit
+event and revisiting frame (``core.metrics.event_scores``).
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.features import Features
-from aefabmap_ros.core.metrics import LoopMetrics, evaluate_scores
+from aefabmap_ros.core.metrics import DEFAULT_EVENT_GAP, EventScores, LoopMetrics, evaluate_scores, event_scores
 from aefabmap_ros.core.model import Model
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.tfidf import tfidf_score_matrix
@@ -420,6 +423,57 @@ def closure_precision_recall(closures: Sequence[RecordedClosure], gt: np.ndarray
         else float("nan")
     recall = len(true_queries) / positive if positive else 0.0
     return float(precision), float(recall)
+
+
+@dataclass(frozen=True)
+class TopicClosureScores:
+    """The loop closures recorded on one topic, scored against the ground truth."""
+
+    role: str  # what the topic carries: "FAB-MAP candidates", "published"
+    topic: str
+    num_verified: int  # closures with inliers > 0 (passed geometric verification)
+    precision: float  # true closures / closures (nan without closures)
+    events: EventScores
+
+
+def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any], posteriors: Sequence[Any],
+                            gt: np.ndarray, min_gap: int, event_gap: int = DEFAULT_EVENT_GAP) -> TopicClosureScores:
+    """Score the ``LoopClosure`` messages of one recorded topic (frames as in :func:`scores_from_recording`):
+    precision, and per revisit event and revisiting frame (:func:`core.metrics.event_scores`)."""
+    closures = scores_from_recording(posteriors, loop_closures, gt.shape[0]).closures
+    precision, _ = closure_precision_recall(closures, gt, min_gap)
+    events = event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap, event_gap)
+    verified = sum(1 for message in loop_closures if int(message.inliers) > 0)
+    return TopicClosureScores(role, topic, verified, precision, events)
+
+
+def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
+    """A markdown table: one row per recorded closure topic."""
+    lines = [
+        "| closures | topic | closures | verified (inliers > 0) | false | precision | revisit events "
+        "| events closed | fraction of events closed | recall (revisiting frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        e = row.events
+        lines.append(
+            f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
+            f"| {_fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {_fmt(e.fraction_closed)} "
+            f"| {_fmt(e.frame_recall)} ({e.num_revisiting_frames_closed}/{e.num_revisiting_frames}) |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
+    e = row.events
+    return {
+        "role": row.role, "topic": row.topic, "closures": e.num_closures, "verified": row.num_verified,
+        "false_closures": e.num_false_closures, "precision": _jsonable_float(row.precision),
+        "revisit_events": e.num_events, "events_closed": e.num_events_closed,
+        "fraction_of_events_closed": _jsonable_float(e.fraction_closed),
+        "revisiting_frames": e.num_revisiting_frames, "revisiting_frames_closed": e.num_revisiting_frames_closed,
+        "recall_revisiting_frames": _jsonable_float(e.frame_recall),
+    }
 
 
 # ------------------------------------------------------------------------------------------ reports

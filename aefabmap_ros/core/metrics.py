@@ -27,6 +27,7 @@ Protocol (the field's standard one, e.g. Cummins & Newman; Lowry et al.'s survey
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -174,4 +175,101 @@ def evaluate_scores(
         pr_precision=precision,
         pr_recall=recall,
         pr_thresholds=thresholds,
+    )
+
+
+# ------------------------------------------------------------------------------ revisit events
+
+# Revisiting frames at most this many non-revisiting frames apart belong to one revisit event.
+DEFAULT_EVENT_GAP = 3
+
+
+@dataclass(frozen=True)
+class RevisitEvent:
+    """A stretch of the sequence that revisits mapped ground: its first and last revisiting frame."""
+
+    first_frame: int
+    last_frame: int
+    frames: tuple[int, ...]  # its revisiting frames (the bridged gap frames are not among them)
+
+
+def revisit_events(gt: np.ndarray, min_gap: int = 10, max_gap: int = DEFAULT_EVENT_GAP) -> list[RevisitEvent]:
+    """The revisit events of a ground-truth loop matrix.
+
+    A frame ``i`` is *revisiting* when its row has a 1 among its eligible earlier frames
+    (``gt[i, j] = 1`` for some ``j <= i - min_gap``). An event is a maximal run of revisiting
+    frames in which consecutive ones are at most ``max_gap`` non-revisiting frames apart (0 =
+    strictly consecutive): a blank frame or a pose just outside the labelling rule does not split
+    one pass through a mapped place into two events.
+    """
+    if isinstance(max_gap, bool) or not isinstance(max_gap, int | np.integer) or max_gap < 0:
+        raise ConfigError(f"max_gap must be an integer >= 0 (non-revisiting frames bridged in an event), "
+                          f"got {max_gap!r}")
+    array = np.asarray(gt)
+    if array.ndim != 2:
+        raise DataError(f"gt must be a square (N, N) matrix, got shape {array.shape}")
+    truth = _check_gt(array, array.shape[0])
+    revisiting = (truth & eligible_mask(truth.shape[0], min_gap)).any(axis=1)
+    runs: list[list[int]] = []
+    for frame in np.flatnonzero(revisiting).tolist():
+        if runs and frame - runs[-1][-1] - 1 <= max_gap:
+            runs[-1].append(frame)
+        else:
+            runs.append([frame])
+    return [RevisitEvent(run[0], run[-1], tuple(run)) for run in runs]
+
+
+@dataclass(frozen=True)
+class EventScores:
+    """Loop closures (a detector's own decisions) scored per closure, per revisit event and per frame."""
+
+    num_closures: int
+    num_false_closures: int  # closures (i, j) with gt[i, j] = 0
+    num_events: int
+    num_events_closed: int  # events with at least one true closure from one of their revisiting frames
+    num_revisiting_frames: int
+    num_revisiting_frames_closed: int  # revisiting frames with at least one true closure
+    max_gap: int
+
+    @property
+    def fraction_closed(self) -> float:
+        """Events closed / events (nan without events)."""
+        return self.num_events_closed / self.num_events if self.num_events else float("nan")
+
+    @property
+    def frame_recall(self) -> float:
+        """Revisiting frames with a true closure / revisiting frames (nan without revisiting frames)."""
+        return (self.num_revisiting_frames_closed / self.num_revisiting_frames if self.num_revisiting_frames
+                else float("nan"))
+
+
+def event_scores(closures: Sequence[tuple[int, int]], gt: np.ndarray, min_gap: int = 10,
+                 max_gap: int = DEFAULT_EVENT_GAP) -> EventScores:
+    """Score loop closures ``(query frame i, matched frame j)`` against a ground-truth loop matrix.
+
+    A closure is true when ``gt[i, j] = 1``, false otherwise. An event (:func:`revisit_events`)
+    is closed when at least one true closure starts at one of its revisiting frames: what a SLAM
+    backend needs, one correct constraint per revisit, rather than one per frame.
+    """
+    events = revisit_events(gt, min_gap, max_gap)
+    truth = np.asarray(gt).astype(bool)
+    num_frames = truth.shape[0]
+    true_queries: set[int] = set()
+    false = 0
+    for query, matched in closures:
+        if not (0 <= query < num_frames and 0 <= matched < num_frames):
+            raise DataError(f"closure {query} -> {matched} is outside the {num_frames} frames of the ground truth")
+        if truth[query, matched]:
+            true_queries.add(int(query))
+        else:
+            false += 1
+    revisiting = [frame for event in events for frame in event.frames]
+    return EventScores(
+        num_closures=len(closures),
+        num_false_closures=false,
+        num_events=len(events),
+        num_events_closed=sum(1 for event in events if true_queries.intersection(event.frames)),
+        num_revisiting_frames=len(revisiting),
+        num_revisiting_frames_closed=len(true_queries.intersection(revisiting)),
+        max_gap=int(max_gap),
     )

@@ -1,4 +1,9 @@
-"""fabmap_node: ``aefabmap/words`` -> ``loop_closures`` and ``place_posteriors`` (FAB-MAP 2).
+"""fabmap_node: ``aefabmap/words`` -> ``loop_closure_candidates`` and ``place_posteriors`` (FAB-MAP 2).
+
+Its loop closures are FAB-MAP's raw decisions (``inliers`` -1: not verified) on
+``loop_closure_candidates``; verifier_node checks them geometrically and publishes those that pass
+on ``loop_closures``. Without a verifier, remap ``loop_closure_candidates:=loop_closures``
+(``aefabmap_launch --no-verify``, ``verify:=false`` in the launch file).
 
 Keeps the map of places; saves it atomically every ``save_period_s`` (when it changed) and on
 shutdown, and reloads it on start, so a restart loses no saved place. A map made with another
@@ -68,7 +73,7 @@ class FabMapNode(Node):
         self.last_stamp_ns = self.recognizer.place_stamp_ns(places - 1) if places else -1
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
-        self.loop_publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
+        self.loop_publisher = self.create_publisher(LoopClosure, "loop_closure_candidates", RESULT_QOS)
         self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.get_logger().info(
@@ -96,9 +101,9 @@ class FabMapNode(Node):
         loop_closure = recognition_to_loop_closure(recognition, message.header)
         if loop_closure is not None:
             self.loop_publisher.publish(loop_closure)
-            self.counter.ok("loop_closures")
+            self.counter.ok("loop_closure_candidates")
             self.get_logger().info(
-                f"loop closure: query {recognition.query_id} -> place {loop_closure.matched_place_id} "
+                f"loop closure candidate: query {recognition.query_id} -> place {loop_closure.matched_place_id} "
                 f"(p={loop_closure.probability:.4f})"
             )
         self.counter.ok()

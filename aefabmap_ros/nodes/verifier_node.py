@@ -1,11 +1,10 @@
-"""verifier_node: ``loop_closures`` -> ``verified_loop_closures`` (geometric verification).
+"""verifier_node: ``loop_closure_candidates`` -> ``loop_closures`` (geometric verification).
 
 Keeps the features of recent frames (``aefabmap/features``, by image stamp). For every loop
-closure from fabmap_node it matches the query image's features against the matched place's and
-republishes the closure, with its ``inliers`` count filled in, when enough matches fit one
-fundamental matrix (``min_inliers``); otherwise it is counted and logged as rejected. A SLAM
-backend that cannot afford a false loop subscribes to ``verified_loop_closures`` instead of
-``loop_closures``.
+closure candidate from fabmap_node it matches the query image's features against the matched
+place's and publishes the closure on ``loop_closures``, with its ``inliers`` count filled in, when
+enough matches fit one fundamental matrix (``min_inliers``); otherwise it is counted and logged as
+rejected. ``loop_closures`` is what a SLAM backend subscribes to: every message on it passed.
 
 Re-ranking (``candidates`` > 1, see core/verification.py): once the matched place is accepted, the
 query's other top candidates from its ``place_posteriors`` message are verified too, and the
@@ -101,9 +100,9 @@ class VerifierNode(Node):
         self.rerank = self.config.candidates > 1
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
-        self.publisher = self.create_publisher(LoopClosure, "verified_loop_closures", RESULT_QOS)
+        self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
         self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
-        self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
         if self.rerank:
             self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
         self.store_saver = PeriodicSave(

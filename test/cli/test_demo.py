@@ -52,3 +52,23 @@ def test_stop_leaves_a_finished_child_alone() -> None:
     process.wait()
     _stop(process)
     assert process.returncode == 0
+
+
+def test_closure_printer_summary_counts_published_false_and_events() -> None:
+    """The online summary, by hand: gt of 30 frames, min gap 5; events 10-12 and 20-21."""
+    import numpy as np
+
+    from aefabmap_ros.cli.demo import ClosurePrinter
+
+    gt = np.zeros((30, 30), np.uint8)
+    for query, place in ((10, 1), (11, 2), (12, 3), (20, 4), (21, 5)):
+        gt[query, place] = 1
+    printer = ClosurePrinter.__new__(ClosurePrinter)  # no ROS: only the bookkeeping
+    printer._gt = gt
+    printer.posteriors = 30
+    printer.closures = [(11, 2, True), (25, 0, False)]
+    printer.candidates = [(11, 2, True), (12, 9, False), (25, 0, False)]
+    assert printer.summary(min_gap=5).splitlines() == [
+        "    2 loop closures published on /loop_closures (verified), 1 false; 1 of 2 revisit events closed",
+        "    3 raw FAB-MAP candidates on /loop_closure_candidates, 2 false; 30 posteriors",
+    ]

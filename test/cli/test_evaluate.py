@@ -2,6 +2,7 @@
 every bad input (ERROR: ..., exit 1)."""
 
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -258,9 +259,12 @@ def test_error_unknown_config_key(base, tmp_path, capsys):
 # ------------------------------------------------------------------------------------------ recordings
 
 
+RecordedClosure = tuple[int, int, float] | tuple[int, int, float, int]  # query, place, probability[, inliers]
+
+
 def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
-                    closures: list[tuple[int, int, float]],
-                    verified: list[tuple[int, int, float]] | None = None) -> None:
+                    closures: Mapping[str, Sequence[RecordedClosure]]) -> None:
+    """A recording with ``/place_posteriors`` and one LoopClosure topic per key of ``closures``."""
     from aefabmap_ros.io import bags
 
     types = bags.get_typestore().types
@@ -268,9 +272,8 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
     period = 100_000_000
     with bags.BagWriter(path) as writer:
         writer.add_topic("/place_posteriors", "aefabmap_msgs/msg/PlacePosterior")
-        writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
-        if verified is not None:
-            writer.add_topic("/verified_loop_closures", "aefabmap_msgs/msg/LoopClosure")
+        for topic in closures:
+            writer.add_topic(topic, "aefabmap_msgs/msg/LoopClosure")
         for query, places, probabilities in posteriors:
             message = types["aefabmap_msgs/msg/PlacePosterior"](
                 header=bags.make_header(start + query * period), query_id=query, assigned_place_id=query,
@@ -281,12 +284,12 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                 log_likelihoods=np.zeros(len(places), dtype=np.float64),
             )
             writer.write("/place_posteriors", start + query * period, message)
-        for topic, entries in (("/loop_closures", closures), ("/verified_loop_closures", verified or [])):
-            for query, place, probability in entries:
+        for topic, entries in closures.items():
+            for query, place, probability, *inliers in entries:
                 message = types["aefabmap_msgs/msg/LoopClosure"](
                     header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
                     matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
-                    probability=probability, log_likelihood=0.0, inliers=-1,
+                    probability=probability, log_likelihood=0.0, inliers=inliers[0] if inliers else -1,
                 )
                 writer.write(topic, start + query * period, message)
 
@@ -295,7 +298,7 @@ def test_recording_metrics(tmp_path, capsys):
     frames = 20
     gt = np.zeros((frames, frames), np.uint8)
     for i in range(12, 20):
-        gt[i, i - 12] = 1  # frames 12..19 revisit 0..7
+        gt[i, i - 12] = 1  # frames 12..19 revisit 0..7: one revisit event of 8 frames
     posteriors = []
     expected = np.zeros((frames, frames))
     rng = np.random.default_rng(5)
@@ -310,15 +313,16 @@ def test_recording_metrics(tmp_path, capsys):
             probabilities.append(0.98)
         expected[i, places] = probabilities
         posteriors.append((i, places, probabilities))
-    closures = [(12, 0, 0.999), (16, 4, 0.999), (18, 2, 0.9995)]  # the last one is wrong
+    candidates = [(12, 0, 0.999), (16, 4, 0.999), (18, 2, 0.9995)]  # the last one is wrong
     expected[18, 2] = 0.9995
-    verified = [(12, 0, 0.999)]  # the verifier passed one true closure and held back the other two
-    write_recording(tmp_path / "run", posteriors, closures, verified)
+    published = [(12, 0, 0.999, 57)]  # the verifier passed one true closure and held back the other two
+    write_recording(tmp_path / "run", posteriors, {"/loop_closure_candidates": candidates,
+                                                   "/loop_closures": published})
     np.savez(tmp_path / "gt.npz", gt=gt)
     assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--threshold", "0.99",
                  "--out", str(tmp_path / "out"), "--quiet"]) == 0
     printed = capsys.readouterr().out
-    assert "| recording |" in printed and "3 loop closures" in printed
+    assert "| recording |" in printed
     results = read_results(tmp_path / "out")
     reference = evaluate_scores(expected, gt, 10, 0.99)
     entry = results["methods"][0]
@@ -330,14 +334,72 @@ def test_recording_metrics(tmp_path, capsys):
     assert entry["accuracy_at_threshold"] == pytest.approx(0.75)
     assert entry["recall_at_threshold"] == pytest.approx(3 / 8)
     assert entry["recall_at_100_precision"] == 0.0  # the top-scoring proposal (18 -> 2) is wrong
-    assert results["recorded_loop_closures_precision"] == pytest.approx(2 / 3)
-    assert results["recorded_loop_closures_recall"] == pytest.approx(2 / 8)
-    assert results["loop_closures"] == 3 and results["place_posteriors"] == frames
-    assert results["verified_loop_closures"] == 1
-    assert results["verified_loop_closures_precision"] == 1.0
-    assert results["verified_loop_closures_recall"] == pytest.approx(1 / 8)
-    assert "After geometric verification (1 verified_loop_closures): precision 1.000" in printed
+    assert results["place_posteriors"] == frames and results["event_gap_frames"] == 3
+    raw, verified = results["closures"]
+    # Candidates: 12 -> 0 and 16 -> 4 true, 18 -> 2 false; the one event (12..19) closed; frames 12, 16 of 8.
+    assert raw == {"role": "FAB-MAP candidates", "topic": "loop_closure_candidates", "closures": 3, "verified": 0,
+                   "false_closures": 1, "precision": pytest.approx(2 / 3), "revisit_events": 1, "events_closed": 1,
+                   "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 2,
+                   "recall_revisiting_frames": 0.25}
+    assert verified == {"role": "published", "topic": "loop_closures", "closures": 1, "verified": 1,
+                        "false_closures": 0, "precision": 1.0, "revisit_events": 1, "events_closed": 1,
+                        "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 1,
+                        "recall_revisiting_frames": 0.125}
+    assert "| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) |" in printed
+    assert "| FAB-MAP candidates | `loop_closure_candidates` | 3 | 0 | 1 | 0.667 | 1 | 1 | 1.000 | 0.250 (2/8) |" \
+        in (tmp_path / "out" / "results.md").read_text()
     assert (tmp_path / "out" / "scores_recording.png").is_file()
+
+
+def _three_event_gt() -> np.ndarray:
+    """40 frames, min gap 10. Event A: 12, 13, 14, 15, 17 (one frame missing: bridged); event B: 25..28
+    (each revisits two frames 19-20 back); event C: 35 (revisits 20). 10 revisiting frames."""
+    gt = np.zeros((40, 40), np.uint8)
+    for query, place in ((12, 0), (13, 1), (14, 2), (15, 3), (17, 5), (35, 20)):
+        gt[query, place] = 1
+    for query in range(25, 29):
+        gt[query, [query - 20, query - 19]] = 1
+    return gt
+
+
+def test_recording_events_and_an_older_recording(tmp_path, capsys):
+    """An older recording (verified_loop_closures): its loop_closures are the candidates, its
+    verified_loop_closures the published closures; both scored per revisit event, by hand."""
+    np.savez(tmp_path / "gt.npz", gt=_three_event_gt())
+    raw = [(13, 1, 0.999), (17, 5, 0.995), (26, 6, 0.999), (30, 3, 0.999), (35, 21, 0.999)]  # last two false
+    verified = [(13, 1, 0.999, 40), (26, 7, 0.999, 33)]  # 26 moved to 7, also a true revisit
+    write_recording(tmp_path / "old", [(i, [], []) for i in range(40)],
+                    {"/loop_closures": raw, "/verified_loop_closures": verified})
+    assert main(["--recording", str(tmp_path / "old"), "--gt", str(tmp_path / "gt.npz"),
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert "An older recording" in capsys.readouterr().out
+    candidates, published = read_results(tmp_path / "out")["closures"]
+    assert (candidates["role"], candidates["topic"], published["role"], published["topic"]) == (
+        "FAB-MAP candidates", "loop_closures", "published", "verified_loop_closures")
+    # Candidates: A closed (13, 17), B closed (26), C not (35 -> 21 is false); frames 13, 17, 26 of 10.
+    assert (candidates["closures"], candidates["false_closures"], candidates["precision"]) == (5, 2, 0.6)
+    assert (candidates["revisit_events"], candidates["events_closed"]) == (3, 2)
+    assert (candidates["revisiting_frames"], candidates["revisiting_frames_closed"]) == (10, 3)
+    # Published: A (13) and B (26) closed, nothing false; frames 13, 26.
+    assert (published["closures"], published["verified"], published["false_closures"]) == (2, 2, 0)
+    assert (published["events_closed"], published["fraction_of_events_closed"]) == (2, pytest.approx(2 / 3))
+    assert published["recall_revisiting_frames"] == pytest.approx(0.2)
+
+    # Verification off (aefabmap_launch --no-verify): only loop_closures, FAB-MAP's own, inliers -1.
+    write_recording(tmp_path / "raw", [(i, [], []) for i in range(40)], {"/loop_closures": raw})
+    assert main(["--recording", str(tmp_path / "raw"), "--gt", str(tmp_path / "gt.npz"),
+                 "--out", str(tmp_path / "out_raw"), "--quiet"]) == 0
+    (only,) = read_results(tmp_path / "out_raw")["closures"]
+    assert (only["role"], only["closures"], only["verified"], only["events_closed"]) == ("published", 5, 0, 2)
+
+
+def test_recording_of_two_layouts_at_once_is_refused(tmp_path, capsys):
+    np.savez(tmp_path / "gt.npz", gt=_three_event_gt())
+    write_recording(tmp_path / "mixed", [(13, [], [])], {"/loop_closure_candidates": [(13, 1, 0.999)],
+                                                         "/verified_loop_closures": [(13, 1, 0.999, 40)]})
+    err = run_error(["--recording", str(tmp_path / "mixed"), "--gt", str(tmp_path / "gt.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "has both verified_loop_closures" in err and "loop_closure_candidates" in err
 
 
 def test_recording_without_the_topics(tmp_path, capsys):
@@ -347,11 +409,11 @@ def test_recording_without_the_topics(tmp_path, capsys):
     np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
     err = run_error(["--recording", str(tmp_path / "images"), "--gt", str(tmp_path / "gt.npz"),
                      "--out", str(tmp_path / "out")], capsys)
-    assert "neither place_posteriors nor loop_closures" in err
+    assert "has none of place_posteriors, loop_closures, loop_closure_candidates" in err
 
 
 def test_recording_with_query_beyond_the_ground_truth(tmp_path, capsys):
-    write_recording(tmp_path / "run", [(0, [], []), (5, [0], [0.5])], [])
+    write_recording(tmp_path / "run", [(0, [], []), (5, [0], [0.5])], {})
     np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
     err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
                      "--out", str(tmp_path / "out")], capsys)

@@ -61,21 +61,33 @@ def test_launch_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
 def test_launch_commands_pass_parameters_to_every_node(tmp_path: Path) -> None:
     args = launch.build_parser().parse_args(["--model", str(tmp_path), "--map", "m.npz", "--image-topic", "/cam"])
     commands = launch.node_commands(args)
-    assert [c[2] for c in commands] == [f"aefabmap_ros.nodes.{n}" for n in launch.NODES]
-    for command in commands:
+    assert [c[2] for c in commands] == [f"aefabmap_ros.nodes.{n}" for n in (*launch.NODES, "verifier_node")]
+    for command in commands[:3]:
         assert f"model_dir:={tmp_path}" in command and "--params-file" in command
     assert "image:=/cam" in commands[0] and "map_file:=m.npz" in commands[2]
     single = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), "--pipeline"]))
-    assert len(single) == 1 and single[0][2] == "aefabmap_ros.nodes.pipeline"
+    assert [c[2] for c in single] == ["aefabmap_ros.nodes.pipeline", "aefabmap_ros.nodes.verifier_node"]
 
 
-def test_launch_verify_adds_the_verifier_node_in_both_modes(tmp_path: Path) -> None:
-    for extra in ([], ["--pipeline"]):
-        commands = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), "--verify",
-                                                                           *extra]))
+def test_launch_verifies_by_default_in_both_modes(tmp_path: Path) -> None:
+    """The verifier runs unless --no-verify; fabmap_node's candidates reach loop_closures only through it."""
+    for extra in ([], ["--pipeline"], ["--verify"]):  # --verify: the default, still accepted
+        commands = launch.node_commands(launch.build_parser().parse_args(["--model", str(tmp_path), *extra]))
         assert commands[-1][2] == "aefabmap_ros.nodes.verifier_node" and "--params-file" in commands[-1]
-        assert len(commands) == (2 if extra else 4)
+        assert len(commands) == (2 if extra == ["--pipeline"] else 4)
         assert not any("store_dir" in arg for arg in commands[-1])  # no map: the store stays in memory
+        assert not any("loop_closure_candidates:=loop_closures" in c for c in commands)
     with_map = launch.node_commands(launch.build_parser().parse_args(
-        ["--model", str(tmp_path), "--verify", "--map", str(tmp_path / "office.npz")]))
+        ["--model", str(tmp_path), "--map", str(tmp_path / "office.npz")]))
     assert f"store_dir:={tmp_path / 'office.features'}" in with_map[-1]
+
+
+def test_launch_no_verify_remaps_the_candidates_onto_loop_closures(tmp_path: Path) -> None:
+    for extra, fabmap_module in (([], "aefabmap_ros.nodes.fabmap_node"),
+                                 (["--pipeline"], "aefabmap_ros.nodes.pipeline")):
+        commands = launch.node_commands(launch.build_parser().parse_args(
+            ["--model", str(tmp_path), "--no-verify", "--map", str(tmp_path / "m.npz"), *extra]))
+        assert not any(c[2] == "aefabmap_ros.nodes.verifier_node" for c in commands)
+        (fabmap,) = [c for c in commands if c[2] == fabmap_module]
+        remap = fabmap.index("loop_closure_candidates:=loop_closures")
+        assert fabmap[remap - 1] == "-r"

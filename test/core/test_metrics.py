@@ -7,7 +7,7 @@ import pytest
 from sklearn.metrics import average_precision_score
 
 from aefabmap_ros.core.errors import ConfigError, DataError
-from aefabmap_ros.core.metrics import best_candidates, eligible_mask, evaluate_scores
+from aefabmap_ros.core.metrics import best_candidates, eligible_mask, evaluate_scores, event_scores, revisit_events
 
 N = 30
 LAG = 20  # frame i >= LAG revisits frame i - LAG
@@ -187,3 +187,67 @@ def test_errors(scores, gt, kwargs, error, match):
 def test_best_candidates_rejects_bad_gap():
     with pytest.raises(ConfigError, match=r"min_gap.*-1"):
         best_candidates(np.zeros((3, 3)), min_gap=-1)
+
+
+# ------------------------------------------------------------------------------ revisit events
+
+
+def _event_gt() -> np.ndarray:
+    """30 frames, min gap 5. Revisiting: 10, 11, 12, 14 | 20, 21 | 27 (with gaps 1, 5, 5 between).
+    Frames 8 and 25 have a 1 only among recent frames (not eligible): not revisiting."""
+    gt = np.zeros((30, 30), np.uint8)
+    for query, place in ((10, 2), (11, 3), (12, 4), (14, 6), (20, 1), (21, 2), (27, 8), (8, 5), (25, 24)):
+        gt[query, place] = 1
+    return gt
+
+
+def test_revisit_events_by_hand() -> None:
+    gt = _event_gt()
+    events = revisit_events(gt, min_gap=5, max_gap=3)
+    assert [(e.first_frame, e.last_frame, e.frames) for e in events] == [
+        (10, 14, (10, 11, 12, 14)), (20, 21, (20, 21)), (27, 27, (27,))]
+    strict = revisit_events(gt, min_gap=5, max_gap=0)
+    assert [(e.first_frame, e.last_frame) for e in strict] == [(10, 12), (14, 14), (20, 21), (27, 27)]
+    assert [(e.first_frame, e.last_frame) for e in revisit_events(gt, min_gap=5, max_gap=5)] == [(10, 27)]
+    # With min gap 3, frame 8's revisit of 5 becomes eligible: an event of its own (1 frame before 10).
+    assert [(e.first_frame, e.last_frame) for e in revisit_events(gt, min_gap=3, max_gap=0)][:2] == [(8, 8), (10, 12)]
+    assert revisit_events(np.zeros((4, 4), np.uint8), min_gap=1) == []
+
+
+def test_event_scores_by_hand() -> None:
+    gt = _event_gt()
+    closures = [
+        (11, 3),  # true: closes event 10-14 (frame 11)
+        (12, 0),  # false
+        (14, 6),  # true: same event, frame 14
+        (20, 9),  # false: event 20-21 stays open
+        (8, 5),  # true by gt (a recent frame), not false; frame 8 is no revisiting frame
+        (25, 0),  # false
+        (11, 3),  # the same true closure again: frame 11 counts once
+    ]
+    scores = event_scores(closures, gt, min_gap=5, max_gap=3)
+    assert (scores.num_closures, scores.num_false_closures) == (7, 3)
+    assert (scores.num_events, scores.num_events_closed) == (3, 1)
+    assert scores.fraction_closed == pytest.approx(1 / 3)
+    assert (scores.num_revisiting_frames, scores.num_revisiting_frames_closed) == (7, 2)
+    assert scores.frame_recall == pytest.approx(2 / 7)
+    strict = event_scores(closures, gt, min_gap=5, max_gap=0)  # 10-12 and 14 are two events, both closed
+    assert (strict.num_events, strict.num_events_closed, strict.max_gap) == (4, 2, 0)
+    assert event_scores(closures, gt, min_gap=5, max_gap=5).fraction_closed == 1.0
+    nothing = event_scores([], gt, min_gap=5)
+    assert (nothing.num_closures, nothing.num_events_closed, nothing.frame_recall) == (0, 0, 0.0)
+    no_events = event_scores([(3, 0)], np.zeros((4, 4), np.uint8), min_gap=1)
+    assert no_events.num_false_closures == 1 and math.isnan(no_events.fraction_closed)
+    assert math.isnan(no_events.frame_recall)
+
+
+def test_event_scores_errors() -> None:
+    gt = _event_gt()
+    with pytest.raises(DataError, match="closure 30 -> 2 is outside the 30 frames"):
+        event_scores([(30, 2)], gt, min_gap=5)
+    with pytest.raises(ConfigError, match="max_gap must be an integer >= 0"):
+        revisit_events(gt, min_gap=5, max_gap=-1)
+    with pytest.raises(ConfigError, match="min_gap"):
+        revisit_events(gt, min_gap=0)
+    with pytest.raises(DataError, match="only 0 and 1"):
+        revisit_events(gt * 2, min_gap=5)

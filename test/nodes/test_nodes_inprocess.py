@@ -128,6 +128,8 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
                                                   map_file=str(tmp_path / "map.npz")))
     try:
         posteriors = Captured(node.posterior_publisher)
+        # FAB-MAP's own closures are candidates; only verifier_node (or a remap) publishes loop_closures.
+        assert node.loop_publisher.topic_name == "/loop_closure_candidates"
         vid = revisit_data.model_id
         node._on_words(_words([1, 5, 9], 10, vid))
         node._on_words(_words([1, 5, 9], 10, vid))  # same stamp again
@@ -213,6 +215,8 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
     _, unrelated, _ = _two_views(seed=22)
     node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1))  # no re-ranking: no posteriors
     try:
+        assert node.publisher.topic_name == "/loop_closures"
+        assert [s.topic_name for s in node.subscriptions] == ["/aefabmap/features", "/loop_closure_candidates"]
         verified = Captured(node.publisher)
         for sec, features in ((1, place), (2, unrelated), (3, query)):
             node._on_features(_features_message(features, sec))

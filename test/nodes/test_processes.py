@@ -21,6 +21,7 @@ from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.model import load_model
+from aefabmap_ros.core.verification import VerificationConfig
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
 from test.revisit_fixture import FRAMES_PER_PASS, RevisitData
 from test.ros_processes import LoggedProcess
@@ -52,29 +53,26 @@ def _replay(tmp_path: Path, bag: Path, name: str) -> None:
         assert "0 without an answer" in replay.log(), replay.log()
 
 
-Closure = tuple[int, int, float]  # (query stamp, matched stamp, probability)
+Closure = tuple[int, int, float, int]  # (query stamp, matched stamp, probability, inliers)
 
 
 def _closures(recording: Path, topic: str) -> list[Closure]:
-    return [(m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability))
+    return [(m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability), int(m.message.inliers))
             for m in read_messages(recording, [topic])]
 
 
-def _record_replay(tmp_path: Path, bag: Path, name: str, verified: list[Closure] | None = None) -> list[Closure]:
-    """Replay ``bag`` with a recorder running; the loop closures (and, given a list, the verified ones)."""
+def _record_replay(tmp_path: Path, bag: Path, name: str, closure_topics: tuple[str, ...]) -> dict[str, list[Closure]]:
+    """Replay ``bag`` with a recorder running; the loop closures recorded on each of ``closure_topics``."""
     recording = tmp_path / f"{name}_recording"
-    topics = ["loop_closures", "place_posteriors"] + (["verified_loop_closures"] if verified is not None else [])
     with LoggedProcess(tmp_path / f"{name}_record.log", "aefabmap_ros.cli.record", recording, "--topics",
-                       *topics, "--wait-publishers", "60") as recorder:
+                       *closure_topics, "place_posteriors", "--wait-publishers", "60") as recorder:
         recorder.wait_for_log("[record] recording", timeout_s=90)
         _replay(tmp_path, bag, name)
         time.sleep(1.0)  # the last closure's verification runs after its posterior was answered
         assert recorder.stop(signal.SIGINT) == 0, recorder.log()
     posteriors = list(read_messages(recording, ["place_posteriors"]))
     assert len(posteriors) > 0
-    if verified is not None:
-        verified += _closures(recording, "verified_loop_closures")
-    return _closures(recording, "loop_closures")
+    return {topic: _closures(recording, topic) for topic in closure_topics}
 
 
 def _frame_of(data: RevisitData, stamp_ns: int) -> int:
@@ -83,42 +81,56 @@ def _frame_of(data: RevisitData, stamp_ns: int) -> int:
     return index
 
 
-def _assert_true_revisits(data: RevisitData, closures: list[tuple[int, int, float]], minimum: int) -> None:
-    pairs = [(_frame_of(data, query), _frame_of(data, matched)) for query, matched, _ in closures]
+def _assert_true_revisits(data: RevisitData, closures: list[Closure], minimum: int) -> None:
+    pairs = [(_frame_of(data, query), _frame_of(data, matched)) for query, matched, *_ in closures]
     wrong = [(q, m) for q, m in pairs if not data.gt[q, m]]
     assert not wrong, f"loop closures that are not revisits (query frame, matched frame): {wrong}"
     assert len(pairs) >= minimum, f"only {len(pairs)} loop closures: {pairs}"
-    assert all(probability > 0.99 for _, _, probability in closures)
+    assert all(probability > 0.99 for _, _, probability, _ in closures)
 
 
-def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool,
-               verified: list[Closure] | None = None) -> list[Closure]:
+def _run_suite(tmp_path: Path, data: RevisitData, pipeline: bool, verify: bool) -> dict[str, list[Closure]]:
     name = "pipeline" if pipeline else "nodes"
     launch_args: list[str | Path] = ["--model", data.model_dir, "--params", _params_file(tmp_path)]
     if pipeline:
         launch_args.append("--pipeline")
-    if verified is not None:
-        launch_args.append("--verify")
+    if not verify:
+        launch_args.append("--no-verify")
+    # Without the verifier nothing publishes loop_closure_candidates (remapped onto loop_closures).
+    topics = ("loop_closures", "loop_closure_candidates") if verify else ("loop_closures",)
     with LoggedProcess(tmp_path / f"{name}_launch.log", "aefabmap_ros.cli.launch", *launch_args) as suite:
-        closures = _record_replay(tmp_path, data.bag, name, verified)
+        if verify:  # the verifier must hear every frame's features: a place it never saw cannot be verified
+            suite.wait_for_log("verifying loop closures", timeout_s=90)
+        closures = _record_replay(tmp_path, data.bag, name, topics)
         assert suite.stop(signal.SIGINT) == 0, suite.log()
     assert "fabmap_node: 32 places" in suite.log(), suite.log()[-3000:]
+    assert ("verifier_node:" in suite.log()) == verify, suite.log()[-3000:]
     return closures
 
 
-def test_nodes_publish_true_loop_closures_and_pipeline_agrees(tmp_path: Path, revisit_data: RevisitData) -> None:
-    """Separate node processes close the revisits correctly; the one-process pipeline gives the same, and
-    verifier_node (--verify) passes the true revisits on to verified_loop_closures unchanged."""
+def test_loop_closures_are_verified_by_default_and_raw_with_no_verify(tmp_path: Path,
+                                                                        revisit_data: RevisitData) -> None:
+    """Default launch (separate processes): FAB-MAP's raw closures on loop_closure_candidates, and on
+    loop_closures only those verifier_node passed, with their inliers. --no-verify (one-process
+    pipeline): the raw candidates themselves on loop_closures, inliers -1 -- the same as the default
+    run's candidates, so the pipeline agrees with the separate nodes."""
     (tmp_path / "separate").mkdir()
     (tmp_path / "together").mkdir()
-    separate = _run_suite(tmp_path / "separate", revisit_data, pipeline=False)
-    _assert_true_revisits(revisit_data, separate, minimum=FRAMES_PER_PASS * 3 // 4)
-    verified: list[Closure] = []
-    together = _run_suite(tmp_path / "together", revisit_data, pipeline=True, verified=verified)
-    assert [(q, m) for q, m, _ in together] == [(q, m) for q, m, _ in separate]
-    np.testing.assert_allclose([p for *_, p in together], [p for *_, p in separate], rtol=1e-12)
-    assert set(verified) <= set(together)  # republished as they came, never invented
-    assert len(verified) >= len(together) * 3 // 4, (len(verified), len(together))
+    verified_run = _run_suite(tmp_path / "separate", revisit_data, pipeline=False, verify=True)
+    candidates, published = verified_run["loop_closure_candidates"], verified_run["loop_closures"]
+    _assert_true_revisits(revisit_data, candidates, minimum=FRAMES_PER_PASS * 3 // 4)
+    assert all(inliers == -1 for *_, inliers in candidates)
+    min_inliers = VerificationConfig().min_inliers
+    assert all(inliers >= min_inliers for *_, inliers in published), published
+    _assert_true_revisits(revisit_data, published, minimum=len(candidates) * 3 // 4)
+    by_query = {query: probability for query, _, probability, _ in candidates}
+    # Each published closure is a candidate's (its matched place may move to a better-verified one).
+    assert all(by_query.get(query) == probability for query, _, probability, _ in published), published
+
+    raw_run = _run_suite(tmp_path / "together", revisit_data, pipeline=True, verify=False)
+    raw = raw_run["loop_closures"]
+    assert [(q, m, i) for q, m, _, i in raw] == [(q, m, i) for q, m, _, i in candidates]
+    np.testing.assert_allclose([p for _, _, p, _ in raw], [p for _, _, p, _ in candidates], rtol=1e-12)
 
 
 def _wait_until(condition: Callable[[], bool], timeout_s: float) -> None:
@@ -155,10 +167,11 @@ def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path,
 
         with LoggedProcess(tmp_path / "fabmap2.log", "aefabmap_ros.nodes.fabmap_node", *fabmap_args) as fabmap:
             fabmap.wait_for_log(f"reloaded {FRAMES_PER_PASS} places", timeout_s=60)
-            closures = _record_replay(tmp_path, revisit_data.second_pass_bag, "second")
+            closures = _record_replay(tmp_path, revisit_data.second_pass_bag, "second",
+                                      ("loop_closure_candidates",))["loop_closure_candidates"]
             assert fabmap.stop(signal.SIGINT) == 0, fabmap.log()
         # The second pass closes loops with places made before the restart.
         _assert_true_revisits(revisit_data, closures, minimum=FRAMES_PER_PASS * 3 // 4)
-        assert all(_frame_of(revisit_data, matched) < FRAMES_PER_PASS for _, matched, _ in closures)
+        assert all(_frame_of(revisit_data, matched) < FRAMES_PER_PASS for _, matched, *_ in closures)
         assert _places_in(map_path, revisit_data) == 2 * FRAMES_PER_PASS
         assert features.stop() == 0 and quantizer.stop() == 0
