@@ -145,6 +145,7 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         assert counts["dropped_DataError"] == 1
         assert counts["frames_below_min_words"] == 1
         assert [p.query_id for p in posteriors.messages] == [0, 2]
+        assert [p.current_place_id for p in posteriors.messages] == [0, 1]  # each frame's own place
         assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
         node.close()  # saves the map
         assert (tmp_path / "map.npz").exists()
