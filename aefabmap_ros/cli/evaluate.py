@@ -34,8 +34,15 @@ inliers. Of the accepted ones, the candidate with the most inliers is the query'
 carries the score of the best-ranked accepted one (none accepted: no candidate). verifier_node
 does the same online for every published loop closure.
 
-Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png and OUT/scores_<method>.png (score
-matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
+Every FAB-MAP method also runs the nodes' decision chain on the sequence with its own stamps (--rate
+for a folder): the config's fabmap section as fabmap_node uses it (places from dense video, recent
+places excluded by time, temporal consistency), verified as verifier_node does when --verify is
+given. Its table says what a backend would receive on /loop_closures: closures, false ones, revisit
+events closed and recall over revisiting frames.
+
+Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png, OUT/reliability.png (each FAB-MAP
+posterior's reliability diagram: how often the best candidate is right per posterior bin) and
+OUT/scores_<method>.png (score matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
 vocabulary_kmeans, vocabulary_autoencoder (per-kind overrides), training, fabmap, evaluation,
 verification.
 """
@@ -71,6 +78,7 @@ from aefabmap_ros.core.evaluation import (
     leave_one_out_samples,
     load_gt_npz,
     methods_of_kind,
+    online_markdown,
     parse_methods,
     result_to_dict,
     results_markdown,
@@ -88,7 +96,7 @@ from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, cac
 from aefabmap_ros.core.vocabulary import VocabularyConfig
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.config_files import build_config, read_sections
-from aefabmap_ros.io.plots import Curve, plot_pr_curves, plot_score_matrix
+from aefabmap_ros.io.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
 from aefabmap_ros.io.sources import ImageSource
 
 SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencoder", "training", "fabmap",
@@ -120,6 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     test.add_argument("--images", type=Path, help="folder of test images (natural sort order)")
     test.add_argument("--bag", type=Path, help="rosbag2 bag holding the test images")
     test.add_argument("--topic", default="/image", help="image topic of --bag (default: /image)")
+    test.add_argument("--rate", type=float, default=10.0,
+                      help="frame rate of --images in Hz: their stamps, which the online chain's time windows "
+                      "use (default: 10; a bag has its own stamps)")
     truth = parser.add_argument_group("ground truth (a loop matrix, or poses and a rule)")
     truth.add_argument("--gt", type=Path, help=".npz with key 'gt': (N, N) 0/1, gt[i, j] = 1: frame i revisits j")
     truth.add_argument("--poses", type=Path, help="KITTI pose file (one 3x4 camera-to-world matrix per line)")
@@ -211,9 +222,13 @@ def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header
         path = out / f"scores_{slug}.png"
         plot_score_matrix(result.scores, gt, min_gap, path, f"{result.title} scores")
         written.append(path)
+    diagrams = [(r.title, r.reliability) for r in results if r.reliability is not None]
+    if diagrams:
+        plot_reliability(diagrams, out / "reliability.png", title=f"Reliability: {header['test']}")
+        written.append(out / "reliability.png")
     lines = [f"# Loop-closure evaluation: {header['test']}", ""]
     lines += [f"- {key}: {value}" for key, value in header.items() if key != "test"]
-    lines += ["", results_markdown(results)]
+    lines += ["", results_markdown(results) + online_markdown(results)]
     if extra_markdown:
         lines += [extra_markdown]
     atomic_write_text(out / "results.md", "\n".join(lines))
@@ -231,8 +246,10 @@ def write_results(out: Path, results: list[MethodResult], gt: np.ndarray, header
 def test_source(args: argparse.Namespace) -> ImageSource:
     if (args.images is None) == (args.bag is None):
         raise ConfigError("give the test sequence as --images DIR or as --bag BAG (with --topic), exactly one")
-    source = ImageSource(folder=args.images) if args.images is not None else ImageSource(bag=args.bag,
-                                                                                           topic=args.topic)
+    if not (np.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError(f"--rate must be a positive frame rate in Hz, got {args.rate}")
+    source = (ImageSource(folder=args.images, folder_period_ns=round(1e9 / args.rate)) if args.images is not None
+              else ImageSource(bag=args.bag, topic=args.topic))
     source.check()
     return source
 
@@ -381,6 +398,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
             model, directory = run.trained_model(kind, sequences, provenance, fingerprint)
             entries.append(("", model, directory, exclude))
 
+    stamps_ns = source.stamps_ns()
     results: list[MethodResult] = []
     features_by_config: dict[str, list[Features]] = {}
     verifiers: dict[str, PairVerifier] = {}  # one per feature config: methods share the pairs they verify
@@ -399,7 +417,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
                                       on_frame=progress.tick, label=label, model_path=str(path),
-                                      verification=verification)
+                                      verification=verification, stamps_ns=stamps_ns)
     order = {name: index for index, name in enumerate(METHODS)}
     results.sort(key=lambda r: (order[r.name], r.label, r.verified))
     header = {
@@ -519,7 +537,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
     header["wall_seconds"] = round(time.monotonic() - started, 1)
     header["stage_seconds"] = {k: round(v, 1) for k, v in run.seconds.items()}
     written = write_results(args.out, results, gt, header, extra, extra_json)
-    print(results_markdown(results), end="")
+    print(results_markdown(results) + online_markdown(results), end="")
     if extra:
         print(extra, end="")
     print(f"wall time {header['wall_seconds']:.1f} s; written: " + ", ".join(str(p) for p in written))

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from aefabmap_ros.core.calibration import Reliability, score_reliability
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
@@ -66,6 +67,7 @@ from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.metrics import DEFAULT_EVENT_GAP, EventScores, LoopMetrics, evaluate_scores, event_scores
 from aefabmap_ros.core.model import Model
+from aefabmap_ros.core.online_chain import run_online_chain
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.tfidf import tfidf_score_matrix
 from aefabmap_ros.core.training import count_bow
@@ -234,6 +236,16 @@ def tfidf_matrix(counts: sp.csr_matrix, idf_source: sp.csr_matrix | None) -> np.
 # ------------------------------------------------------------------------------------------ methods
 
 
+@dataclass(frozen=True)
+class OnlineScores:
+    """The nodes' decision chain run on the test sequence (``core.online_chain``), scored per revisit event."""
+
+    candidates: EventScores  # fabmap_node's loop_closure_candidates
+    published: EventScores  # /loop_closures: verified (with --verify), else the candidates
+    verified: bool
+    num_places: int
+
+
 @dataclass
 class MethodResult:
     """One method's score matrix and metrics."""
@@ -250,6 +262,9 @@ class MethodResult:
     label: str = ""  # distinguishes several models of one kind (their directory names)
     quantize_seconds: float = 0.0  # quantizing the test features (shared by the model's methods)
     verified: bool = False  # scores after geometric verification of the candidates
+    # FAB-MAP only: calibration of the best candidate's posterior, and the nodes' chain on the sequence
+    reliability: Reliability | None = None
+    online: OnlineScores | None = None
 
     @property
     def title(self) -> str:
@@ -283,11 +298,15 @@ def evaluate_model(
     label: str = "",
     model_path: str = "",
     verification: tuple[VerificationConfig, PairVerifier] | None = None,
+    stamps_ns: np.ndarray | None = None,
 ) -> list[MethodResult]:
     """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
 
     With ``verification`` (its config and a verifier of the test features' pairs), every method also
-    gets a "+ GV" result: its scores after geometric verification (see ``core.verification``).
+    gets a "+ GV" result: its scores after geometric verification (see ``core.verification``). With
+    the frames' ``stamps_ns``, every FAB-MAP method also runs the nodes' decision chain with
+    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, verification when
+    given): its ``online`` scores.
     """
     kind = model.quantizer.kind
     for name in methods:
@@ -304,12 +323,16 @@ def evaluate_model(
     for name in methods:
         started = time.monotonic()
         new_place = None
+        online = None
         if METHODS[name][1] == "fabmap":
             scores, new_place = fabmap_posterior_matrix(
                 counts, model_tree(model), model.new_place_samples, fabmap_config,
                 config.fabmap_exclusion_frames, exclude_samples, on_frame,
             )
             threshold = config.threshold
+            if stamps_ns is not None:
+                online = online_scores(model, counts, stamps_ns, features, gt, config.min_gap, fabmap_config,
+                                       None if verification is None else verification[0])
         else:
             scores = tfidf_matrix(counts, model.new_place_samples)
             threshold = config.bow_threshold
@@ -318,10 +341,26 @@ def evaluate_model(
             name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, model_id=model.model_id,
             scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
             new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
+            reliability=score_reliability(scores, gt, config.min_gap) if new_place is not None else None,
+            online=online,
         ))
         if verification is not None:
             results.append(verified_result(results[-1], verification, gt, config.min_gap))
     return results
+
+
+def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, features: Sequence[Features],
+                  gt: np.ndarray, min_gap: int, fabmap_config: FabMapConfig,
+                  verification: VerificationConfig | None) -> OnlineScores:
+    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event."""
+    chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
+                             features, verification)
+
+    def scored(closures: Sequence[Any]) -> EventScores:
+        return event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap)
+
+    return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
+                        chain.num_places)
 
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],
@@ -331,6 +370,7 @@ def verified_result(result: MethodResult, verification: tuple[VerificationConfig
     started = time.monotonic()
     scores = verified_scores(result.scores, verify, verification_config.candidates, min_gap)
     return replace(result, scores=scores, verified=True, seconds=result.seconds + time.monotonic() - started,
+                   reliability=None, online=None,
                    metrics=evaluate_scores(scores, gt, min_gap, result.metrics.threshold))
 
 
@@ -501,6 +541,35 @@ def results_markdown(results: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def online_markdown(results: Sequence[MethodResult]) -> str:
+    """The nodes' decision chain per FAB-MAP method: what a backend receives, per closure and revisit event."""
+    if all(r.online is None for r in results):
+        return ""
+    lines = ["", "Online chain (the nodes' defaults on this sequence's stamps; candidates: fabmap_node, "
+             "published: /loop_closures):", "",
+             "| method | places | candidates (false) | published (false) | events closed "
+             "| recall (revisiting frames) |",
+             "|---|---|---|---|---|---|"]
+    for result in results:
+        online = result.online
+        if online is None:
+            continue
+        c, p = online.candidates, online.published
+        lines.append(
+            f"| {result.title} | {online.num_places} | {c.num_closures} ({c.num_false_closures}) "
+            f"| {p.num_closures} ({p.num_false_closures}){'' if online.verified else ' unverified'} "
+            f"| {p.num_events_closed}/{p.num_events} | {_fmt(p.frame_recall)} "
+            f"({p.num_revisiting_frames_closed}/{p.num_revisiting_frames}) |")
+    return "\n".join(lines) + "\n"
+
+
+def _events_to_dict(events: EventScores) -> dict[str, Any]:
+    return {"closures": events.num_closures, "false_closures": events.num_false_closures,
+            "revisit_events": events.num_events, "events_closed": events.num_events_closed,
+            "revisiting_frames": events.num_revisiting_frames,
+            "revisiting_frames_closed": events.num_revisiting_frames_closed}
+
+
 def _jsonable_float(value: float) -> float | None:
     return None if np.isnan(value) else float(value)
 
@@ -531,6 +600,12 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
             "precision": m.pr_precision.tolist(),
             "recall": m.pr_recall.tolist(),
             "thresholds": m.pr_thresholds.tolist(),
+        },
+        "reliability": None if result.reliability is None else result.reliability.as_dict(),
+        "online_chain": None if result.online is None else {
+            "verified": result.online.verified, "places": result.online.num_places,
+            "candidates": _events_to_dict(result.online.candidates),
+            "published": _events_to_dict(result.online.published),
         },
     }
 

@@ -52,10 +52,13 @@ class ImageSource:
     bag: Path | None = None
     topic: str = "/image"
     folder: Path | None = None
+    folder_period_ns: int = FOLDER_PERIOD_NS  # a folder's frames are stamped index * this
 
     def __post_init__(self) -> None:
         if (self.bag is None) == (self.folder is None):
             raise DataError("an image source is either a bag (with a topic) or a folder, not both or neither")
+        if self.folder_period_ns <= 0:
+            raise DataError(f"folder_period_ns must be > 0, got {self.folder_period_ns}")
 
     @property
     def name(self) -> str:
@@ -86,7 +89,14 @@ class ImageSource:
         else:
             assert self.folder is not None
             for index, path in enumerate(folder_images(self.folder)):
-                yield index * FOLDER_PERIOD_NS, read_gray(path)
+                yield index * self.folder_period_ns, read_gray(path)
+
+    def stamps_ns(self) -> np.ndarray:
+        """(N,) int64 stamps of the frames, in sequence order (a bag's header stamps; no image decoded)."""
+        if self.bag is not None:
+            return np.array([m.stamp_ns for m in bags.read_messages(self.bag, [self.topic])], dtype=np.int64)
+        assert self.folder is not None
+        return np.arange(len(folder_images(self.folder)), dtype=np.int64) * self.folder_period_ns
 
     def __len__(self) -> int:
         if self.folder is not None:

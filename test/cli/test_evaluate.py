@@ -65,7 +65,18 @@ def check_outputs(out: Path, methods: list[str]) -> dict:
         curve = entry["pr_curve"]
         assert all(0 <= v <= 1 for v in curve["precision"] + curve["recall"])
         assert (out / entry["scores_plot"]).stat().st_size > 1000
+        fabmap = "FABMAP" in entry["method"] and not entry["geometric_verification"]
+        assert (entry["reliability"] is not None) == fabmap and (entry["online_chain"] is not None) == fabmap
+        if fabmap:
+            # Every query with an eligible, informative frame has a best candidate in one bin.
+            assert 0 < sum(entry["reliability"]["counts"]) <= entry["num_queries"]
+            online = entry["online_chain"]
+            assert online["published"]["closures"] <= online["candidates"]["closures"]
+            assert 0 < online["places"] <= FRAMES
     assert (out / "pr_curves.png").read_bytes()[:4] == b"\x89PNG"
+    if any("FABMAP" in m["method"] for m in results["methods"]):
+        assert (out / "reliability.png").read_bytes()[:4] == b"\x89PNG"
+        assert "Online chain" in (out / "results.md").read_text()
     table = (out / "results.md").read_text()
     for method in methods:
         assert f"| {method} |" in table
@@ -135,6 +146,7 @@ def test_verify_adds_a_geometrically_verified_row_per_method(data, trained, caps
     assert plain["recall_at_threshold"] == first["methods"][1]["recall_at_threshold"]
     assert verified["num_predictions_at_threshold"] <= plain["num_predictions_at_threshold"]
     assert verified["scores_plot"] != plain["scores_plot"]
+    assert plain["online_chain"]["verified"] and not first["methods"][1]["online_chain"]["verified"]
 
 
 def test_error_verify_with_a_recording(data, capsys):
