@@ -177,7 +177,8 @@ def check_camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
     if not np.isfinite(matrix).all():
         raise DataError(f"camera_matrix contains non-finite values: {matrix.tolist()}")
     if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
-        raise DataError(f"camera_matrix focal lengths must be > 0, got fx={float(matrix[0, 0])!r} fy={float(matrix[1, 1])!r}")
+        fx, fy = float(matrix[0, 0]), float(matrix[1, 1])
+        raise DataError(f"camera_matrix focal lengths must be > 0, got fx={fx!r} fy={fy!r}")
     if matrix[1, 0] != 0 or not np.array_equal(matrix[2], [0.0, 0.0, 1.0]):
         raise DataError(f"camera_matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
     return matrix
