@@ -143,8 +143,6 @@ def loop_matrix_from_kitti(
 
 _ROTATION_TOLERANCE = 1e-4
 _POINTS_PER_BATCH = 1_000_000  # projected points held at once (about 100 MB of temporaries)
-# Neighbour offsets of a voxel: the pruning test dilates j's occupied voxels by one voxel each way.
-_NEIGHBOURS = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
 _KEY_BIAS = 1 << 20  # voxel indices in [-2^20, 2^20) pack into one int64 key (21 bits per axis)
 
 
@@ -244,46 +242,59 @@ def grid_pixels(height: int, width: int, grid_step_px: int) -> tuple[np.ndarray,
     return np.arange(grid_step_px // 2, height, grid_step_px), np.arange(grid_step_px // 2, width, grid_step_px)
 
 
-def _as_metres(values: np.ndarray, depth_scale: float) -> np.ndarray:
-    """Depth in metres (float64); no depth (0, negative, NaN, inf) becomes NaN."""
-    metres = values.astype(np.float64) / depth_scale
-    return np.where(np.isfinite(metres) & (metres > 0), metres, np.nan)
+def _as_metres(values: np.ndarray, depth_scale: float, dtype: type = np.float64) -> np.ndarray:
+    """Depth in metres; no depth (0, negative, NaN, inf) becomes NaN."""
+    metres = values.astype(dtype) / dtype(depth_scale)
+    return np.where(np.isfinite(metres) & (metres > 0), metres, dtype(np.nan))
 
 
-def lift_pixels(
-    depth_m: np.ndarray, rows: np.ndarray, columns: np.ndarray, pose: np.ndarray, camera_matrix: np.ndarray
-) -> np.ndarray:
-    """World points (M, 3) of pixels (rows, columns) with depth along the optical axis ``depth_m`` (M,)."""
-    fx, skew, cx = camera_matrix[0]
-    fy, cy = camera_matrix[1, 1], camera_matrix[1, 2]
-    y = (rows - cy) / fy
-    x = (columns - cx - skew * y) / fx
-    camera_points = np.column_stack([x * depth_m, y * depth_m, depth_m])
-    return camera_points @ pose[:, :3].T + pose[:, 3]
+@dataclass(frozen=True)
+class _PixelRays:
+    """The pixels of a sampling grid and their rays K^-1 [u, v, 1] (x, y; z = 1), flattened."""
 
+    rows: np.ndarray  # (P,) int64
+    columns: np.ndarray  # (P,) int64
+    ray_x: np.ndarray  # (P,)
+    ray_y: np.ndarray  # (P,)
 
-def _grid_points(depth: np.ndarray, pose: np.ndarray, camera_matrix: np.ndarray, step: int,
-                 depth_scale: float) -> np.ndarray:
-    """World points (M, 3) of a frame's grid pixels that have depth."""
-    rows, columns = grid_pixels(depth.shape[0], depth.shape[1], step)
-    grid_rows, grid_columns = np.meshgrid(rows, columns, indexing="ij")
-    metres = _as_metres(depth[grid_rows, grid_columns], depth_scale)
-    valid = np.isfinite(metres)
-    return lift_pixels(metres[valid], grid_rows[valid], grid_columns[valid], pose, camera_matrix)
+    @staticmethod
+    def grid(height: int, width: int, step: int, camera_matrix: np.ndarray, dtype: type) -> _PixelRays:
+        row_values, column_values = grid_pixels(height, width, step)
+        rows, columns = (axis.ravel() for axis in np.meshgrid(row_values, column_values, indexing="ij"))
+        fx, skew, cx = camera_matrix[0]
+        fy, cy = camera_matrix[1, 1], camera_matrix[1, 2]
+        ray_y = (rows - cy) / fy
+        ray_x = (columns - cx - skew * ray_y) / fx
+        return _PixelRays(rows, columns, ray_x.astype(dtype), ray_y.astype(dtype))
+
+    def lift(self, depth: np.ndarray, pose: np.ndarray, depth_scale: float, dtype: type) -> np.ndarray:
+        """World points (M, 3) of the grid pixels of ``depth`` (H, W) that have depth: R (d K^-1 [u, 1]) + t."""
+        metres = _as_metres(depth[self.rows, self.columns], depth_scale, dtype)
+        valid = np.isfinite(metres)
+        metres, ray_x, ray_y = metres[valid], self.ray_x[valid], self.ray_y[valid]
+        rotation: np.ndarray = pose[:, :3].astype(dtype)
+        translation: np.ndarray = pose[:, 3].astype(dtype)
+        # Row by row instead of a (M, 3) @ (3, 3) product: three fused passes, no temporaries of (M, 3).
+        return np.column_stack([
+            metres * (rotation[axis, 0] * ray_x + rotation[axis, 1] * ray_y + rotation[axis, 2]) + translation[axis]
+            for axis in range(3)
+        ])
 
 
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells = np.floor(points / points.dtype.type(voxel_m)).astype(np.int64)
     cells = np.clip(cells + _KEY_BIAS, 0, 2 * _KEY_BIAS - 1)
     return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
 
 
 def _dilated_keys(keys: np.ndarray) -> np.ndarray:
-    """The keys of every voxel within one voxel (26-neighbourhood) of ``keys``."""
-    cells = np.column_stack([keys >> 42, (keys >> 21) & ((1 << 21) - 1), keys & ((1 << 21) - 1)])
-    neighbours = (cells[:, None, :] + _NEIGHBOURS[None, :, :]).reshape(-1, 3)
-    neighbours = np.clip(neighbours, 0, 2 * _KEY_BIAS - 1)
-    return np.unique((neighbours[:, 0] << 42) | (neighbours[:, 1] << 21) | neighbours[:, 2])
+    """The keys of every voxel within one voxel (26-neighbourhood) of ``keys``, one axis at a time."""
+    for shift in (42, 21, 0):
+        cell = (keys >> shift) & (2 * _KEY_BIAS - 1)
+        step = np.int64(1) << shift
+        # Voxels on the key range's edge (1000 km out) would wrap: leave them undilated on that side.
+        keys = np.unique(np.concatenate([keys, keys[cell > 0] - step, keys[cell < 2 * _KEY_BIAS - 1] + step]))
+    return keys
 
 
 def _voxel_candidates(
@@ -305,6 +316,7 @@ def _voxel_candidates(
     vocabulary = np.unique(np.concatenate(point_keys)) if num_frames else np.zeros(0, np.int64)
     if vocabulary.size == 0:  # no frame has a grid point with depth: nothing can be covisible
         return [np.zeros(0, np.int64) for _ in range(num_frames)]
+    every_pixel = _PixelRays.grid(depths.shape[1], depths.shape[2], 1, camera_matrix, np.float32)
     rows_a: list[np.ndarray] = []
     cols_a: list[np.ndarray] = []
     rows_b: list[np.ndarray] = []
@@ -313,7 +325,7 @@ def _voxel_candidates(
         columns = np.searchsorted(vocabulary, point_keys[index])  # repeated entries add up in the sparse matrix
         rows_a.append(np.full(columns.size, index))
         cols_a.append(columns)
-        dense = _grid_points(depths[index], poses[index], camera_matrix, 1, depth_scale)
+        dense = every_pixel.lift(depths[index], poses[index], depth_scale, np.float32)
         occupied = _dilated_keys(np.unique(_voxel_keys(dense, voxel_m)))
         found = np.searchsorted(vocabulary, occupied)
         found = found[(found < vocabulary.size) & (vocabulary[np.minimum(found, vocabulary.size - 1)] == occupied)]
@@ -426,8 +438,8 @@ def covisibility_with_stats(
     gap_ns = round(min_gap_s * 1e9)
     last_earlier = np.searchsorted(stamps, stamps - gap_ns, side="right") - 1
     last_earlier = np.minimum(last_earlier, np.arange(num_frames) - 1)  # strictly earlier, even with gap 0
-    points = [_grid_points(values[index], matrices[index], matrix, grid_step_px, depth_scale)
-              for index in range(num_frames)]
+    grid = _PixelRays.grid(height, width, grid_step_px, matrix, np.float64)
+    points = [grid.lift(values[index], matrices[index], depth_scale, np.float64) for index in range(num_frames)]
     if prune_voxel_m is None:
         candidates = [np.arange(int(last_earlier[index]) + 1) for index in range(num_frames)]
     else:
