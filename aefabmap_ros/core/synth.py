@@ -24,9 +24,16 @@ ray-cast per pixel. All textures live in one atlas holding 5 mip levels each; ea
 texture coordinates and a level of detail from its footprint, and two ``cv2.remap`` calls with a
 blend give trilinear filtering (no aliasing shimmer, so SIFT features are stable across views).
 
-Ground truth. ``gt[i, j] = 1`` when camera centres are within ``gt_max_distance_m`` (2.5 m), optical
-axes within ``gt_max_angle_deg`` (30 deg) and ``j <= i - gt_min_gap_frames`` (10): within those
-limits two views share most of their content (60-degree field of view, facades 3 to 40 m away).
+Depth. Every frame also has its depth map (``render_view_and_depth``): metres along the optical axis
+of the surface drawn at each pixel, 0 where only sky is drawn.
+
+Ground truth. ``gt`` is covisibility (DESIGN section 9.2, ``covisibility_loop_matrix``): frame i
+revisits frame j, at least ``gt_min_gap_s`` (5 s) earlier, when at least 30 % of i's depth pixels
+(every 8th) land on the surfaces j saw. It is computed from the depth as a 16UC1 depth image holds
+it (``depth_to_16uc1``: millimetres, nothing beyond 65.535 m), so ``aefabmap_gt`` run on a written
+sequence reproduces it. ``gt_poses`` is the older pose rule: camera centres within
+``gt_max_distance_m`` (2.5 m), optical axes within ``gt_max_angle_deg`` (30 deg) and
+``j <= i - gt_min_gap_frames`` (10).
 
 Poses follow KITTI's convention: camera-to-world ``[R | t]`` with camera axes x right, y down,
 z forward (optical axis = third column of R); the world has x east, y north, z up, metres.
@@ -43,7 +50,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from aefabmap_ros.core.errors import ConfigError
-from aefabmap_ros.core.ground_truth import loop_matrix_from_poses
+from aefabmap_ros.core.ground_truth import covisibility_loop_matrix, loop_matrix_from_poses
 
 NUM_LEVELS = 5  # mip levels per texture: 1, 1/2, ..., 1/16
 _ALIGN_PX = 1 << (NUM_LEVELS - 1)  # texture sizes are multiples of this, so every level halves exactly
@@ -110,7 +117,10 @@ class SynthConfig:
         default=30.0, metadata={"description": "Ground truth: largest optical-axis angle of a revisit."}
     )
     gt_min_gap_frames: int = field(
-        default=10, metadata={"description": "Ground truth: smallest frame gap of a revisit."}
+        default=10, metadata={"description": "Pose-rule ground truth: smallest frame gap of a revisit."}
+    )
+    gt_min_gap_s: float = field(
+        default=5.0, metadata={"description": "Covisibility ground truth: smallest time gap of a revisit, s."}
     )
 
     def __post_init__(self) -> None:
@@ -135,7 +145,7 @@ class SynthConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
         non_negative = ("noise_sigma", "heading_jitter_deg", "lap_lateral_offset_m", "gt_max_distance_m",
-                        "sun_drift_deg", "start_stamp_ns")
+                        "sun_drift_deg", "start_stamp_ns", "gt_min_gap_s")
         for name in non_negative:
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -162,15 +172,23 @@ class SynthConfig:
 
 @dataclass
 class SyntheticSequence:
-    """Rendered frames with their poses and ground-truth loop matrix."""
+    """Rendered frames with their depth, poses and ground-truth loop matrices."""
 
     images: list[np.ndarray]  # N x (H, W) uint8 mono8, or (H, W, 3) uint8 bgr8
     stamps_ns: np.ndarray  # (N,) int64
     positions: np.ndarray  # (N, 3) float64 camera centres, metres (world x east, y north, z up)
     optical_axes: np.ndarray  # (N, 3) float64 unit viewing directions
-    gt: np.ndarray  # (N, N) uint8, gt[i, j] = 1: frame i revisits earlier frame j
+    gt: np.ndarray  # (N, N) uint8 covisibility, gt[i, j] = 1: frame i revisits earlier frame j
     poses: np.ndarray  # (N, 3, 4) float64 KITTI camera-to-world [R | t]
     camera_matrix: np.ndarray  # (3, 3) float64 pinhole intrinsics
+    depths: np.ndarray  # (N, H, W) float32 metres along the optical axis, 0 = sky (no depth)
+    gt_poses: np.ndarray  # (N, N) uint8 loop matrix of the pose rule (distance, angle, frame gap)
+
+
+def depth_to_16uc1(depth_m: np.ndarray) -> np.ndarray:
+    """uint16 millimetres as in a ROS 16UC1 depth image: 0 = no depth, and so is anything beyond 65.535 m."""
+    millimetres = np.rint(np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0) * 1000.0)
+    return np.where((millimetres > 0) & (millimetres <= np.iinfo(np.uint16).max), millimetres, 0).astype(np.uint16)
 
 
 def train_test_configs(config: SynthConfig) -> tuple[SynthConfig, SynthConfig]:
@@ -949,8 +967,12 @@ def _ground_and_sky_maps(
 def _wall_maps(
     world: World, camera: PinholeCamera, hits: _ColumnHits, camera_height: float, sun_azimuth: float,
     fog_distance_m: float, maps: _Maps,
-) -> None:
-    """Paint the facades into the maps: per column and layer everything but the row is known."""
+) -> np.ndarray:
+    """Paint the facades into the maps: per column and layer everything but the row is known.
+
+    Returns the depth along the optical axis of the facade drawn at each pixel, (H, W) float32, inf
+    where no facade is drawn.
+    """
     facades = world.facades
     finite = np.isfinite(hits.depth)
     depth = np.where(finite, hits.depth, 1.0)  # (K, W)
@@ -991,6 +1013,18 @@ def _wall_maps(
     haze = _haze(depth * np.sqrt(1.0 + x_col**2)[None, :], fog_distance_m)
     np.copyto(maps.gain, (light * (1.0 - haze)).astype(np.float32).ravel().take(flat), where=wall)
     np.copyto(maps.offset, haze.ravel().take(flat), where=wall)
+    # The same front-most layer that was painted: the camera is upright, so a column's hit depth along
+    # the horizontal forward axis is its depth along the optical axis at every row.
+    return np.where(wall, hits.depth.astype(np.float32).ravel().take(flat), np.float32(np.inf))
+
+
+def _ground_depth(camera: PinholeCamera, camera_height: float) -> np.ndarray:
+    """(H, W) float32 depth along the optical axis of the ground plane (ray-plane), 0 above the horizon."""
+    y_row = ((np.arange(camera.height) - camera.cy) / camera.focal_px).astype(np.float32)
+    horizon = int(np.searchsorted(y_row, 1e-6, side="right"))  # first ground row, as in _ground_and_sky_maps
+    depth = np.zeros((camera.height, camera.width), dtype=np.float32)
+    depth[horizon:] = (camera_height / y_row[horizon:])[:, None]
+    return depth
 
 
 def render_view(
@@ -1003,12 +1037,38 @@ def render_view(
     fog_distance_m: float,
 ) -> np.ndarray:
     """Noise-free image of the town, float32 (H, W) or (H, W, 3) in grey levels (about 0..255)."""
+    image, _ = render_view_and_depth(world, camera, position_xy, heading_rad, camera_height_m, sun_azimuth_rad,
+                                     fog_distance_m)
+    return image
+
+
+def render_view_and_depth(
+    world: World,
+    camera: PinholeCamera,
+    position_xy: np.ndarray,
+    heading_rad: float,
+    camera_height_m: float,
+    sun_azimuth_rad: float,
+    fog_distance_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The image of ``render_view`` and its depth map.
+
+    Depth: (H, W) float32 metres along the optical axis (camera z) of exactly the surface drawn at
+    each pixel: the front-most facade layer where a facade is drawn, else the ground (ray-plane)
+    below the horizon; 0 where only sky is drawn (0 = no depth, as in ROS 16UC1 depth images).
+    """
     origin = np.asarray(position_xy, dtype=np.float64)
     forward = np.array([np.cos(heading_rad), np.sin(heading_rad)])
     right = np.array([np.sin(heading_rad), -np.cos(heading_rad)])
     maps = _ground_and_sky_maps(world, camera, origin, heading_rad, camera_height_m, fog_distance_m)
     hits = _cast_columns(world, camera, origin, forward, right)
-    _wall_maps(world, camera, hits, camera_height_m, sun_azimuth_rad, fog_distance_m, maps)
+    wall_depth = _wall_maps(world, camera, hits, camera_height_m, sun_azimuth_rad, fog_distance_m, maps)
+    depth = np.where(np.isfinite(wall_depth), wall_depth, _ground_depth(camera, camera_height_m))
+    return _shade(world, maps), depth
+
+
+def _shade(world: World, maps: _Maps) -> np.ndarray:
+    """Sample the atlas with the maps: trilinear texture times light plus haze."""
     low = cv2.remap(world.atlas, maps.x_low, maps.y_low, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     high = cv2.remap(world.atlas, maps.x_high, maps.y_high, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     low = low.astype(np.float32)
@@ -1071,14 +1131,18 @@ def generate_sequence(config: SynthConfig) -> SyntheticSequence:
     noise_shape = (2 * config.height, 2 * config.width) + ((3,) if config.color else ())
     noise = camera_rng.normal(0.0, config.noise_sigma, size=noise_shape).astype(np.float32)
     images = []
+    depths = np.empty((count, config.height, config.width), dtype=np.float32)
     for index in range(count):
-        radiance = render_view(world, camera, positions_xy[index], float(headings[index]),
-                               float(camera_heights[index]), float(sun_azimuth[index]), config.fog_distance_m)
+        radiance, depths[index] = render_view_and_depth(
+            world, camera, positions_xy[index], float(headings[index]), float(camera_heights[index]),
+            float(sun_azimuth[index]), config.fog_distance_m)
         images.append(_camera_effects(radiance, camera_rng, noise, float(gains[index]), float(gammas[index]), config))
     positions = np.column_stack([positions_xy, camera_heights])
     axes = np.column_stack([np.cos(headings), np.sin(headings), np.zeros(count)])
-    gt = loop_matrix_from_poses(positions, axes, config.gt_max_distance_m, config.gt_max_angle_deg,
-                                config.gt_min_gap_frames)
+    gt_poses = loop_matrix_from_poses(positions, axes, config.gt_max_distance_m, config.gt_max_angle_deg,
+                                      config.gt_min_gap_frames)
     stamps = config.start_stamp_ns + np.rint(np.arange(count) * (1e9 / config.frame_rate_hz)).astype(np.int64)
-    return SyntheticSequence(images, stamps, positions, axes, gt, poses_from_headings(positions, headings),
-                             camera.matrix())
+    poses = poses_from_headings(positions, headings)
+    gt = covisibility_loop_matrix(depth_to_16uc1(depths), poses, camera.matrix(), stamps,
+                                  min_gap_s=config.gt_min_gap_s, depth_scale=1000.0)
+    return SyntheticSequence(images, stamps, positions, axes, gt, poses, camera.matrix(), depths, gt_poses)
