@@ -5,11 +5,19 @@
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)
-  bag/                    rosbag2 bag, sensor_msgs/Image on --topic (format mcap or both)
+  depth/000000.png ...    depth (format folder or both): 16-bit PNG, millimetres along the optical
+                          axis (as ROS 16UC1), 0 = no depth (sky, or beyond 65.535 m)
+  bag/                    rosbag2 bag (format mcap or both): sensor_msgs/Image on --topic, the 16UC1
+                          depth on <namespace>/depth and sensor_msgs/CameraInfo on
+                          <namespace>/camera_info (namespace of --topic), all with the same stamps
   poses.txt               KITTI camera-to-world 3x4 poses, one line per frame
   times.txt               seconds since the first frame, one line per frame
   calib.txt               KITTI-style projection matrix "P0: ..." of the pinhole camera
-  loop_gt.npz             key "gt": (N, N) uint8 ground-truth loop matrix (gt[i, j] = 1: i revisits j)
+  camera_info.yaml        the camera in ROS camera_calibration_parsers' format (K, D = 0, R = I, P)
+  loop_gt.npz             key "gt": (N, N) uint8 covisibility ground truth (gt[i, j] = 1: i revisits
+                          j, DESIGN 9.2); `aefabmap_gt --depth depth --poses poses.txt --camera-info
+                          camera_info.yaml --times times.txt` on the folder reproduces it
+  loop_gt_poses.npz       key "gt": the pose-rule loop matrix (centres within 2.5 m, axes within 30 deg)
   synth_config.json       every generator parameter, so the sequence can be regenerated
 
 The training sequence is rendered in another town (seed + 1000003) than the test sequence, so a
@@ -35,7 +43,13 @@ from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
-from aefabmap_ros.core.synth import SynthConfig, SyntheticSequence, generate_sequence, train_test_configs
+from aefabmap_ros.core.synth import (
+    SynthConfig,
+    SyntheticSequence,
+    depth_to_16uc1,
+    generate_sequence,
+    train_test_configs,
+)
 
 
 class _UsageError(Exception):
@@ -75,25 +89,49 @@ def _write_png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(encoded.tobytes())  # inside a fresh temporary directory: no reader can see it half-written
 
 
+def camera_info_yaml(camera_matrix: np.ndarray, width: int, height: int, name: str = "aefabmap_synth") -> str:
+    """A pinhole camera without distortion in ROS camera_calibration_parsers' YAML format."""
+    def matrix(rows: int, cols: int, values: np.ndarray) -> str:
+        data = ", ".join(repr(float(value)) for value in np.asarray(values).reshape(-1))
+        return f"\n  rows: {rows}\n  cols: {cols}\n  data: [{data}]"
+
+    projection = np.hstack([camera_matrix, np.zeros((3, 1))])
+    return (f"image_width: {width}\nimage_height: {height}\ncamera_name: {name}\n"
+            f"camera_matrix:{matrix(3, 3, camera_matrix)}\ndistortion_model: plumb_bob\n"
+            f"distortion_coefficients:{matrix(1, 5, np.zeros(5))}\n"
+            f"rectification_matrix:{matrix(3, 3, np.eye(3))}\nprojection_matrix:{matrix(3, 4, projection)}\n")
+
+
+def _save_npz(path: Path, gt: np.ndarray) -> None:
+    with open(path, "wb") as file:  # inside a fresh temporary directory: no reader can see it half-written
+        np.savez_compressed(file, gt=gt)
+
+
 def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: Path, fmt: str, topic: str) -> None:
     """Write one sequence's files into an existing, empty directory."""
     if fmt in ("folder", "both"):
         images = directory / "images"
         images.mkdir()
+        (directory / "depth").mkdir()
         for index, image in enumerate(sequence.images):
             _write_png(images / f"{index:06d}.png", image)
+            _write_png(directory / "depth" / f"{index:06d}.png", depth_to_16uc1(sequence.depths[index]))
     if fmt in ("mcap", "both"):
-        from aefabmap_ros.io.bags import write_image_bag
+        from aefabmap_ros.io.bags import write_rgbd_bag
 
-        frames = zip(sequence.stamps_ns.tolist(), sequence.images, strict=True)
-        write_image_bag(directory / "bag", topic, frames, storage="mcap")
+        frames = ((stamp, image, depth_to_16uc1(depth))
+                  for stamp, image, depth in zip(sequence.stamps_ns.tolist(), sequence.images, sequence.depths,
+                                                 strict=True))
+        write_rgbd_bag(directory / "bag", topic, frames, sequence.camera_matrix, storage="mcap")
     write_kitti_poses(directory / "poses.txt", sequence.poses)
+    atomic_write_bytes(directory / "camera_info.yaml",
+                       camera_info_yaml(sequence.camera_matrix, config.width, config.height).encode())
     seconds = (sequence.stamps_ns - sequence.stamps_ns[0]) / 1e9
     atomic_write_bytes(directory / "times.txt", "".join(f"{t:.6e}\n" for t in seconds).encode())
     projection = np.hstack([sequence.camera_matrix, np.zeros((3, 1))]).reshape(12)
     atomic_write_bytes(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
-    with open(directory / "loop_gt.npz", "wb") as file:
-        np.savez_compressed(file, gt=sequence.gt)
+    _save_npz(directory / "loop_gt.npz", sequence.gt)
+    _save_npz(directory / "loop_gt_poses.npz", sequence.gt_poses)
     atomic_write_bytes(directory / "synth_config.json", (json.dumps(asdict(config), indent=2) + "\n").encode())
 
 
@@ -121,8 +159,10 @@ def _make_sequence(name: str, config: SynthConfig, args: argparse.Namespace) -> 
         shutil.rmtree(temporary, ignore_errors=True)
         raise
     print(f"{name}: {config.num_frames} frames (seed {config.seed}) in {elapsed:.1f} s "
-          f"({config.num_frames / elapsed:.1f} frames/s), {int(sequence.gt.sum())} loop pairs, "
-          f"{int(sequence.gt.any(axis=1).sum())} query frames with a loop -> {target}")
+          f"({config.num_frames / elapsed:.1f} frames/s), {int(sequence.gt.sum())} covisibility loop pairs, "
+          f"{int(sequence.gt.any(axis=1).sum())} query frames with a loop "
+          f"(pose rule: {int(sequence.gt_poses.sum())} pairs, {int(sequence.gt_poses.any(axis=1).sum())} frames) "
+          f"-> {target}")
 
 
 def run(args: argparse.Namespace) -> None:
