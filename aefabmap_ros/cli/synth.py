@@ -2,6 +2,18 @@
 
     aefabmap_synth --out data/synth                      # train/ and test/, PNG folders
     aefabmap_synth --out data/synth --kind test --format both --frames 400
+    aefabmap_synth --out data/dense --preset dense-video  # 3600 frames of 30 Hz video, 320x240
+
+Presets:
+  figure-eight  (default) the figure-eight route driven --laps times, 400 frames at 10 Hz, 640x480
+  dense-video   one 2-minute drive filmed at 30 Hz (3600 frames): slow and fast stretches, a 4 s stop,
+                the middle street's lower half driven again in the same direction, its upper half
+                driven again in the opposite direction (for a forward camera mostly no revisit by
+                covisibility), and the west edge street never revisited. 320x240: at
+                640x480 a frame takes about 120 ms instead of 40 (3600 frames: 7 instead of 2.5
+                minutes) and the sequence holds 8 GB instead of 2 GB in memory while it is
+                written; --width/--height override it. --frames, --width and --height override a
+                preset's values; --laps does not apply to it.
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)
@@ -46,6 +58,7 @@ from aefabmap_ros.core.ground_truth import write_kitti_poses
 from aefabmap_ros.core.synth import (
     SynthConfig,
     SyntheticSequence,
+    dense_video_config,
     depth_to_16uc1,
     generate_sequence,
     train_test_configs,
@@ -61,6 +74,16 @@ class _Parser(argparse.ArgumentParser):
         raise _UsageError(message)
 
 
+PRESETS = ("figure-eight", "dense-video")
+
+
+def preset_config(name: str, seed: int) -> SynthConfig:
+    """The base configuration of a preset (before --frames, --width, ... are applied)."""
+    if name == "dense-video":
+        return dense_video_config(seed=seed)
+    return replace(SynthConfig(), seed=seed)
+
+
 def build_parser() -> argparse.ArgumentParser:
     defaults = SynthConfig()
     parser = _Parser(prog="aefabmap_synth", description=__doc__,
@@ -68,13 +91,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="output directory (created if missing)")
     parser.add_argument("--kind", choices=("train", "test", "both"), default="both",
                         help="which sequence(s) to write (default: both)")
-    parser.add_argument("--frames", type=int, default=defaults.num_frames,
-                        help=f"frames per sequence (default: {defaults.num_frames})")
+    parser.add_argument("--preset", choices=PRESETS, default="figure-eight",
+                        help="route, length, frame rate and size (default: figure-eight; see above)")
+    parser.add_argument("--frames", type=int, default=None,
+                        help=f"frames per sequence (default: the preset's; figure-eight {defaults.num_frames})")
     parser.add_argument("--seed", type=int, default=defaults.seed, help="seed of the test town (default: 0)")
     parser.add_argument("--format", choices=("folder", "mcap", "both"), default="folder",
                         help="PNG folder, rosbag2 mcap bag, or both (default: folder)")
-    parser.add_argument("--width", type=int, default=defaults.width, help="image width (default: 640)")
-    parser.add_argument("--height", type=int, default=defaults.height, help="image height (default: 480)")
+    parser.add_argument("--width", type=int, default=None, help="image width (default: the preset's)")
+    parser.add_argument("--height", type=int, default=None, help="image height (default: the preset's)")
     parser.add_argument("--laps", type=int, default=defaults.laps, help="laps of the route (default: 2)")
     parser.add_argument("--color", action="store_true", help="bgr8 images instead of mono8")
     parser.add_argument("--topic", default="/image", help="image topic of the bag (default: /image)")
@@ -127,7 +152,8 @@ def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: 
     atomic_write_bytes(directory / "camera_info.yaml",
                        camera_info_yaml(sequence.camera_matrix, config.width, config.height).encode())
     seconds = (sequence.stamps_ns - sequence.stamps_ns[0]) / 1e9
-    atomic_write_bytes(directory / "times.txt", "".join(f"{t:.6e}\n" for t in seconds).encode())
+    # Nanosecond digits: at 30 Hz, 7 significant digits (%e) would move frames 5 s apart to 4.9999 s.
+    atomic_write_bytes(directory / "times.txt", "".join(f"{t:.9f}\n" for t in seconds).encode())
     projection = np.hstack([sequence.camera_matrix, np.zeros((3, 1))]).reshape(12)
     atomic_write_bytes(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
     _save_npz(directory / "loop_gt.npz", sequence.gt)
@@ -166,8 +192,11 @@ def _make_sequence(name: str, config: SynthConfig, args: argparse.Namespace) -> 
 
 
 def run(args: argparse.Namespace) -> None:
-    base = replace(SynthConfig(), seed=args.seed, num_frames=args.frames, width=args.width, height=args.height,
-                   laps=args.laps, color=args.color)
+    base = preset_config(args.preset, args.seed)
+    given = {"num_frames": args.frames, "width": args.width, "height": args.height}
+    base = replace(base, color=args.color, **{name: value for name, value in given.items() if value is not None})
+    if args.preset == "figure-eight":
+        base = replace(base, laps=args.laps)
     train, test = train_test_configs(base)
     try:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -122,6 +122,11 @@ class SynthConfig:
     gt_min_gap_s: float = field(
         default=5.0, metadata={"description": "Covisibility ground truth: smallest time gap of a revisit, s."}
     )
+    route: str = field(
+        default="figure-eight",
+        metadata={"description": "figure-eight (driven `laps` times) or dense-video (one drive with a stop, "
+                                 "revisits in both directions and a street never revisited; ignores laps)."},
+    )
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -155,6 +160,8 @@ class SynthConfig:
         for name in ("lighting_variation", "speed_variation"):
             if not 0 <= getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be in [0, 1), got {getattr(self, name)!r}")
+        if self.route not in ROUTES:
+            raise ConfigError(f"route must be one of {sorted(ROUTES)}, got {self.route!r}")
         if not 10 <= self.fov_deg <= 150:
             raise ConfigError(f"fov_deg must be in [10, 150], got {self.fov_deg!r}")
         if not 0 <= self.gt_max_angle_deg <= 180:
@@ -228,7 +235,7 @@ class World:
     ground_texels_per_m: float
     sky_id: int
     fog_value: np.ndarray  # (C,) float32 haze colour
-    route_nodes: list[tuple[int, int]]  # intersections (column, row) of the closed route
+    route_nodes: list[tuple[int, int]]  # intersections (column, row) of the route
     pitch_m: float  # block + street
 
 
@@ -240,9 +247,22 @@ class _FacadeSpec:
     near_route: bool
 
 
-def _route_nodes() -> list[tuple[int, int]]:
-    """Figure-eight through street intersections (column, row), closed, starting at (2, 1)."""
+def _route_nodes(route: str = "figure-eight") -> list[tuple[int, int]]:
+    """The route through street intersections (column, row).
+
+    figure-eight: closed, starting at (2, 1). dense-video: open; north up the west edge street (never
+    driven again), east along the north edge, south down the middle street (rows 3 to 1), once around
+    the right block and south down the middle street's lower half (rows 2 to 1) again: a revisit in
+    the same direction; around the left block and north up the middle street's upper half (rows 2
+    to 3): a revisit in the opposite direction.
+    """
+    if route == "dense-video":
+        return [(0, 0), (0, 1), (0, 2), (0, 3), (1, 3), (2, 3), (2, 2), (2, 1), (3, 1), (3, 2), (2, 2), (2, 1),
+                (1, 1), (1, 2), (2, 2), (2, 3)]
     return [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
+
+
+ROUTES = ("figure-eight", "dense-video")
 
 
 def _near_route(point: np.ndarray, nodes: list[tuple[int, int]], pitch_m: float, tolerance_m: float) -> bool:
@@ -271,7 +291,7 @@ def _split_lengths(rng: np.random.Generator, total_m: float, low_m: float, high_
 
 
 def _block_facades(config: SynthConfig, rng: np.random.Generator, pitch_m: float) -> list[_FacadeSpec]:
-    nodes = _route_nodes()
+    nodes = _route_nodes(config.route)
     half_street = config.street_width_m / 2
     specs: list[_FacadeSpec] = []
     for column in range(_GRID_COLUMNS):
@@ -777,7 +797,7 @@ def build_world(config: SynthConfig) -> World:
     )
     fog = np.array([200.0, 190.0, 175.0] if config.color else [188.0], dtype=np.float32)
     return World(facades, atlas, entry_x, entry_y, entry_w, entry_h, len(textures) - 2, ground_origin,
-                 config.ground_texels_per_m, len(textures) - 1, fog, _route_nodes(), pitch_m)
+                 config.ground_texels_per_m, len(textures) - 1, fog, _route_nodes(config.route), pitch_m)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -793,8 +813,32 @@ def _smooth_series(rng: np.random.Generator, count: int, correlation: float) -> 
     return noise / std if std > 0 else noise
 
 
+# dense-video speed plan: (share of the drive's duration, relative speed); the stop lasts _STOP_S.
+_DENSE_SPEED_PLAN = ((0.15, 1.0), (0.2, 2.6), (0.1, 1.0), (0.1, 0.5), (0.45, 1.8))
+_STOP_S = 4.0
+_STOP_AT = 0.45  # share of the duration after which the camera stands still
+
+
+def _dense_speed(config: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """Relative speed per frame: slow, fast, slow, a stop of _STOP_S seconds, crawling, then brisk."""
+    count = config.num_frames
+    stop_frames = min(count // 4, round(_STOP_S * config.frame_rate_hz))
+    moving = count - stop_frames
+    shares = np.cumsum([share for share, _ in _DENSE_SPEED_PLAN])
+    progress = (np.arange(moving) + 0.5) / moving
+    speed = np.array([speed for _, speed in _DENSE_SPEED_PLAN])[np.minimum(np.searchsorted(shares, progress), 4)]
+    # Speed changes take about a second (a car accelerates, a pedestrian starts walking).
+    speed = gaussian_filter1d(speed, sigma=config.frame_rate_hz, mode="nearest")
+    speed *= np.clip(1.0 + config.speed_variation * _smooth_series(rng, moving, 2.0 * config.frame_rate_hz), 0.3, None)
+    at = round(_STOP_AT * moving)
+    ramp = np.minimum(1.0, np.abs(np.arange(moving) - at + 0.5) / config.frame_rate_hz)  # brake and start in 1 s
+    return np.concatenate([(speed * ramp)[:at], np.zeros(stop_frames), (speed * ramp)[at:]])
+
+
 def _trajectory(config: SynthConfig, world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Camera (x, y) positions (N, 2) and headings (N,) in radians over all laps."""
+    if config.route == "dense-video":
+        return _dense_trajectory(config, world, rng)
     step_m = 0.05
     nodes = np.array(world.route_nodes, dtype=np.float64) * world.pitch_m
     dense: list[np.ndarray] = []
@@ -820,6 +864,43 @@ def _trajectory(config: SynthConfig, world: World, rng: np.random.Generator) -> 
     heading = np.arctan2(tangent[:, 1], tangent[:, 0])
     heading += np.deg2rad(config.heading_jitter_deg) * _smooth_series(rng, config.num_frames, 8.0)
     return positions, heading
+
+
+def _dense_trajectory(
+    config: SynthConfig, world: World, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """One drive along the dense-video route, at the speeds of ``_dense_speed``; heading jitter is
+    correlated over seconds (not frames), so a 30 Hz camera sways like a real one."""
+    step_m = 0.05
+    nodes = np.array(world.route_nodes, dtype=np.float64) * world.pitch_m
+    dense: list[np.ndarray] = []
+    for a, b in itertools.pairwise(nodes):
+        direction = (b - a) / np.linalg.norm(b - a)
+        right = np.array([direction[1], -direction[0]])
+        t = np.arange(0.0, np.linalg.norm(b - a), step_m)
+        dense.append(a + t[:, None] * direction + config.lane_offset_m * right)
+    path = gaussian_filter1d(np.concatenate(dense), sigma=2.5 / step_m, axis=0, mode="nearest")
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    speed = _dense_speed(config, rng)
+    target = np.r_[0.0, np.cumsum(speed[:-1])]
+    target *= arc[-1] / max(float(target[-1]), 1e-9)
+
+    def at(distance: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(distance, arc, path[:, 0]), np.interp(distance, arc, path[:, 1])])
+
+    positions = at(target)
+    tangent = at(np.minimum(target + 0.5, arc[-1])) - at(np.maximum(target - 0.5, 0.0))
+    heading = np.arctan2(tangent[:, 1], tangent[:, 0])
+    jitter = _smooth_series(rng, config.num_frames, 0.8 * config.frame_rate_hz)
+    return positions, heading + np.deg2rad(config.heading_jitter_deg) * jitter
+
+
+def dense_video_config(seed: int = 0, width: int = 320, height: int = 240, num_frames: int = 3600) -> SynthConfig:
+    """The dense-video preset: 2 minutes of 30 Hz video along the dense-video route (about 315 m: slow,
+    fast, a 4 s stop, a revisit in the same and one in the opposite direction, a street never
+    revisited). 320x240 by default: see aefabmap_synth's docstring for the render times."""
+    return SynthConfig(seed=seed, num_frames=num_frames, width=width, height=height, route="dense-video",
+                       frame_rate_hz=30.0, laps=1, gt_min_gap_frames=150, blur_probability=0.05)
 
 
 # --------------------------------------------------------------------------------------------------

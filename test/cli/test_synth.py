@@ -114,6 +114,7 @@ def test_existing_sequence_needs_overwrite(tmp_path, capsys):
         (["--width", "4"], "width and height must be >= 16"),
         (["--kind", "validation"], "invalid choice: 'validation'"),
         (["--frames", "many"], "invalid int value: 'many'"),
+        (["--preset", "spiral"], "invalid choice: 'spiral'"),
     ],
 )
 def test_bad_arguments(tmp_path, capsys, args, message):
@@ -132,3 +133,19 @@ def test_unwritable_out(tmp_path, capsys):
     blocker.write_text("not a directory")
     assert main(["--out", str(blocker / "sub"), *SMALL]) == 1
     assert "ERROR: cannot create output directory" in capsys.readouterr().err
+
+
+def test_dense_video_preset(tmp_path):
+    assert main(["--out", str(tmp_path), "--kind", "both", "--preset", "dense-video", "--frames", "45",
+                 "--width", "64", "--height", "48"]) == 0
+    for name, seed in (("train", 1_000_003), ("test", 0)):
+        config = json.loads((tmp_path / name / "synth_config.json").read_text())
+        assert (config["route"], config["frame_rate_hz"], config["seed"]) == ("dense-video", 30.0, seed)
+        assert (config["num_frames"], config["width"], config["gt_min_gap_s"]) == (45, 64, 5.0)
+        np.testing.assert_allclose(np.loadtxt(tmp_path / name / "times.txt"), np.arange(45) / 30.0, atol=1e-9)
+    assert main(["--out", str(tmp_path / "b"), "--kind", "test", "--preset", "dense-video", "--frames", "30"]) == 0
+    config = json.loads((tmp_path / "b" / "test" / "synth_config.json").read_text())
+    assert (config["width"], config["height"]) == (320, 240)  # the preset's size
+    assert main(["--out", str(tmp_path / "c"), "--kind", "test", "--frames", "3", *SMALL[2:]]) == 0
+    config = json.loads((tmp_path / "c" / "test" / "synth_config.json").read_text())
+    assert (config["route"], config["frame_rate_hz"], config["laps"]) == ("figure-eight", 10.0, 2)  # defaults kept
