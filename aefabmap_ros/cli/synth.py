@@ -2,14 +2,34 @@
 
     aefabmap_synth --out data/synth                      # train/ and test/, PNG folders
     aefabmap_synth --out data/synth --kind test --format both --frames 400
+    aefabmap_synth --out data/dense --preset dense-video  # 3600 frames of 30 Hz video, 320x240
+
+Presets:
+  figure-eight  (default) the figure-eight route driven --laps times, 400 frames at 10 Hz, 640x480
+  dense-video   one 2-minute drive filmed at 30 Hz (3600 frames): slow and fast stretches, a 4 s stop,
+                the middle street's lower half driven again in the same direction, its upper half
+                driven again in the opposite direction (for a forward camera mostly no revisit by
+                covisibility), and the west edge street never revisited. 320x240: at
+                640x480 a frame takes about 120 ms instead of 40 (3600 frames: 7 instead of 2.5
+                minutes) and the sequence holds 8 GB instead of 2 GB in memory while it is
+                written; --width/--height override it. --frames, --width and --height override a
+                preset's values; --laps does not apply to it.
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)
-  bag/                    rosbag2 bag, sensor_msgs/Image on --topic (format mcap or both)
+  depth/000000.png ...    depth (format folder or both): 16-bit PNG, millimetres along the optical
+                          axis (as ROS 16UC1), 0 = no depth (sky, or beyond 65.535 m)
+  bag/                    rosbag2 bag (format mcap or both): sensor_msgs/Image on --topic, the 16UC1
+                          depth on <namespace>/depth and sensor_msgs/CameraInfo on
+                          <namespace>/camera_info (namespace of --topic), all with the same stamps
   poses.txt               KITTI camera-to-world 3x4 poses, one line per frame
   times.txt               seconds since the first frame, one line per frame
   calib.txt               KITTI-style projection matrix "P0: ..." of the pinhole camera
-  loop_gt.npz             key "gt": (N, N) uint8 ground-truth loop matrix (gt[i, j] = 1: i revisits j)
+  camera_info.yaml        the camera in ROS camera_calibration_parsers' format (K, D = 0, R = I, P)
+  loop_gt.npz             key "gt": (N, N) uint8 covisibility ground truth (gt[i, j] = 1: i revisits
+                          j, DESIGN 9.2); `aefabmap_gt --depth depth --poses poses.txt --camera-info
+                          camera_info.yaml --times times.txt` on the folder reproduces it
+  loop_gt_poses.npz       key "gt": the pose-rule loop matrix (centres within 2.5 m, axes within 30 deg)
   synth_config.json       every generator parameter, so the sequence can be regenerated
 
 The training sequence is rendered in another town (seed + 1000003) than the test sequence, so a
@@ -35,7 +55,14 @@ from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
-from aefabmap_ros.core.synth import SynthConfig, SyntheticSequence, generate_sequence, train_test_configs
+from aefabmap_ros.core.synth import (
+    SynthConfig,
+    SyntheticSequence,
+    dense_video_config,
+    depth_to_16uc1,
+    generate_sequence,
+    train_test_configs,
+)
 
 
 class _UsageError(Exception):
@@ -47,6 +74,16 @@ class _Parser(argparse.ArgumentParser):
         raise _UsageError(message)
 
 
+PRESETS = ("figure-eight", "dense-video")
+
+
+def preset_config(name: str, seed: int) -> SynthConfig:
+    """The base configuration of a preset (before --frames, --width, ... are applied)."""
+    if name == "dense-video":
+        return dense_video_config(seed=seed)
+    return replace(SynthConfig(), seed=seed)
+
+
 def build_parser() -> argparse.ArgumentParser:
     defaults = SynthConfig()
     parser = _Parser(prog="aefabmap_synth", description=__doc__,
@@ -54,13 +91,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="output directory (created if missing)")
     parser.add_argument("--kind", choices=("train", "test", "both"), default="both",
                         help="which sequence(s) to write (default: both)")
-    parser.add_argument("--frames", type=int, default=defaults.num_frames,
-                        help=f"frames per sequence (default: {defaults.num_frames})")
+    parser.add_argument("--preset", choices=PRESETS, default="figure-eight",
+                        help="route, length, frame rate and size (default: figure-eight; see above)")
+    parser.add_argument("--frames", type=int, default=None,
+                        help=f"frames per sequence (default: the preset's; figure-eight {defaults.num_frames})")
     parser.add_argument("--seed", type=int, default=defaults.seed, help="seed of the test town (default: 0)")
     parser.add_argument("--format", choices=("folder", "mcap", "both"), default="folder",
                         help="PNG folder, rosbag2 mcap bag, or both (default: folder)")
-    parser.add_argument("--width", type=int, default=defaults.width, help="image width (default: 640)")
-    parser.add_argument("--height", type=int, default=defaults.height, help="image height (default: 480)")
+    parser.add_argument("--width", type=int, default=None, help="image width (default: the preset's)")
+    parser.add_argument("--height", type=int, default=None, help="image height (default: the preset's)")
     parser.add_argument("--laps", type=int, default=defaults.laps, help="laps of the route (default: 2)")
     parser.add_argument("--color", action="store_true", help="bgr8 images instead of mono8")
     parser.add_argument("--topic", default="/image", help="image topic of the bag (default: /image)")
@@ -75,25 +114,50 @@ def _write_png(path: Path, image: np.ndarray) -> None:
     path.write_bytes(encoded.tobytes())  # inside a fresh temporary directory: no reader can see it half-written
 
 
+def camera_info_yaml(camera_matrix: np.ndarray, width: int, height: int, name: str = "aefabmap_synth") -> str:
+    """A pinhole camera without distortion in ROS camera_calibration_parsers' YAML format."""
+    def matrix(rows: int, cols: int, values: np.ndarray) -> str:
+        data = ", ".join(repr(float(value)) for value in np.asarray(values).reshape(-1))
+        return f"\n  rows: {rows}\n  cols: {cols}\n  data: [{data}]"
+
+    projection = np.hstack([camera_matrix, np.zeros((3, 1))])
+    return (f"image_width: {width}\nimage_height: {height}\ncamera_name: {name}\n"
+            f"camera_matrix:{matrix(3, 3, camera_matrix)}\ndistortion_model: plumb_bob\n"
+            f"distortion_coefficients:{matrix(1, 5, np.zeros(5))}\n"
+            f"rectification_matrix:{matrix(3, 3, np.eye(3))}\nprojection_matrix:{matrix(3, 4, projection)}\n")
+
+
+def _save_npz(path: Path, gt: np.ndarray) -> None:
+    with open(path, "wb") as file:  # inside a fresh temporary directory: no reader can see it half-written
+        np.savez_compressed(file, gt=gt)
+
+
 def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: Path, fmt: str, topic: str) -> None:
     """Write one sequence's files into an existing, empty directory."""
     if fmt in ("folder", "both"):
         images = directory / "images"
         images.mkdir()
+        (directory / "depth").mkdir()
         for index, image in enumerate(sequence.images):
             _write_png(images / f"{index:06d}.png", image)
+            _write_png(directory / "depth" / f"{index:06d}.png", depth_to_16uc1(sequence.depths[index]))
     if fmt in ("mcap", "both"):
-        from aefabmap_ros.io.bags import write_image_bag
+        from aefabmap_ros.io.bags import write_rgbd_bag
 
-        frames = zip(sequence.stamps_ns.tolist(), sequence.images, strict=True)
-        write_image_bag(directory / "bag", topic, frames, storage="mcap")
+        frames = ((stamp, image, depth_to_16uc1(depth))
+                  for stamp, image, depth in zip(sequence.stamps_ns.tolist(), sequence.images, sequence.depths,
+                                                 strict=True))
+        write_rgbd_bag(directory / "bag", topic, frames, sequence.camera_matrix, storage="mcap")
     write_kitti_poses(directory / "poses.txt", sequence.poses)
+    atomic_write_bytes(directory / "camera_info.yaml",
+                       camera_info_yaml(sequence.camera_matrix, config.width, config.height).encode())
     seconds = (sequence.stamps_ns - sequence.stamps_ns[0]) / 1e9
-    atomic_write_bytes(directory / "times.txt", "".join(f"{t:.6e}\n" for t in seconds).encode())
+    # Nanosecond digits: at 30 Hz, 7 significant digits (%e) would move frames 5 s apart to 4.9999 s.
+    atomic_write_bytes(directory / "times.txt", "".join(f"{t:.9f}\n" for t in seconds).encode())
     projection = np.hstack([sequence.camera_matrix, np.zeros((3, 1))]).reshape(12)
     atomic_write_bytes(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
-    with open(directory / "loop_gt.npz", "wb") as file:
-        np.savez_compressed(file, gt=sequence.gt)
+    _save_npz(directory / "loop_gt.npz", sequence.gt)
+    _save_npz(directory / "loop_gt_poses.npz", sequence.gt_poses)
     atomic_write_bytes(directory / "synth_config.json", (json.dumps(asdict(config), indent=2) + "\n").encode())
 
 
@@ -121,13 +185,18 @@ def _make_sequence(name: str, config: SynthConfig, args: argparse.Namespace) -> 
         shutil.rmtree(temporary, ignore_errors=True)
         raise
     print(f"{name}: {config.num_frames} frames (seed {config.seed}) in {elapsed:.1f} s "
-          f"({config.num_frames / elapsed:.1f} frames/s), {int(sequence.gt.sum())} loop pairs, "
-          f"{int(sequence.gt.any(axis=1).sum())} query frames with a loop -> {target}")
+          f"({config.num_frames / elapsed:.1f} frames/s), {int(sequence.gt.sum())} covisibility loop pairs, "
+          f"{int(sequence.gt.any(axis=1).sum())} query frames with a loop "
+          f"(pose rule: {int(sequence.gt_poses.sum())} pairs, {int(sequence.gt_poses.any(axis=1).sum())} frames) "
+          f"-> {target}")
 
 
 def run(args: argparse.Namespace) -> None:
-    base = replace(SynthConfig(), seed=args.seed, num_frames=args.frames, width=args.width, height=args.height,
-                   laps=args.laps, color=args.color)
+    base = preset_config(args.preset, args.seed)
+    given = {"num_frames": args.frames, "width": args.width, "height": args.height}
+    base = replace(base, color=args.color, **{name: value for name, value in given.items() if value is not None})
+    if args.preset == "figure-eight":
+        base = replace(base, laps=args.laps)
     train, test = train_test_configs(base)
     try:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -24,9 +24,16 @@ ray-cast per pixel. All textures live in one atlas holding 5 mip levels each; ea
 texture coordinates and a level of detail from its footprint, and two ``cv2.remap`` calls with a
 blend give trilinear filtering (no aliasing shimmer, so SIFT features are stable across views).
 
-Ground truth. ``gt[i, j] = 1`` when camera centres are within ``gt_max_distance_m`` (2.5 m), optical
-axes within ``gt_max_angle_deg`` (30 deg) and ``j <= i - gt_min_gap_frames`` (10): within those
-limits two views share most of their content (60-degree field of view, facades 3 to 40 m away).
+Depth. Every frame also has its depth map (``render_view_and_depth``): metres along the optical axis
+of the surface drawn at each pixel, 0 where only sky is drawn.
+
+Ground truth. ``gt`` is covisibility (DESIGN section 9.2, ``covisibility_loop_matrix``): frame i
+revisits frame j, at least ``gt_min_gap_s`` (5 s) earlier, when at least 30 % of i's depth pixels
+(every 8th) land on the surfaces j saw. It is computed from the depth as a 16UC1 depth image holds
+it (``depth_to_16uc1``: millimetres, nothing beyond 65.535 m), so ``aefabmap_gt`` run on a written
+sequence reproduces it. ``gt_poses`` is the older pose rule: camera centres within
+``gt_max_distance_m`` (2.5 m), optical axes within ``gt_max_angle_deg`` (30 deg) and
+``j <= i - gt_min_gap_frames`` (10).
 
 Poses follow KITTI's convention: camera-to-world ``[R | t]`` with camera axes x right, y down,
 z forward (optical axis = third column of R); the world has x east, y north, z up, metres.
@@ -43,7 +50,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from aefabmap_ros.core.errors import ConfigError
-from aefabmap_ros.core.ground_truth import loop_matrix_from_poses
+from aefabmap_ros.core.ground_truth import covisibility_loop_matrix, loop_matrix_from_poses
 
 NUM_LEVELS = 5  # mip levels per texture: 1, 1/2, ..., 1/16
 _ALIGN_PX = 1 << (NUM_LEVELS - 1)  # texture sizes are multiples of this, so every level halves exactly
@@ -110,7 +117,15 @@ class SynthConfig:
         default=30.0, metadata={"description": "Ground truth: largest optical-axis angle of a revisit."}
     )
     gt_min_gap_frames: int = field(
-        default=10, metadata={"description": "Ground truth: smallest frame gap of a revisit."}
+        default=10, metadata={"description": "Pose-rule ground truth: smallest frame gap of a revisit."}
+    )
+    gt_min_gap_s: float = field(
+        default=5.0, metadata={"description": "Covisibility ground truth: smallest time gap of a revisit, s."}
+    )
+    route: str = field(
+        default="figure-eight",
+        metadata={"description": "figure-eight (driven `laps` times) or dense-video (one drive with a stop, "
+                                 "revisits in both directions and a street never revisited; ignores laps)."},
     )
 
     def __post_init__(self) -> None:
@@ -135,7 +150,7 @@ class SynthConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
         non_negative = ("noise_sigma", "heading_jitter_deg", "lap_lateral_offset_m", "gt_max_distance_m",
-                        "sun_drift_deg", "start_stamp_ns")
+                        "sun_drift_deg", "start_stamp_ns", "gt_min_gap_s")
         for name in non_negative:
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -145,6 +160,8 @@ class SynthConfig:
         for name in ("lighting_variation", "speed_variation"):
             if not 0 <= getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be in [0, 1), got {getattr(self, name)!r}")
+        if self.route not in ROUTES:
+            raise ConfigError(f"route must be one of {sorted(ROUTES)}, got {self.route!r}")
         if not 10 <= self.fov_deg <= 150:
             raise ConfigError(f"fov_deg must be in [10, 150], got {self.fov_deg!r}")
         if not 0 <= self.gt_max_angle_deg <= 180:
@@ -162,15 +179,23 @@ class SynthConfig:
 
 @dataclass
 class SyntheticSequence:
-    """Rendered frames with their poses and ground-truth loop matrix."""
+    """Rendered frames with their depth, poses and ground-truth loop matrices."""
 
     images: list[np.ndarray]  # N x (H, W) uint8 mono8, or (H, W, 3) uint8 bgr8
     stamps_ns: np.ndarray  # (N,) int64
     positions: np.ndarray  # (N, 3) float64 camera centres, metres (world x east, y north, z up)
     optical_axes: np.ndarray  # (N, 3) float64 unit viewing directions
-    gt: np.ndarray  # (N, N) uint8, gt[i, j] = 1: frame i revisits earlier frame j
+    gt: np.ndarray  # (N, N) uint8 covisibility, gt[i, j] = 1: frame i revisits earlier frame j
     poses: np.ndarray  # (N, 3, 4) float64 KITTI camera-to-world [R | t]
     camera_matrix: np.ndarray  # (3, 3) float64 pinhole intrinsics
+    depths: np.ndarray  # (N, H, W) float32 metres along the optical axis, 0 = sky (no depth)
+    gt_poses: np.ndarray  # (N, N) uint8 loop matrix of the pose rule (distance, angle, frame gap)
+
+
+def depth_to_16uc1(depth_m: np.ndarray) -> np.ndarray:
+    """uint16 millimetres as in a ROS 16UC1 depth image: 0 = no depth, and so is anything beyond 65.535 m."""
+    millimetres = np.rint(np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0) * 1000.0)
+    return np.where((millimetres > 0) & (millimetres <= np.iinfo(np.uint16).max), millimetres, 0).astype(np.uint16)
 
 
 def train_test_configs(config: SynthConfig) -> tuple[SynthConfig, SynthConfig]:
@@ -210,7 +235,7 @@ class World:
     ground_texels_per_m: float
     sky_id: int
     fog_value: np.ndarray  # (C,) float32 haze colour
-    route_nodes: list[tuple[int, int]]  # intersections (column, row) of the closed route
+    route_nodes: list[tuple[int, int]]  # intersections (column, row) of the route
     pitch_m: float  # block + street
 
 
@@ -222,9 +247,22 @@ class _FacadeSpec:
     near_route: bool
 
 
-def _route_nodes() -> list[tuple[int, int]]:
-    """Figure-eight through street intersections (column, row), closed, starting at (2, 1)."""
+def _route_nodes(route: str = "figure-eight") -> list[tuple[int, int]]:
+    """The route through street intersections (column, row).
+
+    figure-eight: closed, starting at (2, 1). dense-video: open; north up the west edge street (never
+    driven again), east along the north edge, south down the middle street (rows 3 to 1), once around
+    the right block and south down the middle street's lower half (rows 2 to 1) again: a revisit in
+    the same direction; around the left block and north up the middle street's upper half (rows 2
+    to 3): a revisit in the opposite direction.
+    """
+    if route == "dense-video":
+        return [(0, 0), (0, 1), (0, 2), (0, 3), (1, 3), (2, 3), (2, 2), (2, 1), (3, 1), (3, 2), (2, 2), (2, 1),
+                (1, 1), (1, 2), (2, 2), (2, 3)]
     return [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
+
+
+ROUTES = ("figure-eight", "dense-video")
 
 
 def _near_route(point: np.ndarray, nodes: list[tuple[int, int]], pitch_m: float, tolerance_m: float) -> bool:
@@ -253,7 +291,7 @@ def _split_lengths(rng: np.random.Generator, total_m: float, low_m: float, high_
 
 
 def _block_facades(config: SynthConfig, rng: np.random.Generator, pitch_m: float) -> list[_FacadeSpec]:
-    nodes = _route_nodes()
+    nodes = _route_nodes(config.route)
     half_street = config.street_width_m / 2
     specs: list[_FacadeSpec] = []
     for column in range(_GRID_COLUMNS):
@@ -759,7 +797,7 @@ def build_world(config: SynthConfig) -> World:
     )
     fog = np.array([200.0, 190.0, 175.0] if config.color else [188.0], dtype=np.float32)
     return World(facades, atlas, entry_x, entry_y, entry_w, entry_h, len(textures) - 2, ground_origin,
-                 config.ground_texels_per_m, len(textures) - 1, fog, _route_nodes(), pitch_m)
+                 config.ground_texels_per_m, len(textures) - 1, fog, _route_nodes(config.route), pitch_m)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -775,8 +813,32 @@ def _smooth_series(rng: np.random.Generator, count: int, correlation: float) -> 
     return noise / std if std > 0 else noise
 
 
+# dense-video speed plan: (share of the drive's duration, relative speed); the stop lasts _STOP_S.
+_DENSE_SPEED_PLAN = ((0.15, 1.0), (0.2, 2.6), (0.1, 1.0), (0.1, 0.5), (0.45, 1.8))
+_STOP_S = 4.0
+_STOP_AT = 0.45  # share of the duration after which the camera stands still
+
+
+def _dense_speed(config: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """Relative speed per frame: slow, fast, slow, a stop of _STOP_S seconds, crawling, then brisk."""
+    count = config.num_frames
+    stop_frames = min(count // 4, round(_STOP_S * config.frame_rate_hz))
+    moving = count - stop_frames
+    shares = np.cumsum([share for share, _ in _DENSE_SPEED_PLAN])
+    progress = (np.arange(moving) + 0.5) / moving
+    speed = np.array([speed for _, speed in _DENSE_SPEED_PLAN])[np.minimum(np.searchsorted(shares, progress), 4)]
+    # Speed changes take about a second (a car accelerates, a pedestrian starts walking).
+    speed = gaussian_filter1d(speed, sigma=config.frame_rate_hz, mode="nearest")
+    speed *= np.clip(1.0 + config.speed_variation * _smooth_series(rng, moving, 2.0 * config.frame_rate_hz), 0.3, None)
+    at = round(_STOP_AT * moving)
+    ramp = np.minimum(1.0, np.abs(np.arange(moving) - at + 0.5) / config.frame_rate_hz)  # brake and start in 1 s
+    return np.concatenate([(speed * ramp)[:at], np.zeros(stop_frames), (speed * ramp)[at:]])
+
+
 def _trajectory(config: SynthConfig, world: World, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Camera (x, y) positions (N, 2) and headings (N,) in radians over all laps."""
+    if config.route == "dense-video":
+        return _dense_trajectory(config, world, rng)
     step_m = 0.05
     nodes = np.array(world.route_nodes, dtype=np.float64) * world.pitch_m
     dense: list[np.ndarray] = []
@@ -802,6 +864,43 @@ def _trajectory(config: SynthConfig, world: World, rng: np.random.Generator) -> 
     heading = np.arctan2(tangent[:, 1], tangent[:, 0])
     heading += np.deg2rad(config.heading_jitter_deg) * _smooth_series(rng, config.num_frames, 8.0)
     return positions, heading
+
+
+def _dense_trajectory(
+    config: SynthConfig, world: World, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """One drive along the dense-video route, at the speeds of ``_dense_speed``; heading jitter is
+    correlated over seconds (not frames), so a 30 Hz camera sways like a real one."""
+    step_m = 0.05
+    nodes = np.array(world.route_nodes, dtype=np.float64) * world.pitch_m
+    dense: list[np.ndarray] = []
+    for a, b in itertools.pairwise(nodes):
+        direction = (b - a) / np.linalg.norm(b - a)
+        right = np.array([direction[1], -direction[0]])
+        t = np.arange(0.0, np.linalg.norm(b - a), step_m)
+        dense.append(a + t[:, None] * direction + config.lane_offset_m * right)
+    path = gaussian_filter1d(np.concatenate(dense), sigma=2.5 / step_m, axis=0, mode="nearest")
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    speed = _dense_speed(config, rng)
+    target = np.r_[0.0, np.cumsum(speed[:-1])]
+    target *= arc[-1] / max(float(target[-1]), 1e-9)
+
+    def at(distance: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(distance, arc, path[:, 0]), np.interp(distance, arc, path[:, 1])])
+
+    positions = at(target)
+    tangent = at(np.minimum(target + 0.5, arc[-1])) - at(np.maximum(target - 0.5, 0.0))
+    heading = np.arctan2(tangent[:, 1], tangent[:, 0])
+    jitter = _smooth_series(rng, config.num_frames, 0.8 * config.frame_rate_hz)
+    return positions, heading + np.deg2rad(config.heading_jitter_deg) * jitter
+
+
+def dense_video_config(seed: int = 0, width: int = 320, height: int = 240, num_frames: int = 3600) -> SynthConfig:
+    """The dense-video preset: 2 minutes of 30 Hz video along the dense-video route (about 315 m: slow,
+    fast, a 4 s stop, a revisit in the same and one in the opposite direction, a street never
+    revisited). 320x240 by default: see aefabmap_synth's docstring for the render times."""
+    return SynthConfig(seed=seed, num_frames=num_frames, width=width, height=height, route="dense-video",
+                       frame_rate_hz=30.0, laps=1, gt_min_gap_frames=150, blur_probability=0.05)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -949,8 +1048,12 @@ def _ground_and_sky_maps(
 def _wall_maps(
     world: World, camera: PinholeCamera, hits: _ColumnHits, camera_height: float, sun_azimuth: float,
     fog_distance_m: float, maps: _Maps,
-) -> None:
-    """Paint the facades into the maps: per column and layer everything but the row is known."""
+) -> np.ndarray:
+    """Paint the facades into the maps: per column and layer everything but the row is known.
+
+    Returns the depth along the optical axis of the facade drawn at each pixel, (H, W) float32, inf
+    where no facade is drawn.
+    """
     facades = world.facades
     finite = np.isfinite(hits.depth)
     depth = np.where(finite, hits.depth, 1.0)  # (K, W)
@@ -991,6 +1094,18 @@ def _wall_maps(
     haze = _haze(depth * np.sqrt(1.0 + x_col**2)[None, :], fog_distance_m)
     np.copyto(maps.gain, (light * (1.0 - haze)).astype(np.float32).ravel().take(flat), where=wall)
     np.copyto(maps.offset, haze.ravel().take(flat), where=wall)
+    # The same front-most layer that was painted: the camera is upright, so a column's hit depth along
+    # the horizontal forward axis is its depth along the optical axis at every row.
+    return np.where(wall, hits.depth.astype(np.float32).ravel().take(flat), np.float32(np.inf))
+
+
+def _ground_depth(camera: PinholeCamera, camera_height: float) -> np.ndarray:
+    """(H, W) float32 depth along the optical axis of the ground plane (ray-plane), 0 above the horizon."""
+    y_row = ((np.arange(camera.height) - camera.cy) / camera.focal_px).astype(np.float32)
+    horizon = int(np.searchsorted(y_row, 1e-6, side="right"))  # first ground row, as in _ground_and_sky_maps
+    depth = np.zeros((camera.height, camera.width), dtype=np.float32)
+    depth[horizon:] = (camera_height / y_row[horizon:])[:, None]
+    return depth
 
 
 def render_view(
@@ -1003,12 +1118,38 @@ def render_view(
     fog_distance_m: float,
 ) -> np.ndarray:
     """Noise-free image of the town, float32 (H, W) or (H, W, 3) in grey levels (about 0..255)."""
+    image, _ = render_view_and_depth(world, camera, position_xy, heading_rad, camera_height_m, sun_azimuth_rad,
+                                     fog_distance_m)
+    return image
+
+
+def render_view_and_depth(
+    world: World,
+    camera: PinholeCamera,
+    position_xy: np.ndarray,
+    heading_rad: float,
+    camera_height_m: float,
+    sun_azimuth_rad: float,
+    fog_distance_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The image of ``render_view`` and its depth map.
+
+    Depth: (H, W) float32 metres along the optical axis (camera z) of exactly the surface drawn at
+    each pixel: the front-most facade layer where a facade is drawn, else the ground (ray-plane)
+    below the horizon; 0 where only sky is drawn (0 = no depth, as in ROS 16UC1 depth images).
+    """
     origin = np.asarray(position_xy, dtype=np.float64)
     forward = np.array([np.cos(heading_rad), np.sin(heading_rad)])
     right = np.array([np.sin(heading_rad), -np.cos(heading_rad)])
     maps = _ground_and_sky_maps(world, camera, origin, heading_rad, camera_height_m, fog_distance_m)
     hits = _cast_columns(world, camera, origin, forward, right)
-    _wall_maps(world, camera, hits, camera_height_m, sun_azimuth_rad, fog_distance_m, maps)
+    wall_depth = _wall_maps(world, camera, hits, camera_height_m, sun_azimuth_rad, fog_distance_m, maps)
+    depth = np.where(np.isfinite(wall_depth), wall_depth, _ground_depth(camera, camera_height_m))
+    return _shade(world, maps), depth
+
+
+def _shade(world: World, maps: _Maps) -> np.ndarray:
+    """Sample the atlas with the maps: trilinear texture times light plus haze."""
     low = cv2.remap(world.atlas, maps.x_low, maps.y_low, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     high = cv2.remap(world.atlas, maps.x_high, maps.y_high, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     low = low.astype(np.float32)
@@ -1071,14 +1212,18 @@ def generate_sequence(config: SynthConfig) -> SyntheticSequence:
     noise_shape = (2 * config.height, 2 * config.width) + ((3,) if config.color else ())
     noise = camera_rng.normal(0.0, config.noise_sigma, size=noise_shape).astype(np.float32)
     images = []
+    depths = np.empty((count, config.height, config.width), dtype=np.float32)
     for index in range(count):
-        radiance = render_view(world, camera, positions_xy[index], float(headings[index]),
-                               float(camera_heights[index]), float(sun_azimuth[index]), config.fog_distance_m)
+        radiance, depths[index] = render_view_and_depth(
+            world, camera, positions_xy[index], float(headings[index]), float(camera_heights[index]),
+            float(sun_azimuth[index]), config.fog_distance_m)
         images.append(_camera_effects(radiance, camera_rng, noise, float(gains[index]), float(gammas[index]), config))
     positions = np.column_stack([positions_xy, camera_heights])
     axes = np.column_stack([np.cos(headings), np.sin(headings), np.zeros(count)])
-    gt = loop_matrix_from_poses(positions, axes, config.gt_max_distance_m, config.gt_max_angle_deg,
-                                config.gt_min_gap_frames)
+    gt_poses = loop_matrix_from_poses(positions, axes, config.gt_max_distance_m, config.gt_max_angle_deg,
+                                      config.gt_min_gap_frames)
     stamps = config.start_stamp_ns + np.rint(np.arange(count) * (1e9 / config.frame_rate_hz)).astype(np.int64)
-    return SyntheticSequence(images, stamps, positions, axes, gt, poses_from_headings(positions, headings),
-                             camera.matrix())
+    poses = poses_from_headings(positions, headings)
+    gt = covisibility_loop_matrix(depth_to_16uc1(depths), poses, camera.matrix(), stamps,
+                                  min_gap_s=config.gt_min_gap_s, depth_scale=1000.0)
+    return SyntheticSequence(images, stamps, positions, axes, gt, poses, camera.matrix(), depths, gt_poses)

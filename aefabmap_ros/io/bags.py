@@ -27,6 +27,7 @@ from aefabmap_ros.core.errors import BagError
 from aefabmap_ros.core.stamps import stamp_to_ns
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
@@ -78,20 +79,49 @@ def make_header(stamp_ns: int, frame_id: str = "camera") -> Any:
 
 
 def make_image_message(image: np.ndarray, stamp_ns: int, frame_id: str = "camera") -> Any:
-    """A rosbags ``sensor_msgs/Image`` from a mono8 (H, W) or bgr8 (H, W, 3) uint8 array."""
-    if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
-        raise BagError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
+    """A rosbags ``sensor_msgs/Image`` from a mono8 (H, W) or bgr8 (H, W, 3) uint8 array, or a 16UC1
+    (H, W) uint16 depth image (millimetres, 0 = no depth; stored little-endian)."""
+    depth = image.dtype == np.uint16 and image.ndim == 2
+    colour = image.dtype == np.uint8 and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3))
+    if not (depth or colour):
+        raise BagError(f"expected a uint8 (H, W) or (H, W, 3) image or a uint16 (H, W) depth image, "
+                       f"got {image.dtype} {image.shape}")
     height, width = image.shape[:2]
     channels = 1 if image.ndim == 2 else 3
+    encoding = "16UC1" if depth else ("mono8" if channels == 1 else "bgr8")
+    data = np.ascontiguousarray(image.astype("<u2") if depth else image).view(np.uint8).reshape(-1)
     image_type = get_typestore().types[IMAGE_TYPE]
     return image_type(
         header=make_header(stamp_ns, frame_id),
         height=height,
         width=width,
-        encoding="mono8" if channels == 1 else "bgr8",
+        encoding=encoding,
         is_bigendian=0,
-        step=width * channels,
-        data=np.ascontiguousarray(image).reshape(-1),
+        step=width * channels * image.itemsize,
+        data=data,
+    )
+
+
+def make_camera_info_message(
+    camera_matrix: np.ndarray, width: int, height: int, stamp_ns: int, frame_id: str = "camera"
+) -> Any:
+    """A rosbags ``sensor_msgs/CameraInfo`` of an undistorted pinhole camera: K, R = I, P = [K | 0]."""
+    matrix = np.asarray(camera_matrix, dtype=np.float64)
+    if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
+        raise BagError(f"camera_matrix must be a finite (3, 3) array, got shape {matrix.shape}")
+    types = get_typestore().types
+    return types[CAMERA_INFO_TYPE](
+        header=make_header(stamp_ns, frame_id),
+        height=int(height),
+        width=int(width),
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=matrix.reshape(9),
+        r=np.eye(3).reshape(9),
+        p=np.hstack([matrix, np.zeros((3, 1))]).reshape(12),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
     )
 
 
@@ -167,6 +197,45 @@ def write_image_bag(
         writer.add_topic(topic, IMAGE_TYPE)
         for stamp_ns, image in frames:
             writer.write(topic, stamp_ns, make_image_message(image, stamp_ns, frame_id))
+            count += 1
+    return count
+
+
+def sibling_topic(image_topic: str, name: str) -> str:
+    """A topic in the image topic's namespace: ("/camera/image", "camera_info") -> "/camera/camera_info"."""
+    namespace = image_topic.rsplit("/", 1)[0] if "/" in image_topic else ""
+    return f"{namespace}/{name}"
+
+
+def write_rgbd_bag(
+    path: Path,
+    image_topic: str,
+    frames: Iterable[tuple[int, np.ndarray, np.ndarray]],
+    camera_matrix: np.ndarray,
+    depth_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    storage: str = "mcap",
+    frame_id: str = "camera",
+    overwrite: bool = False,
+) -> int:
+    """Write ``(stamp_ns, image, depth_mm)`` frames: the image, a 16UC1 depth image and a CameraInfo,
+    all with the frame's stamp. Topics default to ``<namespace>/depth`` and ``<namespace>/camera_info``
+    beside the image topic. Returns the number of frames written."""
+    depth_topic = depth_topic or sibling_topic(image_topic, "depth")
+    camera_info_topic = camera_info_topic or sibling_topic(image_topic, "camera_info")
+    count = 0
+    with BagWriter(path, storage=storage, overwrite=overwrite) as writer:
+        writer.add_topic(image_topic, IMAGE_TYPE)
+        writer.add_topic(depth_topic, IMAGE_TYPE)
+        writer.add_topic(camera_info_topic, CAMERA_INFO_TYPE)
+        for stamp_ns, image, depth_mm in frames:
+            if depth_mm.dtype != np.uint16 or depth_mm.shape != image.shape[:2]:
+                raise BagError(f"frame {count}: depth must be uint16 {image.shape[:2]}, "
+                               f"got {depth_mm.dtype} {depth_mm.shape}")
+            writer.write(image_topic, stamp_ns, make_image_message(image, stamp_ns, frame_id))
+            writer.write(depth_topic, stamp_ns, make_image_message(depth_mm, stamp_ns, frame_id))
+            info = make_camera_info_message(camera_matrix, image.shape[1], image.shape[0], stamp_ns, frame_id)
+            writer.write(camera_info_topic, stamp_ns, info)
             count += 1
     return count
 

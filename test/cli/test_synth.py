@@ -5,11 +5,16 @@ import json
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from aefabmap_ros.cli.synth import main
 from aefabmap_ros.core.ground_truth import read_kitti_poses
 
 SMALL = ["--frames", "12", "--width", "96", "--height", "72"]
+
+
+def calib_values(directory):
+    return [float(value) for value in (directory / "calib.txt").read_text().split()[1:]]
 
 
 def test_writes_folder_sequences(tmp_path, capsys):
@@ -27,6 +32,17 @@ def test_writes_folder_sequences(tmp_path, capsys):
         np.testing.assert_allclose(times, np.arange(12) * 0.1, atol=1e-9)
         with np.load(directory / "loop_gt.npz") as data:
             assert data["gt"].shape == (12, 12) and data["gt"].dtype == np.uint8
+        with np.load(directory / "loop_gt_poses.npz") as data:
+            assert data["gt"].shape == (12, 12) and data["gt"].dtype == np.uint8
+        depths = sorted((directory / "depth").glob("*.png"))
+        assert len(depths) == 12
+        depth = cv2.imread(str(depths[0]), cv2.IMREAD_UNCHANGED)
+        assert depth is not None and depth.shape == (72, 96) and depth.dtype == np.uint16
+        assert (depth == 0).any() and 1000 < depth.max() < 65535  # sky, and surfaces metres away
+        info = yaml.safe_load((directory / "camera_info.yaml").read_text())
+        assert (info["image_width"], info["image_height"]) == (96, 72)
+        projection = np.array(calib_values(directory)).reshape(3, 4)
+        np.testing.assert_allclose(np.array(info["camera_matrix"]["data"]).reshape(3, 3), projection[:, :3])
         config = json.loads((directory / "synth_config.json").read_text())
         assert config["seed"] == seed and config["num_frames"] == 12
         calib = (directory / "calib.txt").read_text().split()
@@ -51,6 +67,29 @@ def test_writes_mcap_bag(tmp_path):
     np.testing.assert_array_equal(np.asarray(first.data).reshape(72, 96), png)
     stamps = [m.stamp_ns for m in messages]
     assert stamps == sorted(stamps) and stamps[1] - stamps[0] == 100_000_000
+    assert bags.list_topics(directory / "bag") == {"/cam": bags.IMAGE_TYPE, "/depth": bags.IMAGE_TYPE,
+                                                   "/camera_info": bags.CAMERA_INFO_TYPE}
+    depth = list(bags.read_messages(directory / "bag", ["/depth"]))
+    info = list(bags.read_messages(directory / "bag", ["/camera_info"]))
+    assert [m.stamp_ns for m in depth] == stamps == [m.stamp_ns for m in info]
+    assert depth[0].message.encoding == "16UC1"
+    png = cv2.imread(str(directory / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(np.frombuffer(bytes(depth[0].message.data), "<u2").reshape(72, 96), png)
+    np.testing.assert_allclose(np.asarray(info[0].message.p), calib_values(directory))
+
+
+def test_aefabmap_gt_reproduces_the_written_ground_truth(tmp_path):
+    from aefabmap_ros.cli.gt import main as gt_main
+
+    assert main(["--out", str(tmp_path), "--kind", "test", "--frames", "80", "--width", "96", "--height", "72",
+                 "--laps", "2"]) == 0
+    directory = tmp_path / "test"
+    assert gt_main(["--depth", str(directory / "depth"), "--poses", str(directory / "poses.txt"),
+                    "--camera-info", str(directory / "camera_info.yaml"), "--times", str(directory / "times.txt"),
+                    "--out", str(tmp_path / "gt.npz")]) == 0
+    with np.load(directory / "loop_gt.npz") as written, np.load(tmp_path / "gt.npz") as recomputed:
+        assert written["gt"].sum() > 0
+        np.testing.assert_array_equal(recomputed["gt"], written["gt"])
 
 
 def test_mcap_only_writes_no_pngs(tmp_path):
@@ -75,6 +114,7 @@ def test_existing_sequence_needs_overwrite(tmp_path, capsys):
         (["--width", "4"], "width and height must be >= 16"),
         (["--kind", "validation"], "invalid choice: 'validation'"),
         (["--frames", "many"], "invalid int value: 'many'"),
+        (["--preset", "spiral"], "invalid choice: 'spiral'"),
     ],
 )
 def test_bad_arguments(tmp_path, capsys, args, message):
@@ -93,3 +133,19 @@ def test_unwritable_out(tmp_path, capsys):
     blocker.write_text("not a directory")
     assert main(["--out", str(blocker / "sub"), *SMALL]) == 1
     assert "ERROR: cannot create output directory" in capsys.readouterr().err
+
+
+def test_dense_video_preset(tmp_path):
+    assert main(["--out", str(tmp_path), "--kind", "both", "--preset", "dense-video", "--frames", "45",
+                 "--width", "64", "--height", "48"]) == 0
+    for name, seed in (("train", 1_000_003), ("test", 0)):
+        config = json.loads((tmp_path / name / "synth_config.json").read_text())
+        assert (config["route"], config["frame_rate_hz"], config["seed"]) == ("dense-video", 30.0, seed)
+        assert (config["num_frames"], config["width"], config["gt_min_gap_s"]) == (45, 64, 5.0)
+        np.testing.assert_allclose(np.loadtxt(tmp_path / name / "times.txt"), np.arange(45) / 30.0, atol=1e-9)
+    assert main(["--out", str(tmp_path / "b"), "--kind", "test", "--preset", "dense-video", "--frames", "30"]) == 0
+    config = json.loads((tmp_path / "b" / "test" / "synth_config.json").read_text())
+    assert (config["width"], config["height"]) == (320, 240)  # the preset's size
+    assert main(["--out", str(tmp_path / "c"), "--kind", "test", "--frames", "3", *SMALL[2:]]) == 0
+    config = json.loads((tmp_path / "c" / "test" / "synth_config.json").read_text())
+    assert (config["route"], config["frame_rate_hz"], config["laps"]) == ("figure-eight", 10.0, 2)  # defaults kept

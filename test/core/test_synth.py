@@ -10,8 +10,8 @@ import pytest
 
 from aefabmap_ros.core import synth
 from aefabmap_ros.core.errors import ConfigError
-from aefabmap_ros.core.ground_truth import positions_and_axes
-from aefabmap_ros.core.synth import SynthConfig, generate_sequence, train_test_configs
+from aefabmap_ros.core.ground_truth import covisibility_loop_matrix, positions_and_axes
+from aefabmap_ros.core.synth import SynthConfig, depth_to_16uc1, generate_sequence, train_test_configs
 
 # 640x480 so that SIFT statistics mean what they mean at the default size; 120 frames over 2 laps.
 SEQUENCE_CONFIG = SynthConfig(seed=5, num_frames=120)
@@ -80,8 +80,8 @@ def test_speed_is_plausible(sequence):
     assert steps.max() < 3 * np.median(steps)
 
 
-def test_gt_agrees_with_poses(sequence):
-    """Recompute the loop matrix with a plain double loop over the published poses."""
+def test_gt_poses_agrees_with_poses(sequence):
+    """Recompute the pose-rule loop matrix with a plain double loop over the published poses."""
     cfg = SEQUENCE_CONFIG
     n = cfg.num_frames
     expected = np.zeros((n, n), dtype=np.uint8)
@@ -91,9 +91,111 @@ def test_gt_agrees_with_poses(sequence):
             cosine = float(np.dot(sequence.optical_axes[i], sequence.optical_axes[j]))
             if close and math.degrees(math.acos(min(1.0, cosine))) <= cfg.gt_max_angle_deg:
                 expected[i, j] = 1
-    np.testing.assert_array_equal(sequence.gt, expected)
+    np.testing.assert_array_equal(sequence.gt_poses, expected)
     # Two laps of a figure-eight: the second lap revisits the first, and the middle street is driven twice a lap.
-    assert sequence.gt.any(axis=1).sum() >= n // 3
+    assert sequence.gt_poses.any(axis=1).sum() >= n // 3
+
+
+def test_gt_is_covisibility_of_the_written_depth(sequence):
+    n = SEQUENCE_CONFIG.num_frames
+    assert sequence.depths.shape == (n, 480, 640) and sequence.depths.dtype == np.float32
+    expected = covisibility_loop_matrix(depth_to_16uc1(sequence.depths), sequence.poses, sequence.camera_matrix,
+                                        sequence.stamps_ns, min_gap_s=SEQUENCE_CONFIG.gt_min_gap_s, depth_scale=1000.0)
+    np.testing.assert_array_equal(sequence.gt, expected)
+    # 60 frames (6 s) a lap: the second lap revisits the first, beyond the 5 s gap.
+    assert sequence.gt[70:].any(axis=1).sum() >= 25
+    assert not sequence.gt[:50].any()
+    # Most revisits are close in space too (the same street, the same direction).
+    i, j = np.nonzero(sequence.gt)
+    distance = np.linalg.norm(sequence.positions[i] - sequence.positions[j], axis=1)
+    assert np.median(distance) < 5.0
+
+
+def test_depth_to_16uc1():
+    depth = np.array([[0.0, 0.0004, 0.0006, 1.2344], [65.535, 65.536, np.inf, np.nan]], dtype=np.float32)
+    millimetres = depth_to_16uc1(depth)
+    assert millimetres.dtype == np.uint16
+    assert millimetres.tolist() == [[0, 0, 1, 1234], [65535, 0, 0, 0]]
+
+
+def _single_wall_world(config: SynthConfig) -> synth.World:
+    """The town's atlas with one facade: the wall y = 5.13 m from x = -10 to 10, 3 m high, facing south."""
+    world = synth.build_world(config)
+    facades = synth._Facades(
+        start=np.array([[10.0, 5.13]]), direction=np.array([[-1.0, 0.0]]), normal=np.array([[0.0, -1.0]]),
+        length_m=np.array([20.0]), height_m=np.array([3.0]), texture_id=np.array([3]),
+        texels_per_m=np.array([config.texels_per_m]))
+    return replace(world, facades=facades)
+
+
+def _reference_depth(camera, origin_xy, heading, height_m):
+    """Per-pixel 3-D ray casting against the ground z = 0 and the wall y = 5.13 (|x| <= 10, z <= 3)."""
+    forward = np.array([math.cos(heading), math.sin(heading), 0.0])
+    right = np.array([math.sin(heading), -math.cos(heading), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    origin = np.array([origin_xy[0], origin_xy[1], height_m])
+    depth = np.zeros((camera.height, camera.width))
+    for row in range(camera.height):
+        for column in range(camera.width):
+            ray = forward + (column - camera.cx) / camera.focal_px * right + (row - camera.cy) / camera.focal_px * down
+            best = math.inf
+            if ray[2] < 0:
+                best = -origin[2] / ray[2]  # ground; the ray's forward component is 1: t is the depth
+            if ray[1] > 0:
+                t = (5.13 - origin[1]) / ray[1]
+                hit = origin + t * ray
+                if t > 0 and abs(hit[0]) <= 10 and 0 <= hit[2] <= 3 and t < best:
+                    best = t
+            depth[row, column] = 0.0 if math.isinf(best) else best
+    return depth
+
+
+@pytest.mark.parametrize(("origin_xy", "heading_deg"), [((0.3, 0.0), 90.0), ((-2.0, -1.0), 70.0), ((1.0, 2.0), 120.0)])
+def test_rendered_depth_is_the_ray_plane_intersection(origin_xy, heading_deg):
+    config = replace(TINY_CONFIG, width=64, height=48)
+    world = _single_wall_world(config)
+    camera = synth.PinholeCamera.from_config(config)
+    heading = math.radians(heading_deg)
+    image, depth = synth.render_view_and_depth(world, camera, np.array(origin_xy), heading, 1.6, 0.0, 150.0)
+    assert image.shape == (48, 64) and depth.shape == (48, 64) and depth.dtype == np.float32
+    reference = _reference_depth(camera, origin_xy, heading, 1.6)
+    np.testing.assert_allclose(depth, reference, rtol=1e-5)
+    assert (depth == 0).any() and (depth > 0).any()  # sky above the wall, wall and ground below
+    x_col = (32 - camera.cx) / camera.focal_px  # column 32's ray meets the wall's plane at this depth
+    wall_depth = (5.13 - origin_xy[1]) / (math.sin(heading) - x_col * math.cos(heading))
+    assert (np.abs(depth[:, 32] - wall_depth) < 1e-3).sum() >= 5
+
+
+def test_town_depth_ground_rows_and_sky():
+    config = replace(TINY_CONFIG, width=80, height=60)
+    world = synth.build_world(config)
+    camera = synth.PinholeCamera.from_config(config)
+    # In the middle street (x = 40 m), looking north along it: the bottom row sees the road 1.6 m below.
+    _, depth = synth.render_view_and_depth(world, camera, np.array([41.0, 25.0]), math.pi / 2, 1.6, 0.0, 150.0)
+    rows = np.arange(config.height)
+    ground = 1.6 * camera.focal_px / (rows - camera.cy)
+    np.testing.assert_allclose(depth[-1], ground[-1], rtol=1e-5)
+    np.testing.assert_allclose(depth[-5:, 40], ground[-5:], rtol=1e-5)
+    assert (depth[0] == 0).any()  # sky between the facades at the top of the image
+    assert np.isfinite(depth).all() and depth.max() < 200.0
+
+
+def test_covisibility_of_a_rendered_revisit():
+    """The same spot of the middle street seen again 10 s later a metre further on is a revisit; the same
+    spot driven in the opposite direction, or from around the corner, is not."""
+    config = replace(TINY_CONFIG, width=160, height=120)
+    world = synth.build_world(config)
+    camera = synth.PinholeCamera.from_config(config)
+    views = [((41.0, 25.0), 90.0), ((41.2, 26.0), 93.0), ((41.0, 25.0), 270.0), ((50.0, 40.0), 0.0)]
+    depths = np.stack([synth.render_view_and_depth(world, camera, np.array(xy), math.radians(heading), 1.6, 0.0,
+                                                   150.0)[1] for xy, heading in views])
+    positions = np.array([[x, y, 1.6] for (x, y), _ in views])
+    poses = synth.poses_from_headings(positions, np.radians([heading for _, heading in views]))
+    stamps = np.arange(4, dtype=np.int64) * 10_000_000_000
+    gt = covisibility_loop_matrix(depths, poses, camera.matrix(), stamps)
+    assert gt[1, 0] == 1
+    assert gt[2, 0] == 0 and gt[2, 1] == 0
+    assert gt[3].sum() == 0
 
 
 def test_sift_finds_plenty_of_keypoints(sift_features):
@@ -209,6 +311,7 @@ def test_column_ray_cast_against_a_single_wall():
         ({"lane_offset_m": 3.5}, "lane_offset_m 3.5 .* within 1 m of the walls"),
         ({"camera_height_m": 5.0}, "camera_height_m must be < 4"),
         ({"gt_max_angle_deg": 181.0}, r"gt_max_angle_deg must be in \[0, 180\]"),
+        ({"gt_min_gap_s": -1.0}, "gt_min_gap_s must be >= 0, got -1.0"),
     ],
 )
 def test_config_errors(changes, match):
@@ -223,3 +326,56 @@ def test_config_accepts_int_for_float_and_documents_fields():
 
     assert all(item.metadata.get("description") for item in fields(SynthConfig))
     assert all(type(item.default) in (bool, int, float, str) for item in fields(SynthConfig))
+
+
+def test_default_route_is_unchanged_and_routes_are_checked():
+    assert SynthConfig().route == "figure-eight"
+    assert synth._route_nodes() == [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
+    with pytest.raises(ConfigError, match=r"route must be one of \['dense-video', 'figure-eight'\], got 'spiral'"):
+        SynthConfig(route="spiral")
+
+
+@pytest.fixture(scope="module")
+def dense_drive():
+    config = synth.dense_video_config()
+    world = synth.build_world(replace(config, texels_per_m=8.0, ground_texels_per_m=4.0))  # geometry only
+    positions, headings = synth._trajectory(config, world, np.random.default_rng(0))
+    return config, world, positions, headings
+
+
+def test_dense_video_preset(dense_drive):
+    config, _, positions, headings = dense_drive
+    assert (config.num_frames, config.frame_rate_hz, config.route) == (3600, 30.0, "dense-video")
+    assert positions.shape == (3600, 2) and headings.shape == (3600,)
+    speed = np.linalg.norm(np.diff(positions, axis=0), axis=1) * config.frame_rate_hz  # m/s
+    # A stop of at least 4 s (standing still), slow and fast stretches.
+    still = np.r_[0, (speed < 1e-9).astype(int), 0]
+    runs = np.diff(np.nonzero(np.diff(still))[0])[::2]
+    assert runs.max() >= 4 * 30
+    moving = speed[speed > 0.1]
+    assert np.percentile(moving, 90) > 2.0 * np.percentile(moving, 20)
+    assert speed.max() < 12.0  # no teleporting
+
+
+def test_dense_video_route_revisits_both_ways_and_leaves_a_street_alone(dense_drive):
+    config, world, positions, headings = dense_drive
+    pitch = world.pitch_m
+    north = np.cos(headings - math.pi / 2) > 0.9
+    south = np.cos(headings + math.pi / 2) > 0.9
+    middle = np.abs(positions[:, 0] - 2 * pitch) < 3.0
+    lower_half = middle & (positions[:, 1] > pitch + 5) & (positions[:, 1] < 2 * pitch - 5)
+    upper_half = middle & (positions[:, 1] > 2 * pitch + 5) & (positions[:, 1] < 3 * pitch - 5)
+    frames = np.arange(len(positions))
+    # The lower half of the middle street southbound twice, far apart in time ...
+    southbound = frames[lower_half & south]
+    assert np.diff(southbound).max() > 20 * config.frame_rate_hz
+    # ... the upper half southbound first, northbound at the end.
+    upper_south, upper_north = frames[upper_half & south], frames[upper_half & north]
+    assert upper_south.size > 30 and upper_north.size > 30 and upper_north.min() > southbound.max()
+    assert upper_north.min() - upper_south.max() > 30 * config.frame_rate_hz
+    # The west edge street (x = 0) is driven once, at the start, and never approached again (up to the
+    # north edge, where the route turns east).
+    west = frames[(positions[:, 0] < 3.0) & (positions[:, 1] < 2.5 * pitch)]
+    assert west.size > 0 and west.max() < len(positions) // 2
+    later = positions[np.argmax(positions[:, 0] > 15.0) :]  # from past the first corner on
+    assert np.min(np.linalg.norm(later[:, None, :] - positions[west][None, ::10, :], axis=2)) > 10.0

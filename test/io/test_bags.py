@@ -116,3 +116,40 @@ def test_corrupt_bag(tmp_path: Path) -> None:
 def test_unknown_storage(tmp_path: Path) -> None:
     with pytest.raises(BagError, match="unknown bag storage 'zip'"):
         bags.BagWriter(tmp_path / "bag", storage="zip")
+
+
+def test_rgbd_bag_round_trip(tmp_path: Path) -> None:
+    image = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    depth = np.array([[0, 1, 65535, 1000], [2, 3, 4, 5], [6, 7, 8, 9]], dtype=np.uint16)
+    camera = np.array([[100.0, 0.0, 1.5], [0.0, 101.0, 1.0], [0.0, 0.0, 1.0]])
+    frames = [(1_000, image, depth), (2_000, image + 1, depth + 1)]
+    assert bags.write_rgbd_bag(tmp_path / "bag", "/cam/image", frames, camera) == 2
+    assert bags.list_topics(tmp_path / "bag") == {
+        "/cam/image": bags.IMAGE_TYPE, "/cam/depth": bags.IMAGE_TYPE, "/cam/camera_info": bags.CAMERA_INFO_TYPE}
+    messages = list(bags.read_messages(tmp_path / "bag", ["/cam/image", "/cam/depth", "/cam/camera_info"]))
+    assert [m.stamp_ns for m in messages] == [1_000] * 3 + [2_000] * 3
+    by_topic = {m.topic: m.message for m in messages[:3]}
+    stored = by_topic["/cam/depth"]
+    assert (stored.encoding, stored.step, stored.is_bigendian) == ("16UC1", 8, 0)
+    np.testing.assert_array_equal(np.frombuffer(bytes(stored.data), "<u2").reshape(3, 4), depth)
+    info = by_topic["/cam/camera_info"]
+    assert (info.width, info.height, info.distortion_model) == (4, 3, "plumb_bob")
+    np.testing.assert_array_equal(np.asarray(info.k).reshape(3, 3), camera)
+    np.testing.assert_array_equal(np.asarray(info.p).reshape(3, 4)[:, :3], camera)
+
+
+def test_sibling_topics() -> None:
+    assert bags.sibling_topic("/camera/image_raw", "depth") == "/camera/depth"
+    assert bags.sibling_topic("/image", "camera_info") == "/camera_info"
+    assert bags.sibling_topic("image", "depth") == "/depth"
+
+
+def test_rgbd_bag_errors(tmp_path: Path) -> None:
+    image = np.zeros((3, 4), np.uint8)
+    with pytest.raises(BagError, match=r"frame 0: depth must be uint16 \(3, 4\), got float32 \(3, 4\)"):
+        bags.write_rgbd_bag(tmp_path / "a", "/image", [(1, image, np.zeros((3, 4), np.float32))], np.eye(3))
+    assert not (tmp_path / "a").exists()
+    with pytest.raises(BagError, match=r"camera_matrix must be a finite \(3, 3\) array, got shape \(2, 2\)"):
+        bags.write_rgbd_bag(tmp_path / "b", "/image", [(1, image, np.zeros((3, 4), np.uint16))], np.eye(2))
+    with pytest.raises(BagError, match="got int32 \\(3, 4\\)"):
+        bags.make_image_message(np.zeros((3, 4), np.int32), 0)

@@ -1,0 +1,172 @@
+"""aefabmap_gt: covisibility ground truth (DESIGN 9.2) of your own RGB-D recording.
+
+    aefabmap_gt --depth seq/depth --poses seq/poses.txt --camera-info seq/camera_info.yaml \\
+        --times seq/times.txt --out seq/loop_gt.npz                       # an aefabmap_synth folder
+    aefabmap_gt --depth rgbd_dataset_freiburg1_room/depth --depth-scale 5000 \\
+        --poses rgbd_dataset_freiburg1_room/groundtruth.txt --poses-format tum \\
+        --intrinsics 517.3 516.5 318.6 255.3 --skip-unposed --out fr1_room_gt.npz   # TUM RGB-D
+
+Frame i revisits earlier frame j (at least --min-gap-s earlier) when at least --min-fraction of i's
+depth pixels (every --grid-step-px-th), lifted to 3-D with i's pose, land on the surface j saw (in
+front of j, inside its image, j's depth within --tolerance-m + --relative-tolerance * depth).
+
+Inputs:
+  --depth DIR         16-bit PNGs (ROS 16UC1); metres = value / --depth-scale (1000 = millimetres;
+                      TUM RGB-D uses 5000); 0 = no depth. Read by stamp when named <seconds>.png,
+                      else by file name.
+  --times FILE        one number of seconds per frame (KITTI times.txt); without it the stamps come
+                      from the file names (TUM style <seconds>.png)
+  --poses FILE        camera-to-world poses, camera x right, y down, z forward:
+                        kitti: one 3x4 [R | t] per line, one line per depth frame, in order;
+                        tum:   "timestamp tx ty tz qx qy qz qw" lines, associated to each depth frame
+                               by nearest stamp within --max-pose-offset-s. A frame without a pose is an
+                               error, unless --skip-unposed: then it is left out of the matrix (the
+                               output's "files" say which frames the rows are).
+  --intrinsics FX FY CX CY, or --camera-info camera_info.yaml (ROS camera_calibration_parsers format)
+
+Output (.npz, written atomically): "gt" (N, N) uint8 (gt[i, j] = 1: frame i revisits frame j),
+"stamps_ns" (N,) int64, "files" (N,) the depth file names of the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.core.atomic import atomic_write_bytes
+from aefabmap_ros.core.errors import ConfigError, DataError
+from aefabmap_ros.core.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
+from aefabmap_ros.io.rgbd import (
+    associate,
+    intrinsics_matrix,
+    list_depth_files,
+    read_camera_info_yaml,
+    read_depth_pngs,
+    read_times,
+    read_tum_trajectory,
+    stamps_from_names,
+)
+
+
+class _UsageError(Exception):
+    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise _UsageError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="aefabmap_gt", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--depth", type=Path, required=True, help="folder of 16-bit depth PNGs")
+    parser.add_argument("--depth-scale", type=float, default=1000.0,
+                        help="depth PNG units per metre (default: 1000 = millimetres; TUM RGB-D: 5000)")
+    parser.add_argument("--poses", type=Path, required=True, help="camera-to-world trajectory file")
+    parser.add_argument("--poses-format", choices=("kitti", "tum"), default="kitti",
+                        help="kitti (3x4 per line, one per frame) or tum (stamped quaternions); default: kitti")
+    camera = parser.add_mutually_exclusive_group(required=True)
+    camera.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                        help="pinhole intrinsics in pixels")
+    camera.add_argument("--camera-info", type=Path, help="ROS camera_info.yaml with the intrinsics")
+    parser.add_argument("--times", type=Path, help="seconds per frame, one per line (default: from file names)")
+    parser.add_argument("--max-pose-offset-s", type=float, default=0.02,
+                        help="tum: largest stamp difference of a frame and its pose (default: 0.02)")
+    parser.add_argument("--skip-unposed", action="store_true",
+                        help="tum: leave frames without a pose out instead of failing")
+    parser.add_argument("--min-gap-s", type=float, default=5.0, help="smallest time gap of a revisit (default: 5)")
+    parser.add_argument("--min-fraction", type=float, default=0.3,
+                        help="share of i's depth pixels that must land on j's surfaces (default: 0.3)")
+    parser.add_argument("--grid-step-px", type=int, default=8, help="sample every n-th pixel of i (default: 8)")
+    parser.add_argument("--tolerance-m", type=float, default=0.05, help="absolute depth tolerance (default: 0.05)")
+    parser.add_argument("--relative-tolerance", type=float, default=0.01,
+                        help="depth tolerance per metre of depth (default: 0.01)")
+    parser.add_argument("--out", type=Path, required=True, help="output .npz")
+    return parser
+
+
+def _stamps(args: argparse.Namespace, files: list[Path]) -> np.ndarray:
+    return read_times(args.times, len(files)) if args.times is not None else stamps_from_names(files)
+
+
+def _poses(args: argparse.Namespace, stamps_ns: np.ndarray, files: list[Path]) -> tuple[np.ndarray, np.ndarray]:
+    """(poses of the kept frames, indices of the kept frames)."""
+    if args.poses_format == "kitti":
+        poses = read_kitti_poses(args.poses)
+        if len(poses) != len(files):
+            raise DataError(f"KITTI pose file {args.poses} has {len(poses)} poses but the depth folder "
+                            f"{args.depth} has {len(files)} frames")
+        return check_poses(poses), np.arange(len(files))
+    if not args.max_pose_offset_s >= 0:
+        raise ConfigError(f"--max-pose-offset-s must be >= 0, got {args.max_pose_offset_s!r}")
+    trajectory = read_tum_trajectory(args.poses)
+    nearest = associate(stamps_ns, trajectory, round(args.max_pose_offset_s * 1e9))
+    unposed = np.nonzero(nearest < 0)[0]
+    if unposed.size and not args.skip_unposed:
+        raise DataError(f"{unposed.size} of {len(files)} depth frames have no pose in {args.poses} within "
+                        f"{args.max_pose_offset_s} s (first: {files[unposed[0]].name}); pass --skip-unposed to "
+                        f"leave them out")
+    kept = np.nonzero(nearest >= 0)[0]
+    return check_poses(trajectory.poses[nearest[kept]]), kept
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, buffer.getvalue())
+    except OSError as error:
+        raise ConfigError(f"cannot write {path}: {error}") from error
+
+
+def run(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    files = list_depth_files(args.depth)
+    stamps_ns = _stamps(args, files)
+    if args.camera_info is not None:
+        camera_matrix, width, height = read_camera_info_yaml(args.camera_info)
+    else:
+        camera_matrix, width, height = intrinsics_matrix(*args.intrinsics), None, None
+    poses, kept = _poses(args, stamps_ns, files)
+    depths = read_depth_pngs([files[index] for index in kept])
+    if width is not None and (depths.shape[2], depths.shape[1]) != (width, height):
+        raise DataError(f"depth images are {depths.shape[2]}x{depths.shape[1]} but {args.camera_info} says "
+                        f"{width}x{height}")
+    if np.any(np.diff(stamps_ns[kept]) < 0):
+        raise DataError(f"frame stamps go backwards in {args.times or args.depth}")
+    loaded = time.perf_counter()
+    gt, stats = covisibility_with_stats(
+        depths, poses, camera_matrix, stamps_ns[kept], min_fraction=args.min_fraction, min_gap_s=args.min_gap_s,
+        grid_step_px=args.grid_step_px, tolerance_m=args.tolerance_m, relative_tolerance=args.relative_tolerance,
+        depth_scale=args.depth_scale)
+    finished = time.perf_counter()
+    _write_npz(args.out, {"gt": gt, "stamps_ns": stamps_ns[kept],
+                          "files": np.array([files[index].name for index in kept])})
+    skipped = len(files) - len(kept)
+    print(f"{stats.num_frames} frames{f' ({skipped} without a pose left out)' if skipped else ''}: "
+          f"{stats.revisit_pairs} revisit pairs, {stats.revisiting_frames} revisiting frames "
+          f"({stats.candidate_pairs} candidate pairs projected); read in {loaded - started:.1f} s, "
+          f"ground truth in {finished - loaded:.1f} s -> {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as error:
+        parser.print_usage(sys.stderr)
+        print(f"ERROR: {error}", file=sys.stderr)
+        return 1
+    return report_errors(lambda: run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
