@@ -20,6 +20,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_record = aefabmap_ros.cli.record:main",
     "aefabmap_synth = aefabmap_ros.cli.synth:main",
     "aefabmap_gt = aefabmap_ros.cli.gt:main",
+    "aefabmap_bag = aefabmap_ros.cli.bag:main",
     "aefabmap_demo = aefabmap_ros.cli.demo:main",
     "aefabmap_bench = aefabmap_ros.cli.bench:main",
 ]

@@ -86,7 +86,7 @@ def stamps_from_names(files: list[Path]) -> np.ndarray:
     for path in files:
         stamp = _stamp_from_name(path)
         if stamp is None:
-            raise DataError(f"cannot read a stamp from depth file name {path.name} (expected <seconds>.png, "
+            raise DataError(f"cannot read a stamp from file name {path.name} (expected <seconds>.png, "
                             f"e.g. 1305031102.160407.png; or pass a times file)")
         stamps.append(stamp)
     return np.asarray(stamps, dtype=np.int64)
@@ -113,7 +113,7 @@ def read_times(path: Path, num_frames: int) -> np.ndarray:
         except ValueError as error:
             raise DataError(f"{path}:{number}: not a number ({fields[0]!r})") from error
     if len(stamps) != num_frames:
-        raise DataError(f"times file {path} has {len(stamps)} stamps but the depth folder has {num_frames} frames")
+        raise DataError(f"times file {path} has {len(stamps)} stamps but the folder has {num_frames} frames")
     return np.asarray(stamps, dtype=np.int64)
 
 

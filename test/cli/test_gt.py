@@ -151,7 +151,7 @@ def test_errors_mismatched_counts(tmp_path, scene, capsys):
     assert "has 5 poses but the depth folder" in _error(capsys, _kitti_args(root))
     write_kitti_poses(root / "poses.txt", scene[0])
     (root / "times.txt").write_text("0\n1\n")
-    assert "has 2 stamps but the depth folder has 7 frames" in _error(capsys, _kitti_args(root))
+    assert "has 2 stamps but the folder has 7 frames" in _error(capsys, _kitti_args(root))
     (root / "times.txt").write_text("0\nsoon\n")
     assert "times.txt:2: not a number ('soon')" in _error(capsys, _kitti_args(root))
     (root / "times.txt").write_text("".join(f"{t}\n" for t in reversed(STAMPS_S)))
@@ -161,7 +161,7 @@ def test_errors_mismatched_counts(tmp_path, scene, capsys):
 def test_errors_bad_inputs(tmp_path, scene, capsys):
     root = _write_kitti_folder(tmp_path, scene)
     no_times = [a for a in _kitti_args(root) if a not in ("--times", str(root / "times.txt"))]
-    assert "cannot read a stamp from depth file name 000000.png (expected <seconds>.png" in _error(capsys, no_times)
+    assert "cannot read a stamp from file name 000000.png (expected <seconds>.png" in _error(capsys, no_times)
     bad_pose = scene[0].copy()
     bad_pose[2, 0, 0] = math.nan
     write_kitti_poses(root / "poses.txt", bad_pose)
