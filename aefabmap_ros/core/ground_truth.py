@@ -12,8 +12,11 @@ Covisibility rule (DESIGN section 9.2, ``covisibility_loop_matrix``): frame ``i`
 frame ``j`` when at least ``min_fraction`` of i's grid pixels with depth, lifted to 3-D with i's
 pose, land on the surface that j itself saw: in front of j, inside j's image, and within
 ``tolerance_m + relative_tolerance * z`` of j's depth there. Unlike the pose rule it knows about
-occlusion, field of view and range: a street driven in the opposite direction is no revisit for a
-forward camera, a camera standing still across a corner is.
+occlusion, field of view and range. Two limits of the plain rule, measured on the dense-video
+synthetic sequence: cameras facing each other (a street driven in the opposite direction) share the
+ground and side walls between them and count as covisible unless ``max_view_angle_deg`` is given;
+and at walking speed along a straight street a frame stays covisible with frames of the same pass
+20 s later, so the time gap alone does not separate "still here" from "came back".
 """
 
 from __future__ import annotations
