@@ -87,6 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tolerance-m", type=float, default=0.05, help="absolute depth tolerance (default: 0.05)")
     parser.add_argument("--relative-tolerance", type=float, default=0.01,
                         help="depth tolerance per metre of depth (default: 0.01)")
+    parser.add_argument("--max-view-angle-deg", type=float, default=None,
+                        help="also require i and j to see each point from directions at most this far apart "
+                             "(default: no limit; without one, cameras facing each other across a street or "
+                             "corridor are covisible through the floor between them)")
     parser.add_argument("--out", type=Path, required=True, help="output .npz")
     return parser
 
@@ -145,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     gt, stats = covisibility_with_stats(
         depths, poses, camera_matrix, stamps_ns[kept], min_fraction=args.min_fraction, min_gap_s=args.min_gap_s,
         grid_step_px=args.grid_step_px, tolerance_m=args.tolerance_m, relative_tolerance=args.relative_tolerance,
-        depth_scale=args.depth_scale)
+        depth_scale=args.depth_scale, max_view_angle_deg=args.max_view_angle_deg)
     finished = time.perf_counter()
     _write_npz(args.out, {"gt": gt, "stamps_ns": stamps_ns[kept],
                           "files": np.array([files[index].name for index in kept])})

@@ -9,11 +9,13 @@ Presets:
   dense-video   one 2-minute drive filmed at 30 Hz (3600 frames): slow and fast stretches, a 4 s stop,
                 the middle street's lower half driven again in the same direction, its upper half
                 driven again in the opposite direction (for a forward camera mostly no revisit by
-                covisibility), and the west edge street never revisited. 320x240: at
-                640x480 a frame takes about 120 ms instead of 40 (3600 frames: 7 instead of 2.5
-                minutes) and the sequence holds 8 GB instead of 2 GB in memory while it is
-                written; --width/--height override it. --frames, --width and --height override a
-                preset's values; --laps does not apply to it.
+                covisibility), and the west edge street never revisited. 320x240 because of
+                memory more than time: measured on a busy 2-core machine, a 320x240 frame took 40-60
+                ms (3600 frames: 5.7 minutes, 2.2 of them the covisibility ground truth), a 640x480
+                frame about 120 ms (3600 frames: about 7 minutes of rendering, more ground truth),
+                and at 640x480 the sequence's images and depth hold about 8 GB in memory while it
+                is written (2 GB at 320x240). --frames, --width and --height override a preset's
+                values; --laps does not apply to it.
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)

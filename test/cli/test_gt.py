@@ -55,6 +55,10 @@ def test_kitti_poses_and_times(tmp_path, scene, capsys):
         np.testing.assert_array_equal(data["stamps_ns"], scene[2])
         assert data["files"].tolist() == [f"{index:06d}.png" for index in range(7)]
     assert f"7 frames: {int(scene[3].sum())} revisit pairs" in out
+    # Frame 6 faces the other way: no revisit either way; a 1-degree view-angle limit leaves nothing.
+    assert main(_kitti_args(root, "--max-view-angle-deg", "1")) == 0
+    with np.load(root / "out" / "gt.npz") as data:
+        assert data["gt"].sum() < scene[3].sum()
     # A longer gap leaves nothing: the returns are 8 to 12 s after the start.
     assert main(_kitti_args(root, "--min-gap-s", "20")) == 0
     with np.load(root / "out" / "gt.npz") as data:

@@ -253,7 +253,7 @@ def _room_depth(pose: np.ndarray, camera: np.ndarray, height: int, width: int) -
     return depth
 
 
-def _brute_force_covisibility(depths, poses, camera, stamps, min_fraction, gap_s, step, tol, rel):
+def _brute_force_covisibility(depths, poses, camera, stamps, min_fraction, gap_s, step, tol, rel, max_angle=None):
     """The rule of DESIGN 9.2 one pixel at a time, in plain Python floats."""
     n, height, width = depths.shape
     fx, fy, cx, cy = camera[0, 0], camera[1, 1], camera[0, 2], camera[1, 2]
@@ -290,7 +290,12 @@ def _brute_force_covisibility(depths, poses, camera, stamps, min_fraction, gap_s
                     inverse = ((1 - wv) * ((1 - wu) / corners[0] + wu / corners[1])
                                + wv * ((1 - wu) / corners[2] + wu / corners[3]))
                     if abs(1 / inverse - z) < tol + rel * z:
-                        agree += 1
+                        from_i = [world[a] - poses[i][a][3] for a in range(3)]
+                        from_j = [world[a] - poses[j][a][3] for a in range(3)]
+                        cosine = sum(a * b for a, b in zip(from_i, from_j, strict=True)) / (
+                            math.hypot(*from_i) * math.hypot(*from_j))
+                        if max_angle is None or math.degrees(math.acos(max(-1.0, min(1.0, cosine)))) <= max_angle:
+                            agree += 1
             if total and agree / total >= min_fraction:
                 gt[i, j] = 1
     return gt
@@ -312,16 +317,31 @@ def room_sequence():
     return depths, poses, camera, stamps
 
 
-@pytest.mark.parametrize(("min_fraction", "gap_s", "step", "tol"), [(0.3, 5.0, 4, 0.05), (0.5, 0.0, 3, 0.01),
-                                                                    (0.1, 2.0, 5, 0.2)])
-def test_matches_per_pixel_brute_force(room_sequence, min_fraction, gap_s, step, tol):
+@pytest.mark.parametrize(("min_fraction", "gap_s", "step", "tol", "angle"),
+                         [(0.3, 5.0, 4, 0.05, None), (0.5, 0.0, 3, 0.01, None), (0.1, 2.0, 5, 0.2, None),
+                          (0.2, 0.0, 4, 0.05, 30.0)])
+def test_matches_per_pixel_brute_force(room_sequence, min_fraction, gap_s, step, tol, angle):
     depths, poses, camera, stamps = room_sequence
-    reference = _brute_force_covisibility(depths, poses, camera, stamps, min_fraction, gap_s, step, tol, 0.01)
+    reference = _brute_force_covisibility(depths, poses, camera, stamps, min_fraction, gap_s, step, tol, 0.01, angle)
     assert 0 < reference.sum() < np.tril(np.ones_like(reference), -1).sum()  # a mix of revisits and not
-    for voxel in (None, 1.0, 0.5):
+    for voxel in (None, 2.0, 1.0, 0.5):
         gt = covisibility_loop_matrix(depths, poses, camera, stamps, min_fraction=min_fraction, min_gap_s=gap_s,
-                                      grid_step_px=step, tolerance_m=tol, prune_voxel_m=voxel)
+                                      grid_step_px=step, tolerance_m=tol, prune_voxel_m=voxel,
+                                      max_view_angle_deg=angle)
         np.testing.assert_array_equal(gt, reference, err_msg=f"prune_voxel_m={voxel}")
+
+
+def test_cameras_facing_each_other_share_the_room_but_not_the_view():
+    """Two cameras 6 m apart look at each other in the room: the floor, ceiling and side walls between
+    them are covisible by depth, but each sees them from the opposite side."""
+    camera = np.array([[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]])
+    poses = np.stack([_pose((0.0, 0.0, 3.0), 180.0), _pose((0.0, 0.0, -3.0), 0.0)])
+    depths = np.stack([_room_depth(pose, camera, 24, 32) for pose in poses])
+    stamps = np.array([0, 10 * SECOND_NS])
+    plain = _brute_force_covisibility(depths, poses, camera, stamps, 0.3, 5.0, 4, 0.05, 0.01)
+    assert plain[1, 0] == 1
+    assert covisibility_loop_matrix(depths, poses, camera, stamps, grid_step_px=4)[1, 0] == 1
+    assert covisibility_loop_matrix(depths, poses, camera, stamps, grid_step_px=4, max_view_angle_deg=90.0)[1, 0] == 0
 
 
 def test_integer_millimetre_depths_and_stats(room_sequence):
@@ -375,6 +395,7 @@ def _bad(**changes):
         ({"relative_tolerance": float("nan")}, ConfigError, "relative_tolerance must be >= 0, got nan"),
         ({"prune_voxel_m": 0.0}, ConfigError, r"prune_voxel_m must be > 0 \(or None: no pruning\), got 0.0"),
         ({"depth_scale": 0}, ConfigError, "depth_scale must be > 0, got 0"),
+        ({"max_view_angle_deg": 0.0}, ConfigError, r"max_view_angle_deg must be in \(0, 180\] \(or None"),
     ],
 )
 def test_covisibility_bad_inputs(changes, error, match):
