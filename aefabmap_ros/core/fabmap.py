@@ -33,6 +33,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numba
 import numpy as np
@@ -85,7 +86,7 @@ class FabMapConfig:
         metadata={"description": "Motion model: forward bias in [0, 1]; 0.5 spreads evenly [mBias]."},
     )
     likelihood_temperature: float = field(
-        default=1.0,
+        default=3.0,
         metadata={
             "description": "Log-likelihoods are divided by this before the posterior (1 = FAB-MAP as published). "
             "FAB-MAP's independence assumptions make its likelihood ratios overconfident; a temperature "
@@ -97,7 +98,7 @@ class FabMapConfig:
         metadata={"description": "Posterior smoothing s in (0, 1]: p <- s p + (1 - s) / n [sFactor]."},
     )
     match_threshold: float = field(
-        default=0.99,
+        default=0.3,
         metadata={"description": "A query matches a known place when that place's posterior exceeds this."},
     )
     add_policy: str = field(
@@ -115,7 +116,7 @@ class FabMapConfig:
         },
     )
     exclude_recent_seconds: float = field(
-        default=0.0,
+        default=5.0,
         metadata={
             "description": "Places stamped less than this many seconds before the query are not "
             "hypotheses of the posterior (0 = off)."
@@ -158,7 +159,7 @@ class FabMapConfig:
         },
     )
     consistency_matches: int = field(
-        default=1,
+        default=2,
         metadata={
             "description": "Temporal consistency: a match is a loop closure only when this many consecutive "
             "informative frames (this one included) matched places within island_seconds of each other "
@@ -166,7 +167,7 @@ class FabMapConfig:
         },
     )
     island_seconds: float = field(
-        default=2.0,
+        default=3.0,
         metadata={
             "description": "Temporal consistency: largest gap in map time (stamps of the matched places) "
             "between the matches of two consecutive frames."
@@ -182,6 +183,15 @@ class FabMapConfig:
             "(no posterior, no loop closure) and do not become places (0 = recognise every frame)."
         },
     )
+
+    @classmethod
+    def openfabmap(cls, **overrides: Any) -> FabMapConfig:
+        """FAB-MAP as openFABMAP and the papers run it: every frame a hypothesis, the raw posterior (no
+        temperature), a match at 0.99, no time window, no consistency. The defaults of this class are
+        the nodes' (dense video, calibrated, consistent); this is the reference for golden comparisons."""
+        reference: dict[str, Any] = {"likelihood_temperature": 1.0, "match_threshold": 0.99,
+                                     "exclude_recent_seconds": 0.0, "consistency_matches": 1}
+        return cls(**{**reference, **overrides})
 
     def __post_init__(self) -> None:
         def bad(name: str, rule: str) -> ConfigError:

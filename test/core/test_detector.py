@@ -9,6 +9,9 @@ from aefabmap_ros.core.detector import PlaceRecognizer, jaccard
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import FabMapConfig, fabmap_score_matrices
 
+openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
+
+
 V = 40
 
 
@@ -30,7 +33,7 @@ SAMPLES = sp.csr_matrix(np.random.default_rng(9).random((15, V)) < 0.25)
 
 @pytest.mark.parametrize("motion", [False, True])
 def test_online_matches_offline_all_policy(motion):
-    config = FabMapConfig(motion_model=motion, top_k=100)
+    config = openfabmap(motion_model=motion, top_k=100)
     frames = _frames(12)
     frames.append(frames[3])
     offline = fabmap_score_matrices(frames, _tree(), SAMPLES, config)
@@ -55,7 +58,7 @@ def test_golden_sequence_online(golden_dir):
     test = read_bow(golden_dir / "bowtest.yml")
     golden_p = np.loadtxt(golden_dir / "fabmap2_sampled_motion.probabilities.txt")
     # openFABMAP recognises every frame, also its two blank ones (min_words=0).
-    recognizer = PlaceRecognizer(tree, train, FabMapConfig(motion_model=True, top_k=3, min_words=0), "golden")
+    recognizer = PlaceRecognizer(tree, train, openfabmap(motion_model=True, top_k=3, min_words=0), "golden")
     for i, row in enumerate(test):
         result = recognizer.process(np.flatnonzero(row > 0).astype(np.uint32), stamp_ns=i)
         assert result.new_place_probability == pytest.approx(golden_p[i, i], abs=1e-5)
@@ -70,7 +73,7 @@ def test_golden_sequence_online(golden_dir):
 
 def test_revisit_is_detected_and_new_only_policy_does_not_add_it():
     frames = _frames(10)
-    config = FabMapConfig(add_policy="new_only", match_threshold=0.5)
+    config = openfabmap(add_policy="new_only", match_threshold=0.5)
     recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
     results = [recognizer.process(f, i) for i, f in enumerate(frames)]
     new = [r for r in results if r.is_new_place]
@@ -88,13 +91,13 @@ def test_revisit_is_detected_and_new_only_policy_does_not_add_it():
 
 def test_recent_places_are_excluded_by_frames_and_seconds():
     frames = _frames(6)
-    by_frames = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(exclude_recent_frames=2, top_k=10), "v")
+    by_frames = PlaceRecognizer(_tree(), SAMPLES, openfabmap(exclude_recent_frames=2, top_k=10), "v")
     for i, f in enumerate(frames):
         r = by_frames.process(f, i * 10**9)
     assert [c.place_id for c in sorted(r.candidates, key=lambda c: c.place_id)] == [0, 1, 2]
     total = r.new_place_probability + sum(c.probability for c in r.candidates)
     assert total == pytest.approx(1.0)
-    by_seconds = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(exclude_recent_seconds=2.5, top_k=10), "v")
+    by_seconds = PlaceRecognizer(_tree(), SAMPLES, openfabmap(exclude_recent_seconds=2.5, top_k=10), "v")
     for i, f in enumerate(frames):
         r = by_seconds.process(f, i * 10**9)
     assert sorted(c.place_id for c in r.candidates) == [0, 1, 2]
@@ -104,20 +107,20 @@ def test_recent_places_are_excluded_by_frames_and_seconds():
 
 def test_keyframe_policy():
     base = np.arange(10)
-    config = FabMapConfig(keyframe_max_overlap=0.5, keyframe_max_frames=4)
+    config = openfabmap(keyframe_max_overlap=0.5, keyframe_max_frames=4)
     recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
     added = [recognizer.process(base, i).added_place_id for i in range(6)]
     assert added == [0, -1, -1, -1, 1, -1]  # same view: only forced every 4 frames
     changed = recognizer.process(np.arange(20, 30), 6)
     assert changed.added_place_id == 2
-    spaced = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(keyframe_min_frames=3), "v")
+    spaced = PlaceRecognizer(_tree(), SAMPLES, openfabmap(keyframe_min_frames=3), "v")
     assert [spaced.process(np.array([i]), i).added_place_id for i in range(7)] == [0, -1, -1, 1, -1, -1, 2]
     assert jaccard(np.array([1, 2]), np.array([2, 3])) == pytest.approx(1 / 3)
     assert jaccard(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)) == 1.0
 
 
 def test_empty_frames_keep_their_index_and_errors():
-    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(min_words=0), "v")
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, openfabmap(min_words=0), "v")
     assert recognizer.process(np.zeros(0, dtype=np.uint32), 0).added_place_id == 0
     assert recognizer.process(np.array([3, 1, 1]), 1).added_place_id == 1  # normalised to [1, 3]
     np.testing.assert_array_equal(recognizer.place_words(1), [1, 3])
@@ -126,7 +129,7 @@ def test_empty_frames_keep_their_index_and_errors():
     with pytest.raises(DataError, match="stamp_ns must be an integer"):
         recognizer.process(np.array([1]), 2.5)  # type: ignore[arg-type]
     with pytest.raises(DataError, match="vocabulary_id"):
-        PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "")
+        PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "")
     with pytest.raises(DataError, match="place id 7 out of range"):
         recognizer.place_words(7)
     assert recognizer.num_queries == 2
@@ -136,12 +139,12 @@ def test_blank_frame_is_certain_to_match_a_blank_place_without_min_words():
     """Why min_words exists: FAB-MAP alone "recognises" an earlier blank frame with certainty."""
     frames = _frames(6)
     blank = np.zeros(0, dtype=np.int64)
-    recognizer = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(min_words=0), "v")
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, openfabmap(min_words=0), "v")
     for i, words in enumerate([blank, *frames]):
         recognizer.process(words, i)
     best, second = recognizer.process(blank, 10).candidates[:2]
     assert best.place_id == 0 and best.probability > 0.5 and best.probability > 5 * second.probability
-    skipping = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")  # default min_words = 1
+    skipping = PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "v")  # default min_words = 1
     for i, words in enumerate([blank, *frames]):
         skipping.process(words, i)
     assert skipping.process(blank, 10).candidates == () and skipping.num_places == len(frames)
@@ -150,7 +153,7 @@ def test_blank_frame_is_certain_to_match_a_blank_place_without_min_words():
 @pytest.mark.parametrize("motion_model", [False, True])
 def test_frames_below_min_words_are_skipped(motion_model):
     frames = _frames(8)
-    config = FabMapConfig(min_words=3, motion_model=motion_model, top_k=100)
+    config = openfabmap(min_words=3, motion_model=motion_model, top_k=100)
     recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "v")
     reference = PlaceRecognizer(_tree(), SAMPLES, config, "v")  # never sees the sparse frames
     sparse = [np.zeros(0, dtype=np.int64), np.array([2, 5])]
@@ -174,11 +177,11 @@ def test_frames_below_min_words_are_skipped(motion_model):
         np.testing.assert_allclose([c.probability for c in result.candidates],
                                    [c.probability for c in expected.candidates], rtol=1e-12)
     with pytest.raises(ConfigError, match="min_words"):
-        FabMapConfig(min_words=-1)
+        openfabmap(min_words=-1)
 
 
 def test_map_round_trip_and_refusals(tmp_path):
-    config = FabMapConfig(motion_model=True, top_k=4)
+    config = openfabmap(motion_model=True, top_k=4)
     frames = _frames(8)
     first = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a")
     for i, f in enumerate(frames[:5]):
@@ -216,10 +219,10 @@ def test_map_round_trip_and_refusals(tmp_path):
 
 def test_bulk_added_places_equal_processed_ones():
     frames = _frames(6)
-    processed = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
+    processed = PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "v")
     for i, f in enumerate(frames[:5]):
         processed.process(f, i)
-    bulk = PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(), "v")
+    bulk = PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "v")
     rows = np.zeros((5, V), dtype=bool)
     for i, f in enumerate(frames[:5]):
         rows[i, f] = True
@@ -233,7 +236,7 @@ def test_bulk_added_places_equal_processed_ones():
 
 
 def _place_recognizer(**overrides) -> PlaceRecognizer:
-    return PlaceRecognizer(_tree(), SAMPLES, FabMapConfig(**overrides), "v")
+    return PlaceRecognizer(_tree(), SAMPLES, openfabmap(**overrides), "v")
 
 
 def test_consistency_holds_back_a_single_match():
@@ -285,4 +288,4 @@ def test_likelihood_temperature_is_a_softmax_of_scaled_log_likelihoods():
     np.testing.assert_allclose(actual, expected, rtol=1e-12)
     assert result.candidates[0].place_id == 2
     with pytest.raises(ConfigError, match=r"likelihood_temperature = 0\.0"):
-        FabMapConfig(likelihood_temperature=0.0)
+        openfabmap(likelihood_temperature=0.0)

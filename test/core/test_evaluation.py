@@ -39,6 +39,9 @@ from aefabmap_ros.core.tfidf import tfidf_score_matrix
 from aefabmap_ros.core.vocabulary import VocabularyConfig
 from test.conftest import require_shared
 
+openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
+
+
 
 @pytest.fixture(scope="module")
 def golden():
@@ -69,7 +72,7 @@ def random_tree_and_bow(seed=0, frames=30, words=40):
 
 def test_posterior_without_exclusion_reproduces_openfabmap(golden):
     # openFABMAP recognises every frame, also its two blank ones (min_words=0).
-    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, FabMapConfig(min_words=0), 0)
+    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, openfabmap(min_words=0), 0)
     lower = np.tril(np.ones(scores.shape, dtype=bool), -1)
     np.testing.assert_allclose(scores[lower], golden.probabilities[lower], atol=1e-5)  # file: 6 digits
     np.testing.assert_allclose(new_place, np.diag(golden.probabilities), atol=1e-5)
@@ -83,7 +86,7 @@ def test_posterior_without_exclusion_reproduces_openfabmap(golden):
 
 def test_blank_frames_are_neither_queries_nor_places(golden):
     """Independent reference: openFABMAP's log-likelihoods, softmax over {new} + the non-blank earlier frames."""
-    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, FabMapConfig(), 0)
+    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, openfabmap(), 0)
     blank = np.flatnonzero(np.asarray(golden.test.sum(axis=1)).ravel() == 0)
     assert blank.tolist() == [18, 45]  # the golden README's two frames without keypoints
     assert np.all(scores[blank] == 0) and np.all(scores[:, blank] == 0) and np.all(np.isnan(new_place[blank]))
@@ -103,7 +106,7 @@ def test_blank_frames_are_neither_queries_nor_places(golden):
 @pytest.mark.parametrize("exclude", [1, 9])
 def test_posterior_with_exclusion_renormalises_over_older_places(golden, exclude):
     """Independent reference: openFABMAP's log-likelihoods, softmax over {new} + {j < i - N}, smoothing."""
-    config = FabMapConfig(min_words=0)
+    config = openfabmap(min_words=0)
     scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, config, exclude)
     for i in (0, 5, exclude, exclude + 1, 40, 83):
         kept = np.arange(max(i - exclude, 0))
@@ -120,13 +123,13 @@ def test_leave_one_out_matches_fabmap_score_matrices():
     tree, bow = random_tree_and_bow()
     exclude = leave_one_out_samples(bow.shape[0], np.arange(bow.shape[0]))
     assert exclude.tolist() == list(range(bow.shape[0]))
-    scores, new_place = fabmap_posterior_matrix(bow, tree, bow, FabMapConfig(), 0, exclude.tolist())
-    reference = fabmap_score_matrices(bow, tree, bow, FabMapConfig(), exclude_samples=exclude.tolist())
+    scores, new_place = fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0, exclude.tolist())
+    reference = fabmap_score_matrices(bow, tree, bow, openfabmap(), exclude_samples=exclude.tolist())
     lower = np.tril(np.ones(scores.shape, dtype=bool), -1)
     np.testing.assert_allclose(scores[lower], reference.probabilities[lower], rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(new_place, np.diag(reference.probabilities), rtol=1e-10)
     # Without leaving out, the query's own sample raises its new-place probability.
-    _, with_self = fabmap_posterior_matrix(bow, tree, bow, FabMapConfig(), 0)
+    _, with_self = fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0)
     assert np.all(with_self[1:] >= new_place[1:] - 1e-12) and np.any(with_self > new_place + 1e-6)
 
 
@@ -138,7 +141,7 @@ def test_leave_one_out_with_a_subsample_of_frames():
 
 def test_evaluation_config_fixes_what_the_protocol_needs():
     config = fabmap_evaluation_config(
-        FabMapConfig(add_policy="new_only", keyframe_min_frames=3, exclude_recent_seconds=2.0, top_k=5,
+        openfabmap(add_policy="new_only", keyframe_min_frames=3, exclude_recent_seconds=2.0, top_k=5,
                      p_z_given_e=0.3, keyframe_max_seconds=1.0, exclude_linked_overlap=0.2, consistency_matches=3,
                      likelihood_temperature=3.0), 4)
     assert (config.add_policy, config.keyframe_min_frames, config.exclude_recent_seconds) == ("all", 1, 0.0)
@@ -146,15 +149,15 @@ def test_evaluation_config_fixes_what_the_protocol_needs():
     assert config.exclude_recent_frames == 4 and config.p_z_given_e == 0.3
     assert config.likelihood_temperature == 3.0  # the posterior is the node's, only the protocol's policies change
     with pytest.raises(ConfigError, match="exclude_recent_frames=-1"):
-        fabmap_evaluation_config(FabMapConfig(), -1)
+        fabmap_evaluation_config(openfabmap(), -1)
 
 
 def test_fabmap_matrix_errors():
     tree, bow = random_tree_and_bow()
     with pytest.raises(DataError, match="observations have 39 words"):
-        fabmap_posterior_matrix(bow[:, :39], tree, bow, FabMapConfig(), 0)
+        fabmap_posterior_matrix(bow[:, :39], tree, bow, openfabmap(), 0)
     with pytest.raises(DataError, match="exclude_samples has 2 entries for 30 frames"):
-        fabmap_posterior_matrix(bow, tree, bow, FabMapConfig(), 0, [0, 1])
+        fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0, [0, 1])
 
 
 # ------------------------------------------------------------------------------------ methods, models
@@ -217,7 +220,7 @@ def small_model_and_features(seed=0, frames=24):
 
 def test_evaluate_model_finds_exact_revisits():
     model, features, gt = small_model_and_features()
-    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), FabMapConfig())
+    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), openfabmap())
     assert [r.name for r in results] == ["FABMAP2", "BoW"]
     for result in results:
         assert result.scores.shape == (24, 24) and np.all((result.scores >= 0) & (result.scores <= 1 + 1e-12))
@@ -231,11 +234,11 @@ def test_evaluate_model_finds_exact_revisits():
 def test_evaluate_model_errors():
     model, features, gt = small_model_and_features()
     with pytest.raises(ConfigError, match="AE-FABMAP needs a autoencoder vocabulary"):
-        evaluate_model(model, features, gt, ("AE-FABMAP",), EvaluationConfig(), FabMapConfig())
+        evaluate_model(model, features, gt, ("AE-FABMAP",), EvaluationConfig(), openfabmap())
     with pytest.raises(ConfigError, match="unknown method 'X'"):
-        evaluate_model(model, features, gt, ("X",), EvaluationConfig(), FabMapConfig())
+        evaluate_model(model, features, gt, ("X",), EvaluationConfig(), openfabmap())
     with pytest.raises(DataError, match="23 test frames but the ground truth is 24x24"):
-        evaluate_model(model, features[:-1], gt, ("BoW",), EvaluationConfig(), FabMapConfig())
+        evaluate_model(model, features[:-1], gt, ("BoW",), EvaluationConfig(), openfabmap())
     model.tree_matrix = None
     with pytest.raises(ModelError, match="has no Chow-Liu tree"):
         model_tree(model)
@@ -300,7 +303,7 @@ def test_closure_precision_recall():
 
 def test_reports():
     model, features, gt = small_model_and_features()
-    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), FabMapConfig())
+    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), openfabmap())
     results[1].label = "office/v2"
     table = results_markdown(results).splitlines()
     assert len(table) == 4 and table[2].startswith("| FABMAP2 | kmeans 30 | 1.000 |")

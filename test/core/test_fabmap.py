@@ -20,11 +20,13 @@ from aefabmap_ros.core.fabmap import (
     top_k_indices,
 )
 
+openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
+
 GOLDEN_RUNS = [
-    ("fabmap2_sampled", FabMapConfig(), "fabmap2"),
-    ("fabmap2_sampled_motion", FabMapConfig(motion_model=True), "fabmap2"),
-    ("fabmap1_meanfield", FabMapConfig(new_place_model="meanfield"), "fabmap1"),
-    ("fabmaplut_meanfield", FabMapConfig(new_place_model="meanfield"), "fabmaplut"),
+    ("fabmap2_sampled", openfabmap(), "fabmap2"),
+    ("fabmap2_sampled_motion", openfabmap(motion_model=True), "fabmap2"),
+    ("fabmap1_meanfield", openfabmap(new_place_model="meanfield"), "fabmap1"),
+    ("fabmaplut_meanfield", openfabmap(new_place_model="meanfield"), "fabmaplut"),
 ]
 
 
@@ -103,7 +105,7 @@ def test_exact_revisit_gets_highest_posterior_and_posteriors_sum_to_one():
     sequence = [np.flatnonzero(rng.random(v) < 0.2) for _ in range(15)]
     sequence.append(sequence[4].copy())  # revisit of frame 4
     samples = sp.csr_matrix(rng.random((20, v)) < 0.2)
-    for config in (FabMapConfig(), FabMapConfig(motion_model=True), FabMapConfig(new_place_model="meanfield")):
+    for config in (openfabmap(), openfabmap(motion_model=True), openfabmap(new_place_model="meanfield")):
         result = fabmap_score_matrices(sequence, tree, samples, config)
         np.testing.assert_allclose(result.probabilities.sum(axis=1), 1.0, atol=1e-12)
         assert np.all(np.triu(result.probabilities, 1) == 0)
@@ -116,7 +118,7 @@ def test_empty_observations_keep_their_index():
     rng = np.random.default_rng(2)
     tree = _random_tree(rng, 10)
     rows = [np.array([1, 2, 3]), np.zeros(0, dtype=np.int64), np.array([1, 2, 3])]
-    result = fabmap_score_matrices(rows, tree, [np.array([0, 4])], FabMapConfig())
+    result = fabmap_score_matrices(rows, tree, [np.array([0, 4])], openfabmap())
     assert result.probabilities.shape == (3, 3)
     np.testing.assert_allclose(result.probabilities.sum(axis=1), 1.0)
     # An empty query scores every place by its default; an empty place scores 0 (relative scale).
@@ -127,7 +129,7 @@ def test_empty_observations_keep_their_index():
 def test_input_errors_are_clear():
     rng = np.random.default_rng(0)
     tree = _random_tree(rng, 8)
-    config = FabMapConfig()
+    config = openfabmap()
     samples = [np.array([1])]
     with pytest.raises(DataError, match="word id 8 out of range for a vocabulary of 8"):
         fabmap_score_matrices([np.array([1, 8])], tree, samples, config)
@@ -168,7 +170,7 @@ def test_input_errors_are_clear():
 )
 def test_config_validation(kwargs, message):
     with pytest.raises(ConfigError, match=message):
-        FabMapConfig(**kwargs)
+        openfabmap(**kwargs)
 
 
 def test_motion_prior_follows_openfabmap_formula():
