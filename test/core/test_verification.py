@@ -151,6 +151,19 @@ def test_a_true_second_view_is_accepted_with_its_correspondences_as_inliers() ->
     assert 0.9 * shared <= result.inliers <= result.matches <= shared + 5
 
 
+def test_a_small_shared_part_of_two_busy_images_is_no_match() -> None:
+    """A repeated sign in two otherwise different streets: 40 consistent matches, but among 450 keypoints
+    per image (under 10 %) the views do not share the scene. The count alone would accept it."""
+    query, place, _ = _two_views(seed=8, shared=40, clutter=410)
+    counts_only = verify_pair(query, place, VerificationConfig(min_inlier_ratio=0.0))
+    assert counts_only.accepted and counts_only.inliers >= 36
+    result = verify_pair(query, place, VerificationConfig())
+    assert result.inliers == counts_only.inliers and result.inliers < 0.1 * len(query) and not result.accepted
+    # The same 40 points among 150 keypoints per image are a quarter of the view: accepted.
+    query, place, _ = _two_views(seed=8, shared=40, clutter=110)
+    assert verify_pair(query, place, VerificationConfig()).accepted
+
+
 def test_same_appearance_in_another_arrangement_is_rejected() -> None:
     """Perceptual aliasing: every descriptor matches, but the keypoints are scattered at random, so
     no single epipolar geometry explains them (a different corridor with the same doors)."""
@@ -185,6 +198,7 @@ def test_too_few_matches_give_no_model() -> None:
 
 @pytest.mark.parametrize(("field", "value", "message"), [
     ("min_inliers", 7, ">= 8"), ("ratio", 0.0, r"in \(0, 1\]"), ("ratio", 1.5, r"in \(0, 1\]"),
+    ("min_inlier_ratio", 1.5, r"in \[0, 1\]"),
     ("ransac_threshold_px", 0.0, "> 0"), ("confidence", 1.0, r"in \(0, 1\)"), ("max_iterations", 0, ">= 1"),
     ("candidates", 0, ">= 1"), ("min_inliers", True, "an integer"), ("ratio", float("nan"), "finite"),
 ])
@@ -366,9 +380,10 @@ def test_corridor_reranking_moves_a_confident_near_miss_into_the_labelled_band()
     for query, ranked in ((60, [23, 22, 21, 20, 19]), (68, [32, 31, 30, 29, 28])):
         assert not gt[query, ranked[0]]
         features = {i: extract_features(read_gray(images[i]), config) for i in [query, *ranked]}
+        inliers_only = VerificationConfig(min_inlier_ratio=0.0)
         outcome = rerank_by_inliers([features[place] for place in ranked],
-                                    partial(verify_pair, features[query], config=VerificationConfig()))
-        assert outcome is not None and outcome.best_accepted == 0  # the near miss passes geometry...
+                                    partial(verify_pair, features[query], config=inliers_only))
+        assert outcome is not None and outcome.best_accepted == 0  # the near miss passes the inlier count...
         assert gt[query, ranked[outcome.winner]]  # ...but a frame in the band has more inliers
 
 
