@@ -98,8 +98,11 @@ class FabMapConfig:
         metadata={"description": "Posterior smoothing s in (0, 1]: p <- s p + (1 - s) / n [sFactor]."},
     )
     match_threshold: float = field(
-        default=0.3,
-        metadata={"description": "A query matches a known place when that place's posterior exceeds this."},
+        default=0.1,
+        metadata={"description": "A query matches a known place when that place's posterior exceeds this: the "
+                  "match is a loop-closure candidate once temporally consistent (verification decides what is "
+                  "published). The posterior is calibrated by likelihood_temperature (0.99 is the papers' "
+                  "value for the raw posterior)."},
     )
     add_policy: str = field(
         default="all",

@@ -194,6 +194,23 @@ def test_shipped_parameter_file_matches_declared_parameters(revisit_data: Revisi
             node.destroy_node()
 
 
+def test_shipped_parameter_values_are_the_configs_defaults() -> None:
+    """One source of truth: config/aefabmap.yaml gives fabmap_node and verifier_node the dataclass defaults
+    (the values measured and documented there), so a node started without the file behaves the same."""
+    from dataclasses import fields
+
+    import yaml
+
+    from aefabmap_ros.core.fabmap import FabMapConfig
+    from aefabmap_ros.core.verification import VerificationConfig
+    from test.conftest import REPO_ROOT
+
+    shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
+    for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig)):
+        values = shipped[node]["ros__parameters"]
+        assert {f.name: values[f.name] for f in fields(config)} == {f.name: f.default for f in fields(config)}
+
+
 def _features_message(features: Any, sec: int) -> Any:
     from std_msgs.msg import Header
 
