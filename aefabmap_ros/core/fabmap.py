@@ -141,7 +141,7 @@ class FabMapConfig:
         },
     )
     keyframe_max_overlap: float = field(
-        default=1.0,
+        default=0.5,
         metadata={
             "description": "A frame becomes a place only if the Jaccard overlap of its words with the "
             "last added place is at most this (1.0 = always), unless keyframe_max_frames forces it."
@@ -155,7 +155,7 @@ class FabMapConfig:
         },
     )
     keyframe_max_seconds: float = field(
-        default=0.0,
+        default=1.0,
         metadata={
             "description": "Force a place once this many seconds passed since the last added place, "
             "whatever the overlap (0 = never force): a long stay still becomes several places."
@@ -189,11 +189,12 @@ class FabMapConfig:
 
     @classmethod
     def openfabmap(cls, **overrides: Any) -> FabMapConfig:
-        """FAB-MAP as openFABMAP and the papers run it: every frame a hypothesis, the raw posterior (no
-        temperature), a match at 0.99, no time window, no consistency. The defaults of this class are
+        """FAB-MAP as openFABMAP and the papers run it: every frame a place and a hypothesis, the raw
+        posterior (no temperature), a match at 0.99, no time window, no consistency. The defaults of this class are
         the nodes' (dense video, calibrated, consistent); this is the reference for golden comparisons."""
         reference: dict[str, Any] = {"likelihood_temperature": 1.0, "match_threshold": 0.99,
-                                     "exclude_recent_seconds": 0.0, "consistency_matches": 1}
+                                     "exclude_recent_seconds": 0.0, "consistency_matches": 1,
+                                     "keyframe_max_overlap": 1.0, "keyframe_max_seconds": 0.0}
         return cls(**{**reference, **overrides})
 
     def __post_init__(self) -> None:

@@ -54,16 +54,16 @@ class VerificationConfig:
     """Geometric verification parameters."""
 
     min_inliers: int = field(
-        default=20,
+        default=25,
         metadata={"description": "A candidate is accepted when at least this many matches fit one fundamental "
                   "matrix (>= 8)."},
     )
     min_inlier_ratio: float = field(
-        default=0.1,
+        default=0.12,
         metadata={"description": "A candidate is accepted only when its inliers are at least this fraction of the "
                   "keypoints of the image with fewer (the two views share that much scene; 0 = off), in [0, 1]. "
-                  "Measured: a repeated texture (a chain-store front) or a same-street view far ahead gives 20-40 "
-                  "inliers but under 10 % of the keypoints; true revisits 10-67 %."},
+                  "Measured: a repeated texture (a chain-store front, a zebra crossing) or a street seen far ahead "
+                  "gives 20-40 inliers but under 10 % of the keypoints; true revisits 10-67 %."},
     )
     ratio: float = field(
         default=0.8,

@@ -380,7 +380,7 @@ def test_corridor_reranking_moves_a_confident_near_miss_into_the_labelled_band()
     for query, ranked in ((60, [23, 22, 21, 20, 19]), (68, [32, 31, 30, 29, 28])):
         assert not gt[query, ranked[0]]
         features = {i: extract_features(read_gray(images[i]), config) for i in [query, *ranked]}
-        inliers_only = VerificationConfig(min_inlier_ratio=0.0)
+        inliers_only = VerificationConfig(min_inliers=20, min_inlier_ratio=0.0)  # the count-only rule it was found with
         outcome = rerank_by_inliers([features[place] for place in ranked],
                                     partial(verify_pair, features[query], config=inliers_only))
         assert outcome is not None and outcome.best_accepted == 0  # the near miss passes the inlier count...
@@ -510,9 +510,15 @@ def test_verification_lifts_openfabmaps_own_posteriors_on_the_corridor(golden_di
     scores = np.tril(posteriors, -1)  # the diagonal is the new place
     gt = np.load(rtabmap_dir / "loop_gt.npz")["gt"].astype(bool)
     features = [extract_features(read_gray(path), FeatureConfig()) for path in folder_images(rtabmap_dir / "images")]
-    verify = cached_pair_verifier(features, VerificationConfig())
     before = evaluate_scores(scores, gt, 10, 0.99)
-    after = evaluate_scores(verified_scores(scores, verify, 5, 10), gt, 10, 0.99)
     assert before.recall_at_100_precision < 0.6  # 0.57: aliased corridors outrank true revisits
-    assert after.recall_at_100_precision >= 0.8  # 0.84 = 37 of 44 revisits, all geometry can confirm
+    # The inlier count alone (20): 0.84 = 37 of 44 revisits, all that geometry can confirm here.
+    count_only = cached_pair_verifier(features, VerificationConfig(min_inliers=20, min_inlier_ratio=0.0))
+    after = evaluate_scores(verified_scores(scores, count_only, 5, 10), gt, 10, 0.99)
+    assert after.recall_at_100_precision >= 0.8
     assert after.num_predictions_at_threshold == before.num_predictions_at_threshold
+    # The default also asks for 25 inliers and 12 % of the keypoints (the price of no false closure on
+    # dense video): two weakly textured revisits drop out, 35 of 44 remain.
+    default = evaluate_scores(verified_scores(scores, cached_pair_verifier(features, VerificationConfig()), 5, 10),
+                              gt, 10, 0.99)
+    assert default.recall_at_100_precision >= 0.75
