@@ -21,7 +21,7 @@ from aefabmap_ros.core.training import sampled_centres_model
 from aefabmap_ros.io.bags import write_image_bag
 
 FRAMES_PER_PASS = 16
-FRAME_PERIOD_NS = 100_000_000
+FRAME_PERIOD_NS = 1_000_000_000  # one distinct place a second: the second pass is 16 s later
 START_NS = 1_700_000_000_000_000_000
 
 

@@ -221,7 +221,9 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             printer = ClosurePrinter(stamps, gt)
             _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
             # The verifier must hear every frame's features: a place it never saw cannot be verified.
-            _wait_for(logs / "nodes.log", "verifying loop closures", processes[0], timeout_s=180)
+            for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
+                         "verifier_node]: receiving features"):
+                _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images", flush=True)
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
                             "--lockstep", "place_posteriors", "--quiet"], check=True)

@@ -95,7 +95,8 @@ class Replayer:
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
 
-            self.node.create_subscription(PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
+            self.answer_subscription = self.node.create_subscription(
+                PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
 
     def _on_answer(self, _message: bytes) -> None:
         self.answers += 1
@@ -110,8 +111,10 @@ class Replayer:
                     f"(wanted {wanted}); is the pipeline running?"
                 )
             self.rclpy.spin_once(self.node, timeout_sec=0.05)
-        if self.args.lockstep:  # the answer topic must be connected too, or the first answer is lost
-            self._spin_until(lambda: self.node.count_publishers(self.args.lockstep) > 0, self.args.wait_timeout)
+        if self.args.lockstep:
+            # The answer topic must be connected too, or the first answer is lost: a publisher in the graph
+            # (count_publishers) is not yet a matched one, which a just-restarted node showed.
+            self._spin_until(lambda: self.answer_subscription.get_publisher_count() > 0, self.args.wait_timeout)
 
     def _spin_until(self, done: Any, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s

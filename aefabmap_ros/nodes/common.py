@@ -80,6 +80,23 @@ def declare_config(node: Node, config_type: type[ConfigT], prefix: str = "") -> 
         raise ConfigError(f"{node.get_name()}: {exc}") from exc
 
 
+def report_when_connected(node: Node, subscription: Any, what: str, period_s: float = 0.1) -> None:
+    """Log ``receiving <what> from N publisher(s)`` once the subscription has a matched publisher.
+
+    A message sent before its subscription is matched (DDS discovery takes seconds on a loaded
+    machine) is lost: a launcher or a test waits for this line before it feeds the first image.
+    """
+    timer: Any = None
+
+    def check() -> None:
+        publishers = subscription.get_publisher_count()
+        if publishers > 0:
+            node.get_logger().info(f"receiving {what} from {publishers} publisher(s)")
+            timer.cancel()
+
+    timer = node.create_timer(period_s, check)
+
+
 class DropCounter:
     """Counts inputs by outcome and logs every drop, throttled, so a bad stream never floods the log."""
 

@@ -36,6 +36,7 @@ from aefabmap_ros.nodes.common import (
     declare_config,
     declare_parameter,
     pipeline_qos,
+    report_when_connected,
     run_node,
 )
 
@@ -74,7 +75,8 @@ class FabMapNode(Node):
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
         self.loop_publisher = self.create_publisher(LoopClosure, "loop_closure_candidates", RESULT_QOS)
-        self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
+        words = self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
+        report_when_connected(self, words, "words")
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.get_logger().info(
             f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "

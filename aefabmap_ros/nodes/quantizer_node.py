@@ -12,7 +12,7 @@ from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.core.vocabulary import bag_of_words
 from aefabmap_ros.io.messages import bag_of_words_to_message, message_to_features
-from aefabmap_ros.nodes.common import DropCounter, declare_parameter, pipeline_qos, run_node
+from aefabmap_ros.nodes.common import DropCounter, declare_parameter, pipeline_qos, report_when_connected, run_node
 
 
 class QuantizerNode(Node):
@@ -28,7 +28,8 @@ class QuantizerNode(Node):
         self.descriptor_type = model.feature_config.type
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))
-        self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        features = self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        report_when_connected(self, features, "features")
         self.get_logger().info(
             f"quantizing {self.descriptor_type} features into {self.quantizer.size} {self.quantizer.kind} words "
             f"(vocabulary {self.vocabulary_id})"

@@ -47,6 +47,7 @@ from aefabmap_ros.nodes.common import (
     declare_config,
     declare_parameter,
     pipeline_qos,
+    report_when_connected,
     run_node,
 )
 
@@ -101,7 +102,9 @@ class VerifierNode(Node):
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
-        self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        features = self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        # A place whose features the verifier never heard cannot be verified.
+        report_when_connected(self, features, "features")
         self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
         if self.rerank:
             self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
@@ -110,7 +113,8 @@ class VerifierNode(Node):
             "the feature store", save_period_s,
         )
         self.get_logger().info(
-            f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers, "
+            f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
+            f"{self.config.min_inlier_ratio:.0%} of the keypoints, "
             f"re-ranking the best {self.config.candidates} candidates, features of the last {max_frames} frames"
         )
 

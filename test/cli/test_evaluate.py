@@ -11,6 +11,7 @@ import pytest
 from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
 from aefabmap_ros.core.metrics import evaluate_scores
+from aefabmap_ros.core.verification import VerificationConfig
 
 FRAMES = 30
 # Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.
@@ -142,7 +143,7 @@ def test_verify_adds_a_geometrically_verified_row_per_method(data, trained, caps
     results = check_outputs(out, ["AE-FABMAP", "AE-FABMAP", "BoW", "BoW"])
     flags = [(m["method"], m["geometric_verification"]) for m in results["methods"]]
     assert flags == [("AE-FABMAP", False), ("AE-FABMAP", True), ("BoW", False), ("BoW", True)]
-    assert results["geometric_verification"]["min_inliers"] == 20
+    assert results["geometric_verification"]["min_inliers"] == VerificationConfig().min_inliers
     plain, verified = results["methods"][0], results["methods"][1]
     assert plain["recall_at_threshold"] == first["methods"][1]["recall_at_threshold"]
     assert verified["num_predictions_at_threshold"] <= plain["num_predictions_at_threshold"]
