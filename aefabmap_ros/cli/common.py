@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from aefabmap_ros.core.errors import AefabmapError
 
@@ -20,3 +21,24 @@ def report_errors(work: Callable[[], int], interrupted: str = "interrupted") -> 
     except KeyboardInterrupt:
         print(f"ERROR: {interrupted}", file=sys.stderr)
         return 1
+
+
+class UsageError(Exception):
+    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse whose errors become ``UsageError`` instead of exit 2 with argparse's own message."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(message)
+
+
+def parse_or_report(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace | None:
+    """Parsed arguments, or None after printing ``ERROR: ...`` and the usage line (the caller exits 1)."""
+    try:
+        return parser.parse_args(argv)
+    except UsageError as error:
+        print(f"ERROR: {error}", file=sys.stderr)
+        parser.print_usage(sys.stderr)
+        return None

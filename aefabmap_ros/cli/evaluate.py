@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from aefabmap_ros.cli.common import RESUME_HINT, report_errors
+from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.cli.train import extract_all, source_provenance
 from aefabmap_ros.core.atomic import atomic_write_text
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
@@ -108,22 +108,14 @@ RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",
                     "verified_loop_closures": "aefabmap_msgs/msg/LoopClosure"}
 
 
-class _UsageError(Exception):
-    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
-
-
 # The FAB-MAP settings that shape the evaluation's scores (the others are fixed by the protocol).
 REPORTED_FABMAP_SETTINGS = ("p_z_given_e", "p_z_given_not_e", "new_place_model", "motion_model", "smoothing",
                             "min_words")
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise _UsageError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="aefabmap_eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="aefabmap_eval", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     test = parser.add_argument_group("test sequence (a folder, or a bag topic)")
     test.add_argument("--images", type=Path, help="folder of test images (natural sort order)")
     test.add_argument("--bag", type=Path, help="rosbag2 bag holding the test images")
@@ -545,10 +537,8 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
-        args = build_parser().parse_args(argv)
-    except _UsageError as exc:  # argparse's own errors, as ERROR lines too
-        print(f"ERROR: {exc}", file=sys.stderr)
+    args = parse_or_report(build_parser(), argv)
+    if args is None:
         return 1
     return report_errors(lambda: run_evaluation(args), RESUME_HINT)
 

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
@@ -54,17 +54,9 @@ from aefabmap_ros.io.rgbd import (
 )
 
 
-class _UsageError(Exception):
-    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise _UsageError(message)
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="aefabmap_gt", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="aefabmap_gt", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--depth", type=Path, required=True, help="folder of 16-bit depth PNGs")
     parser.add_argument("--depth-scale", type=float, default=1000.0,
                         help="depth PNG units per metre (default: 1000 = millimetres; TUM RGB-D: 5000)")
@@ -162,12 +154,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except _UsageError as error:
-        parser.print_usage(sys.stderr)
-        print(f"ERROR: {error}", file=sys.stderr)
+    args = parse_or_report(build_parser(), argv)
+    if args is None:
         return 1
     return report_errors(lambda: run(args))
 

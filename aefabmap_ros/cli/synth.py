@@ -53,7 +53,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
@@ -65,16 +65,6 @@ from aefabmap_ros.core.synth import (
     generate_sequence,
     train_test_configs,
 )
-
-
-class _UsageError(Exception):
-    """Bad command-line arguments (reported as ERROR: ..., exit 1)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise _UsageError(message)
-
 
 PRESETS = ("figure-eight", "dense-video")
 
@@ -88,7 +78,7 @@ def preset_config(name: str, seed: int) -> SynthConfig:
 
 def build_parser() -> argparse.ArgumentParser:
     defaults = SynthConfig()
-    parser = _Parser(prog="aefabmap_synth", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_synth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True, help="output directory (created if missing)")
     parser.add_argument("--kind", choices=("train", "test", "both"), default="both",
@@ -212,12 +202,8 @@ def run(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-    except _UsageError as error:
-        parser.print_usage(sys.stderr)
-        print(f"ERROR: {error}", file=sys.stderr)
+    args = parse_or_report(build_parser(), argv)
+    if args is None:
         return 1
     return report_errors(lambda: _run_reporting_write_errors(args))
 
