@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.core.errors import ConfigError, ImageError
 from aefabmap_ros.io.bags import STORAGES, write_image_bag
 from aefabmap_ros.io.rgbd import read_times, stamps_from_names
@@ -28,8 +28,8 @@ from aefabmap_ros.io.sources import folder_images, read_gray
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_bag", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="aefabmap_bag", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--images", type=Path, required=True, help="folder of image files")
     stamps = parser.add_mutually_exclusive_group()
     stamps.add_argument("--rate", type=float, help="frame rate in Hz: frame i is stamped --start + i / rate")
@@ -77,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_or_report(build_parser(), argv)
+    if args is None:
+        return 1
     return report_errors(lambda: run(args))
 
 

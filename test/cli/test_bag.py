@@ -44,6 +44,7 @@ def test_tum_names_and_times_file_and_color(tmp_path):
     (["--rate", "0"], "--rate must be a positive frame rate"),
     ([], "cannot read a stamp from file name 0.png"),
     (["--times", "missing.txt"], "missing.txt"),
+    (["--rate", "1", "--times", "t.txt"], "not allowed with argument"),
 ])
 def test_errors(tmp_path, capsys, extra, message):
     folder = _folder(tmp_path, ["0.png", "1.png"])
