@@ -40,8 +40,9 @@ places excluded by time, temporal consistency), verified as verifier_node does w
 given. Its table says what a backend would receive on /loop_closures: closures, false ones, revisit
 events closed and recall over revisiting frames.
 
-Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png, OUT/reliability.png (each FAB-MAP
-posterior's reliability diagram: how often the best candidate is right per posterior bin) and
+Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png, OUT/reliability.png (reliability
+diagram of the posterior the nodes publish: how often each frame's best place is right, per
+posterior bin, in the online chain) and
 OUT/scores_<method>.png (score matrix beside the ground truth). Config YAML sections: feature, vocabulary (both kinds),
 vocabulary_kmeans, vocabulary_autoencoder (per-kind overrides), training, fabmap, evaluation,
 verification.

@@ -3,8 +3,8 @@
 A posterior is calibrated when, of all queries whose best place got probability p, a fraction p
 really revisit that place. FAB-MAP's posterior is not (its word-independence assumptions make the
 likelihood ratios overconfident; ``FabMapConfig.likelihood_temperature`` is the remedy measured
-here). For each query with a candidate, its best candidate's score is binned and set against
-whether the ground truth confirms that candidate (the same best candidate ``core.metrics`` scores).
+here). The evaluation bins each frame's best hypothesis as fabmap_node publishes it (the online
+chain: places, time window and all) and sets it against whether the ground truth confirms it.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from aefabmap_ros.core.errors import DataError
-from aefabmap_ros.core.metrics import best_candidates
 
 DEFAULT_BIN_EDGES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.99, 1.0)
 
@@ -58,12 +57,3 @@ def reliability(confidence: np.ndarray, correct: np.ndarray,
     filled = counts > 0
     ece = float(np.sum(counts[filled] * np.abs(mean[filled] - accuracy[filled])) / max(values.size, 1))
     return Reliability(edges, counts, mean, accuracy, ece)
-
-
-def score_reliability(scores: np.ndarray, gt: np.ndarray, min_gap: int,
-                      bin_edges: tuple[float, ...] = DEFAULT_BIN_EDGES) -> Reliability:
-    """Reliability of each query's best eligible candidate (queries without a scored candidate left out)."""
-    truth = np.asarray(gt).astype(bool)
-    best_j, best_score = best_candidates(scores, min_gap)
-    rows = np.flatnonzero((best_j >= 0) & (best_score > 0.0))
-    return reliability(best_score[rows], truth[rows, best_j[rows]], bin_edges)

@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from aefabmap_ros.core.calibration import Reliability, score_reliability
+from aefabmap_ros.core.calibration import Reliability, reliability
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
@@ -244,6 +244,7 @@ class OnlineScores:
     published: EventScores  # /loop_closures: verified (with --verify), else the candidates
     verified: bool
     num_places: int
+    reliability: Reliability  # of each frame's best hypothesis, the posterior fabmap_node publishes
 
 
 @dataclass
@@ -262,7 +263,7 @@ class MethodResult:
     label: str = ""  # distinguishes several models of one kind (their directory names)
     quantize_seconds: float = 0.0  # quantizing the test features (shared by the model's methods)
     verified: bool = False  # scores after geometric verification of the candidates
-    # FAB-MAP only: calibration of the best candidate's posterior, and the nodes' chain on the sequence
+    # FAB-MAP with stamps only: the nodes' chain on the sequence, and the calibration of its posterior
     reliability: Reliability | None = None
     online: OnlineScores | None = None
 
@@ -341,7 +342,7 @@ def evaluate_model(
             name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, model_id=model.model_id,
             scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
             new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
-            reliability=score_reliability(scores, gt, config.min_gap) if new_place is not None else None,
+            reliability=None if online is None else online.reliability,
             online=online,
         ))
         if verification is not None:
@@ -359,8 +360,11 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, fe
     def scored(closures: Sequence[Any]) -> EventScores:
         return event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap)
 
+    truth = np.asarray(gt).astype(bool)
+    calibration = reliability(np.array([b.probability for b in chain.best]),
+                              np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
     return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
-                        chain.num_places)
+                        chain.num_places, calibration)
 
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],

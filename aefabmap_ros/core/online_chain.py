@@ -12,7 +12,7 @@ false ones, revisits closed) can be measured and tuned in seconds instead of a r
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -40,6 +40,9 @@ class ChainResult:
     candidates: list[ChainClosure]  # what fabmap_node publishes (loop_closure_candidates)
     published: list[ChainClosure]  # what reaches /loop_closures (verified, or the candidates without verification)
     num_places: int
+    # Every informative frame's best hypothesis as place_posteriors reports it: (query frame, frame of the
+    # place, posterior) -- for the posterior's calibration.
+    best: list[ChainClosure] = field(default_factory=list)
 
 
 def run_online_chain(
@@ -75,6 +78,9 @@ def run_online_chain(
         recognition = recognizer.process(words, int(stamps[frame]))
         if recognition.added_place_id >= 0:
             place_frames.append(frame)
+        if recognition.candidates:
+            top = recognition.candidates[0]
+            result.best.append(ChainClosure(frame, place_frames[top.place_id], top.probability))
         closure = recognition.loop_closure
         if closure is not None:
             candidate = ChainClosure(frame, place_frames[closure.place_id], closure.probability)

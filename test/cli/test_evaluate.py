@@ -69,8 +69,9 @@ def check_outputs(out: Path, methods: list[str]) -> dict:
         fabmap = "FABMAP" in entry["method"] and not entry["geometric_verification"]
         assert (entry["reliability"] is not None) == fabmap and (entry["online_chain"] is not None) == fabmap
         if fabmap:
-            # Every query with an eligible, informative frame has a best candidate in one bin.
-            assert 0 < sum(entry["reliability"]["counts"]) <= entry["num_queries"]
+            # The nodes' posterior has no hypothesis within 5 s: the 3-s fixture bins none of its frames
+            # (core/test_online_chain.py checks what is binned on a longer sequence).
+            assert sum(entry["reliability"]["counts"]) == 0
             online = entry["online_chain"]
             assert online["published"]["closures"] <= online["candidates"]["closures"]
             assert 0 < online["places"] <= FRAMES

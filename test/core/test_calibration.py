@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from aefabmap_ros.core.calibration import reliability, score_reliability
+from aefabmap_ros.core.calibration import reliability
 from aefabmap_ros.core.errors import DataError
 
 
@@ -24,17 +24,6 @@ def test_a_perfectly_calibrated_detector_has_zero_error_and_empty_bins_are_nan()
     assert result.expected_calibration_error == 0.0
     empty = reliability(np.array([0.2]), np.array([True]), (0.0, 0.5, 1.0))
     assert np.isnan(empty.accuracy[1]) and empty.as_dict()["accuracy"] == [1.0, None]
-
-
-def test_from_a_score_matrix_uses_each_querys_best_eligible_candidate():
-    scores = np.zeros((5, 5))
-    scores[3, 0], scores[3, 1] = 0.9, 0.2  # best 0.9 -> frame 0 (right)
-    scores[4, 1], scores[4, 3] = 0.7, 0.99  # frame 3 is not eligible with min_gap 2: best 0.7 -> frame 1 (wrong)
-    gt = np.zeros((5, 5), np.uint8)
-    gt[3, 0] = gt[4, 0] = 1
-    result = score_reliability(scores, gt, 2, (0.0, 0.8, 1.0))
-    np.testing.assert_array_equal(result.counts, [1, 1])
-    np.testing.assert_allclose(result.accuracy, [0.0, 1.0])
 
 
 def test_bad_input():

@@ -49,6 +49,9 @@ def test_consistent_candidates_and_verified_closures():
     assert [(c.query_frame, c.matched_frame) for c in result.published] == [(8, 2)]
     assert result.published[0].inliers >= 100
     assert result.num_places == 10
+    # Each frame's best hypothesis, for the calibration: from frame 3 on (the first place is 3 s old).
+    assert [b.query_frame for b in result.best] == list(range(3, 10))
+    assert (result.best[5].matched_frame, result.candidates[0].probability) == (2, result.best[5].probability)
 
 
 def test_without_verification_the_candidates_are_published():
