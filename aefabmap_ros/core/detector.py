@@ -9,18 +9,24 @@ motion model continues from the last informative frame. Every other frame:
 
 1. FAB-MAP 2 log-likelihoods of every stored place and of the new place.
 2. Hypotheses: "new" plus the stored places except the recent ones: places created from the
-   last ``exclude_recent_frames`` frames (query_id - place's frame <= N) or stamped less than
-   ``exclude_recent_seconds`` before the query. Excluded places are not hypotheses at all (they
-   get no probability mass, the posterior sums to one over the remaining hypotheses).
+   last ``exclude_recent_frames`` frames (query_id - place's frame <= N), stamped less than
+   ``exclude_recent_seconds`` before the query, or (``exclude_linked_overlap``) in the newest run
+   of places whose words still overlap the query's. Excluded places are not hypotheses at all
+   (they get no probability mass, the posterior sums to one over the remaining hypotheses).
 3. Prior: uniform, or openFABMAP's motion model from the previous frame's posterior (see
    :func:`aefabmap_ros.core.fabmap.motion_log_prior`; excluded places count as probability 0
-   there). Smoothing p <- s p + (1 - s) / n over the n hypotheses.
+   there). The log-likelihoods are divided by ``likelihood_temperature`` (calibration), then
+   smoothing p <- s p + (1 - s) / n over the n hypotheses.
 4. Data association: the frame matches the best place when its posterior exceeds
-   ``match_threshold``; that place is the loop closure.
-5. Place addition: policy "all" adds every frame, "new_only" only unmatched frames; in both
-   cases only keyframes are added: at least ``keyframe_min_frames`` frames after the last added
-   place and a Jaccard word overlap with it of at most ``keyframe_max_overlap``, or, when
-   ``keyframe_max_frames`` > 0, once that many frames have passed (whatever the overlap).
+   ``match_threshold``. The match is a loop closure once it is temporally consistent: the last
+   ``consistency_matches`` informative frames matched places within ``island_seconds`` of each
+   other (:mod:`aefabmap_ros.core.consistency`; the chain starts afresh after a restart).
+5. Place addition (places, not frames): policy "all" adds every frame, "new_only" only unmatched
+   frames; in both cases only keyframes are added: at least ``keyframe_min_frames`` frames after
+   the last added place and a Jaccard word overlap with it of at most ``keyframe_max_overlap``,
+   or, when ``keyframe_max_frames`` / ``keyframe_max_seconds`` > 0, once that many frames / seconds
+   have passed (whatever the overlap). A frame that adds no place belongs to the current place
+   (``Recognition.current_place_id``).
 
 Place ids are 0, 1, 2, ... in the order places are added (so with policy "all", default
 keyframing and ``min_words = 0``, place id == query id, as in openFABMAP's golden run).
