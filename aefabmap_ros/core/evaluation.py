@@ -503,20 +503,25 @@ def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
         lines.append(
             f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
             f"| {_fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {_fmt(e.fraction_closed)} "
-            f"| {_fmt(e.frame_recall)} ({e.num_revisiting_frames_closed}/{e.num_revisiting_frames}) |"
+            f"| {_recall_cell(e)} |"
         )
     return "\n".join(lines) + "\n"
 
 
 def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
-    e = row.events
+    return {"role": row.role, "topic": row.topic, "verified": row.num_verified,
+            "precision": _jsonable_float(row.precision), **events_to_dict(row.events)}
+
+
+def events_to_dict(events: EventScores) -> dict[str, Any]:
+    """One closure list's figures per closure, revisit event and revisiting frame (JSON-ready)."""
     return {
-        "role": row.role, "topic": row.topic, "closures": e.num_closures, "verified": row.num_verified,
-        "false_closures": e.num_false_closures, "precision": _jsonable_float(row.precision),
-        "revisit_events": e.num_events, "events_closed": e.num_events_closed,
-        "fraction_of_events_closed": _jsonable_float(e.fraction_closed),
-        "revisiting_frames": e.num_revisiting_frames, "revisiting_frames_closed": e.num_revisiting_frames_closed,
-        "recall_revisiting_frames": _jsonable_float(e.frame_recall),
+        "closures": events.num_closures, "false_closures": events.num_false_closures,
+        "revisit_events": events.num_events, "events_closed": events.num_events_closed,
+        "fraction_of_events_closed": _jsonable_float(events.fraction_closed),
+        "revisiting_frames": events.num_revisiting_frames,
+        "revisiting_frames_closed": events.num_revisiting_frames_closed,
+        "recall_revisiting_frames": _jsonable_float(events.frame_recall),
     }
 
 
@@ -525,6 +530,10 @@ def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
 
 def _fmt(value: float) -> str:
     return "n/a" if np.isnan(value) else f"{value:.3f}"
+
+
+def _recall_cell(events: EventScores) -> str:
+    return f"{_fmt(events.frame_recall)} ({events.num_revisiting_frames_closed}/{events.num_revisiting_frames})"
 
 
 def results_markdown(results: Sequence[MethodResult]) -> str:
@@ -562,16 +571,8 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
         lines.append(
             f"| {result.title} | {online.num_places} | {c.num_closures} ({c.num_false_closures}) "
             f"| {p.num_closures} ({p.num_false_closures}){'' if online.verified else ' unverified'} "
-            f"| {p.num_events_closed}/{p.num_events} | {_fmt(p.frame_recall)} "
-            f"({p.num_revisiting_frames_closed}/{p.num_revisiting_frames}) |")
+            f"| {p.num_events_closed}/{p.num_events} | {_recall_cell(p)} |")
     return "\n".join(lines) + "\n"
-
-
-def _events_to_dict(events: EventScores) -> dict[str, Any]:
-    return {"closures": events.num_closures, "false_closures": events.num_false_closures,
-            "revisit_events": events.num_events, "events_closed": events.num_events_closed,
-            "revisiting_frames": events.num_revisiting_frames,
-            "revisiting_frames_closed": events.num_revisiting_frames_closed}
 
 
 def _jsonable_float(value: float) -> float | None:
@@ -608,8 +609,8 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
         "reliability": None if result.reliability is None else result.reliability.as_dict(),
         "online_chain": None if result.online is None else {
             "verified": result.online.verified, "places": result.online.num_places,
-            "candidates": _events_to_dict(result.online.candidates),
-            "published": _events_to_dict(result.online.published),
+            "candidates": events_to_dict(result.online.candidates),
+            "published": events_to_dict(result.online.published),
         },
     }
 
