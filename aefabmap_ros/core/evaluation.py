@@ -332,8 +332,7 @@ def evaluate_model(
             )
             threshold = config.threshold
             if stamps_ns is not None:
-                online = online_scores(model, counts, stamps_ns, features, gt, config.min_gap, fabmap_config,
-                                       None if verification is None else verification[0])
+                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config, verification)
         else:
             scores = tfidf_matrix(counts, model.new_place_samples)
             threshold = config.bow_threshold
@@ -350,12 +349,13 @@ def evaluate_model(
     return results
 
 
-def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, features: Sequence[Features],
-                  gt: np.ndarray, min_gap: int, fabmap_config: FabMapConfig,
-                  verification: VerificationConfig | None) -> OnlineScores:
-    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event."""
+def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
+                  fabmap_config: FabMapConfig,
+                  verification: tuple[VerificationConfig, PairVerifier] | None) -> OnlineScores:
+    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event
+    (pairs verified through the evaluation's shared verifier: the "+ GV" rows verify many of them too)."""
     chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
-                             features, verification)
+                             verification)
 
     def scored(closures: Sequence[Any]) -> EventScores:
         return event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap)

@@ -21,8 +21,7 @@ from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import Candidate, PlaceRecognizer
 from aefabmap_ros.core.errors import DataError
 from aefabmap_ros.core.fabmap import FabMapConfig
-from aefabmap_ros.core.features import Features
-from aefabmap_ros.core.verification import VerificationConfig, rerank_by_inliers, verify_pair
+from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, rerank_by_inliers
 
 
 @dataclass(frozen=True)
@@ -51,14 +50,14 @@ def run_online_chain(
     tree: ChowLiuTree,
     new_place_samples: sp.csr_matrix | None,
     config: FabMapConfig,
-    features: Sequence[Features] | None = None,
-    verification: VerificationConfig | None = None,
+    verification: tuple[VerificationConfig, PairVerifier] | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> ChainResult:
     """Run the chain over (N, V) observations stamped ``stamps_ns`` (N,) increasing nanoseconds.
 
-    With ``verification`` (and the frames' ``features``), candidates are verified as verifier_node
-    does; without it the candidates are published as they are (``aefabmap_launch --no-verify``).
+    With ``verification`` (its config and a verifier of (query frame, place frame) pairs, e.g.
+    ``cached_pair_verifier``, which the evaluation shares with its "+ GV" rows), candidates are
+    verified as verifier_node does; without it they are published as they are (``--no-verify``).
     """
     matrix = sp.csr_matrix(observations)
     stamps = np.asarray(stamps_ns, dtype=np.int64)
@@ -67,8 +66,6 @@ def run_online_chain(
         raise DataError(f"{stamps.size} stamps for {num_frames} frames")
     if num_frames > 1 and np.any(np.diff(stamps) <= 0):
         raise DataError("stamps must increase strictly (the nodes drop out-of-order frames)")
-    if verification is not None and (features is None or len(features) != num_frames):
-        raise DataError(f"verification needs the features of all {num_frames} frames")
     matrix.sort_indices()
     recognizer = PlaceRecognizer(tree, new_place_samples, config, "online-chain")
     place_frames: list[int] = []
@@ -85,10 +82,10 @@ def run_online_chain(
         if closure is not None:
             candidate = ChainClosure(frame, place_frames[closure.place_id], closure.probability)
             result.candidates.append(candidate)
-            if verification is None or features is None:  # (features are there whenever verification is)
+            if verification is None:
                 result.published.append(candidate)
             else:
-                published = _verified(frame, closure, recognition.candidates, place_frames, features, verification)
+                published = _verified(frame, closure, recognition.candidates, place_frames, *verification)
                 if published is not None:
                     result.published.append(published)
         if on_frame is not None:
@@ -102,14 +99,13 @@ def _verified(
     closure: Candidate,
     candidates: Sequence[Candidate],
     place_frames: list[int],
-    features: Sequence[Features],
     config: VerificationConfig,
+    verify: PairVerifier,
 ) -> ChainClosure | None:
     """verifier_node's decision: the matched place first, then the query's other top candidates."""
     ranked = [closure, *(c for c in candidates if c.place_id != closure.place_id)][: config.candidates]
     frames = [place_frames[c.place_id] for c in ranked]
-    outcome = rerank_by_inliers(frames, lambda place: verify_pair(features[frame], features[place], config),
-                                require_best=True)
+    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place), require_best=True)
     if outcome is None:
         return None
     return ChainClosure(frame, frames[outcome.winner], closure.probability, outcome.verification.inliers)

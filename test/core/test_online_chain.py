@@ -8,7 +8,7 @@ from aefabmap_ros.core.errors import DataError
 from aefabmap_ros.core.fabmap import FabMapConfig
 from aefabmap_ros.core.features import Features
 from aefabmap_ros.core.online_chain import ChainClosure, run_online_chain
-from aefabmap_ros.core.verification import VerificationConfig
+from aefabmap_ros.core.verification import VerificationConfig, cached_pair_verifier
 from test.core.test_detector import SAMPLES, V, _tree
 from test.core.test_verification import HEIGHT, WIDTH, _two_views
 
@@ -41,7 +41,9 @@ CONFIG = FabMapConfig(exclude_recent_seconds=3.0, consistency_matches=2, island_
 def test_consistent_candidates_and_verified_closures():
     observations, features = _sequence()
     stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
-    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG, features, VerificationConfig())
+    config = VerificationConfig()
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              (config, cached_pair_verifier(features, config)))
     # Frame 7 matches place 1 but is the first of its run: no candidate. Frames 8 and 9 continue it.
     assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
     assert all(c.probability > 0.5 and c.inliers == -1 for c in result.candidates)
@@ -63,11 +65,9 @@ def test_without_verification_the_candidates_are_published():
 
 
 def test_bad_input():
-    observations, features = _sequence()
+    observations, _ = _sequence()
     stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
     with pytest.raises(DataError, match="9 stamps for 10 frames"):
         run_online_chain(observations, stamps[:9], _tree(), SAMPLES, CONFIG)
     with pytest.raises(DataError, match="increase strictly"):
         run_online_chain(observations, stamps[::-1].copy(), _tree(), SAMPLES, CONFIG)
-    with pytest.raises(DataError, match="features of all 10 frames"):
-        run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG, features[:3], VerificationConfig())
