@@ -245,6 +245,7 @@ class OnlineScores:
     verified: bool
     num_places: int
     reliability: Reliability  # of each frame's best hypothesis, the posterior fabmap_node publishes
+    num_tracked: int = 0  # published closures that loop tracking added (frames without a candidate of their own)
 
 
 @dataclass
@@ -364,7 +365,7 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt
     calibration = reliability(np.array([b.probability for b in chain.best]),
                               np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
     return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
-                        chain.num_places, calibration)
+                        chain.num_places, calibration, sum(c.tracked for c in chain.published))
 
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],
@@ -560,7 +561,7 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
         return ""
     lines = ["", "Online chain (the nodes' defaults on this sequence's stamps; candidates: fabmap_node, "
              "published: /loop_closures):", "",
-             "| method | places | candidates (false) | published (false) | events closed "
+             "| method | places | candidates (false) | published (false; by loop tracking) | events closed "
              "| recall (revisiting frames) |",
              "|---|---|---|---|---|---|"]
     for result in results:
@@ -570,7 +571,8 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
         c, p = online.candidates, online.published
         lines.append(
             f"| {result.title} | {online.num_places} | {c.num_closures} ({c.num_false_closures}) "
-            f"| {p.num_closures} ({p.num_false_closures}){'' if online.verified else ' unverified'} "
+            f"| {p.num_closures} ({p.num_false_closures}; {online.num_tracked})"
+            f"{'' if online.verified else ' unverified'} "
             f"| {p.num_events_closed}/{p.num_events} | {_recall_cell(p)} |")
     return "\n".join(lines) + "\n"
 
@@ -609,6 +611,7 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
         "reliability": None if result.reliability is None else result.reliability.as_dict(),
         "online_chain": None if result.online is None else {
             "verified": result.online.verified, "places": result.online.num_places,
+            "tracked": result.online.num_tracked,
             "candidates": events_to_dict(result.online.candidates),
             "published": events_to_dict(result.online.published),
         },

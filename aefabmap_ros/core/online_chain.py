@@ -21,6 +21,7 @@ from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import Candidate, PlaceRecognizer
 from aefabmap_ros.core.errors import DataError
 from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.loop_tracking import LoopTrack
 from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, rerank_by_inliers
 
 
@@ -32,6 +33,7 @@ class ChainClosure:
     matched_frame: int  # the frame the matched place was created from
     probability: float  # FAB-MAP posterior of the detection (kept when verification re-ranks)
     inliers: int = -1  # geometric verification's inliers; -1 = not verified
+    tracked: bool = False  # published by loop tracking (no candidate of its own; see core/loop_tracking.py)
 
 
 @dataclass
@@ -70,6 +72,8 @@ def run_online_chain(
     recognizer = PlaceRecognizer(tree, new_place_samples, config, "online-chain")
     place_frames: list[int] = []
     result = ChainResult([], [], 0)
+    track = None if verification is None else LoopTrack(verification[0].track_seconds,
+                                                         verification[0].track_island_seconds)
     for frame in range(num_frames):
         words = matrix.indices[matrix.indptr[frame] : matrix.indptr[frame + 1]].astype(np.int64)
         recognition = recognizer.process(words, int(stamps[frame]))
@@ -79,15 +83,21 @@ def run_online_chain(
             top = recognition.candidates[0]
             result.best.append(ChainClosure(frame, place_frames[top.place_id], top.probability))
         closure = recognition.loop_closure
+        published: ChainClosure | None = None
         if closure is not None:
             candidate = ChainClosure(frame, place_frames[closure.place_id], closure.probability)
             result.candidates.append(candidate)
             if verification is None:
-                result.published.append(candidate)
+                published = candidate
             else:
                 published = _verified(frame, closure, recognition.candidates, place_frames, *verification)
-                if published is not None:
-                    result.published.append(published)
+        if published is None and track is not None and verification is not None and recognition.informative:
+            published = _tracked(frame, int(stamps[frame]), recognition.candidates, place_frames, track,
+                                 *verification)
+        if published is not None:
+            result.published.append(published)
+            if track is not None:
+                track.accept(int(stamps[frame]), int(stamps[published.matched_frame]))
         if on_frame is not None:
             on_frame(frame)
     result.num_places = recognizer.num_places
@@ -109,3 +119,22 @@ def _verified(
     if outcome is None:
         return None
     return ChainClosure(frame, frames[outcome.winner], closure.probability, outcome.verification.inliers)
+
+
+def _tracked(
+    frame: int,
+    stamp_ns: int,
+    candidates: Sequence[Candidate],
+    place_frames: list[int],
+    track: LoopTrack,
+    config: VerificationConfig,
+    verify: PairVerifier,
+) -> ChainClosure | None:
+    """verifier_node's loop tracking: the query's top candidates near the tracked place, best verified wins."""
+    near = track.near(stamp_ns, candidates, lambda candidate: candidate.stamp_ns)[: config.candidates]
+    frames = [place_frames[c.place_id] for c in near]
+    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place))
+    if outcome is None:
+        return None
+    winner = near[outcome.winner]
+    return ChainClosure(frame, frames[outcome.winner], winner.probability, outcome.verification.inliers, tracked=True)

@@ -141,6 +141,7 @@ def recognition_to_posterior(recognition: Recognition, header: Any) -> PlacePost
     message.assigned_place_id = recognition.assigned_place_id
     message.current_place_id = recognition.current_place_id
     message.is_new_place = recognition.is_new_place
+    message.loop_closure_candidate = recognition.loop_closure is not None
     message.new_place_probability = float(recognition.new_place_probability)
     _fill_candidates(message, recognition.candidates)
     return message

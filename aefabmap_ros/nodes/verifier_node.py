@@ -11,6 +11,12 @@ query's other top candidates from its ``place_posteriors`` message are verified 
 closure is republished to the accepted one with the most inliers -- the view that shares the most
 scene with the query. ``probability`` and ``log_likelihood`` stay those of the detection.
 
+Loop tracking (``track_seconds`` > 0, see core/loop_tracking.py): for a short while after a
+verified closure, a frame with no candidate of its own (or whose candidate failed) is verified
+against its top candidates from ``place_posteriors`` that lie near the last verified place in map
+time; the accepted one with the most inliers is published like any other closure (``probability``
+is that place's posterior). Every message on ``loop_closures`` passed the same geometric check.
+
 A closure can arrive before its query's features or posterior (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
 (``max_stored_frames``) cannot be verified and is dropped. With ``store_dir`` the store is saved
@@ -30,6 +36,7 @@ from rclpy.node import Node
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.features import Features as CoreFeatures
+from aefabmap_ros.core.loop_tracking import LoopTrack
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.verification import (
     FeatureStore,
@@ -99,6 +106,7 @@ class VerifierNode(Node):
                     f"reloaded the features of {len(self.store)} frames from {self.store_folder.folder}")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.rerank = self.config.candidates > 1
+        self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
@@ -106,7 +114,7 @@ class VerifierNode(Node):
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
         self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
-        if self.rerank:
+        if self.rerank or self.track.enabled:
             self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
         self.store_saver = PeriodicSave(
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
@@ -115,7 +123,8 @@ class VerifierNode(Node):
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
             f"{self.config.min_inlier_ratio:.0%} of the keypoints, "
-            f"re-ranking the best {self.config.candidates} candidates, features of the last {max_frames} frames"
+            f"re-ranking the best {self.config.candidates} candidates, "
+            f"tracking loops for {self.config.track_seconds:g} s, features of the last {max_frames} frames"
         )
 
     def _on_features(self, message: Features) -> None:
@@ -152,12 +161,28 @@ class VerifierNode(Node):
         self._verify_if_ready(query_ns)
 
     def _verify_if_ready(self, query_ns: int) -> None:
-        """Verify the closure of this query once its features (and posterior, to re-rank) are in."""
-        if query_ns not in self.pending or query_ns not in self.store:
+        """Verify the closure of this query once its features (and posterior, to re-rank) are in; track a
+        loop through a frame without a closure once its features and posterior are in."""
+        if query_ns not in self.store:
             return
-        if self.rerank and query_ns not in self.posteriors:
-            return
-        self._verify(self.pending.pop(query_ns), self.posteriors.get(query_ns))
+        posterior = self.posteriors.get(query_ns)
+        if query_ns in self.pending:
+            if self.rerank and posterior is None:
+                return
+            self.posteriors.pop(query_ns, None)  # this frame is done
+            self._verify(self.pending.pop(query_ns), posterior)
+        elif posterior is not None and not posterior.loop_closure_candidate:
+            del self.posteriors[query_ns]  # this frame is done: no closure will come for it
+            self._track(posterior)
+
+    def _posterior_places(self, posterior: PlacePosterior) -> list[tuple[int, Candidate]]:
+        """The posterior's candidates (rank, place) whose features are stored, best first."""
+        places = []
+        for rank, (place_id, stamp) in enumerate(zip(posterior.place_ids, posterior.place_stamps, strict=False)):
+            features = self.store.get(stamp_to_ns(stamp))
+            if features is not None:
+                places.append((rank, Candidate(int(place_id), stamp, features)))
+        return places
 
     def _candidates(self, message: LoopClosure, posterior: PlacePosterior | None) -> list[Candidate] | None:
         """The matched place first, then the posterior's next best with stored features; None: place unknown."""
@@ -166,13 +191,42 @@ class VerifierNode(Node):
             return None
         candidates = [Candidate(int(message.matched_place_id), message.matched_stamp, matched)]
         if posterior is not None:
-            for place_id, stamp in zip(posterior.place_ids, posterior.place_stamps, strict=False):
-                if len(candidates) >= self.config.candidates:
-                    break
-                features = self.store.get(stamp_to_ns(stamp))
-                if int(place_id) != candidates[0].place_id and features is not None:
-                    candidates.append(Candidate(int(place_id), stamp, features))
+            matched_id = candidates[0].place_id
+            others = [place for _, place in self._posterior_places(posterior) if place.place_id != matched_id]
+            candidates += others[: self.config.candidates - 1]
         return candidates
+
+    def _track(self, posterior: PlacePosterior) -> None:
+        """Loop tracking: verify the frame's top candidates near the last verified place; publish the best."""
+        query_ns = stamp_to_ns(posterior.header.stamp)
+        query = self.store.get(query_ns)
+        if query is None or not self.track.is_active(query_ns):
+            return
+        near = self.track.near(query_ns, self._posterior_places(posterior),
+                               lambda ranked: stamp_to_ns(ranked[1].stamp))[: self.config.candidates]
+        if not near:
+            return
+        try:
+            outcome = rerank_by_inliers(near, lambda ranked: verify_pair(query, ranked[1].features, self.config))
+        except AefabmapError as exc:
+            self.counter.drop("unverifiable", str(exc))
+            return
+        if outcome is None:
+            self.counter.ok("track_rejected")
+            return
+        rank, place = near[outcome.winner]
+        closure = LoopClosure(
+            header=posterior.header, query_id=posterior.query_id, query_place_id=posterior.assigned_place_id,
+            matched_place_id=place.place_id, matched_stamp=place.stamp,
+            probability=float(posterior.probabilities[rank]), log_likelihood=float(posterior.log_likelihoods[rank]),
+            inliers=outcome.verification.inliers,
+        )
+        self.track.accept(query_ns, stamp_to_ns(place.stamp))
+        self.counter.ok("accepted_by_tracking")
+        self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
+                               f"{outcome.verification.inliers} inliers of {outcome.verification.matches} matches",
+                               throttle_duration_sec=LOG_THROTTLE_S)
+        self.publisher.publish(closure)
 
     def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
         query = self.store.get(stamp_to_ns(message.header.stamp))
@@ -195,6 +249,8 @@ class VerifierNode(Node):
             # A stream of aliased candidates must not flood the log.
             self.get_logger().info(f"{text} rejected: fewer than {self.config.min_inliers} inliers",
                                    throttle_duration_sec=LOG_THROTTLE_S)
+            if posterior is not None:
+                self._track(posterior)  # the detection failed; the frame may still continue a verified loop
             return
         self.counter.ok("accepted")
         winner = candidates[outcome.winner]
@@ -206,6 +262,7 @@ class VerifierNode(Node):
         self.get_logger().info(f"{text} accepted: {outcome.verification.inliers} inliers of "
                                f"{outcome.verification.matches} matches")
         message.inliers = outcome.verification.inliers
+        self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
         self.publisher.publish(message)
 
     def _save_store(self, _folder: Path) -> None:

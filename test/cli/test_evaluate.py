@@ -294,7 +294,7 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
             message = types["aefabmap_msgs/msg/PlacePosterior"](
                 header=bags.make_header(start + query * period), query_id=query, assigned_place_id=query,
                 current_place_id=query,
-                is_new_place=True, new_place_probability=1.0 - sum(probabilities),
+                is_new_place=True, loop_closure_candidate=False, new_place_probability=1.0 - sum(probabilities),
                 place_ids=np.array(places, dtype=np.int64),
                 place_stamps=[bags.make_time(start + p * period) for p in places],
                 probabilities=np.array(probabilities, dtype=np.float64),

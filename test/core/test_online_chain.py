@@ -71,3 +71,32 @@ def test_bad_input():
         run_online_chain(observations, stamps[:9], _tree(), SAMPLES, CONFIG)
     with pytest.raises(DataError, match="increase strictly"):
         run_online_chain(observations, stamps[::-1].copy(), _tree(), SAMPLES, CONFIG)
+
+
+def _weak_revisit(gap_s: float) -> tuple[sp.csr_matrix, list[Features], np.ndarray]:
+    """The sequence's revisit of scenes 1 and 2, then ``gap_s`` later a frame that sees scene 3 from the
+    other pose (its features) but shares only two of its words (blur, a changed scene: FAB-MAP is unsure)."""
+    observations, features = _sequence()
+    words = sp.vstack([observations[:9], sp.csr_matrix(np.isin(np.arange(V), [15, 16, 35, 36, 37]).astype(float))])
+    revisit = _two_views(seed=3)[1]
+    stamps = np.append(np.arange(9) * SECOND, 8 * SECOND + int(gap_s * SECOND)).astype(np.int64)
+    return sp.csr_matrix(words), [*features[:9], revisit], stamps
+
+
+@pytest.mark.parametrize(("track_seconds", "gap_s", "tracked"), [(1.0, 0.5, True), (0.0, 0.5, False),
+                                                                   (1.0, 1.5, False)])
+def test_loop_tracking_closes_a_weak_frame_of_a_verified_revisit(track_seconds, gap_s, tracked):
+    observations, features, stamps = _weak_revisit(gap_s)
+    config = VerificationConfig(track_seconds=track_seconds)
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              (config, cached_pair_verifier(features, config)))
+    # Frame 9 is no candidate: its best place is 3, but below the match threshold ...
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2)]
+    weak = result.best[-1]
+    assert weak.query_frame == 9 and weak.matched_frame == 3 and weak.probability < CONFIG.match_threshold
+    # ... but place 3 is among its candidates and 1 s (map time) from the verified place 2: while the track
+    # lasts, geometry confirms it and it is published as a tracked closure.
+    published = [(c.query_frame, c.matched_frame, c.tracked) for c in result.published]
+    assert published == [(8, 2, False), (9, 3, True)] if tracked else published == [(8, 2, False)]
+    if tracked:
+        assert result.published[1].inliers >= VerificationConfig().min_inliers

@@ -231,7 +231,8 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
 
     query, place, _ = _two_views(seed=21)
     _, unrelated, _ = _two_views(seed=22)
-    node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1))  # no re-ranking: no posteriors
+    # No re-ranking, no loop tracking: no posteriors.
+    node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1, track_seconds=0.0))
     try:
         assert node.publisher.topic_name == "/loop_closures"
         assert [s.topic_name for s in node.subscriptions] == ["/aefabmap/features", "/loop_closure_candidates"]
@@ -260,8 +261,11 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
         node.destroy_node()
 
 
-def _posterior(query_sec: int, place_secs: list[int]) -> Any:
-    posterior = msg.PlacePosterior(place_ids=place_secs, probabilities=[0.9 / 2**k for k in range(len(place_secs))])
+def _posterior(query_sec: int, place_secs: list[int], candidate: bool = True) -> Any:
+    """fabmap_node's posterior of a query (``candidate``: it also published a loop-closure candidate)."""
+    posterior = msg.PlacePosterior(place_ids=place_secs, probabilities=[0.9 / 2**k for k in range(len(place_secs))],
+                                   log_likelihoods=[-float(k) for k in range(len(place_secs))],
+                                   loop_closure_candidate=candidate)
     posterior.header.stamp = Time(sec=query_sec)
     posterior.place_stamps = [Time(sec=sec) for sec in place_secs]
     return posterior
@@ -303,6 +307,39 @@ def test_verifier_node_moves_a_closure_to_the_best_verified_candidate() -> None:
         counts = node.counter.counts
         assert counts["accepted"] == 1 and counts["moved_to_better_verified_place"] == 1 and counts["rejected"] == 1
         assert counts["dropped_query_posterior_never_came"] == 1 and len(node.pending) == 2
+    finally:
+        node.destroy_node()
+
+
+def test_verifier_node_tracks_a_verified_loop_through_frames_without_a_candidate() -> None:
+    from test.core.test_verification import _two_views
+
+    query, place, _ = _two_views(seed=26)
+    _, unrelated, _ = _two_views(seed=27)
+    node = VerifierNode(parameter_overrides=_params(track_seconds=2.0, track_island_seconds=3.0))
+    try:
+        verified = Captured(node.publisher)
+        for sec, features in ((1, place), (2, unrelated), (9, unrelated), (10, query), (11, query), (13, query),
+                              (20, query)):
+            node._on_features(_features_message(features, sec))
+        node._on_posterior(_posterior(11, [2, 1], candidate=False))  # no verified loop yet: nothing to track
+        node._on_loop_closure(_closure(10, 1, query_id=100))
+        node._on_posterior(_posterior(10, [1, 2]))  # the detection, verified: the track starts
+        node._on_posterior(_posterior(11, [2, 9, 1], candidate=False))  # 1 s later, no candidate of its own
+        # 2 s after that, a detection of the unrelated place fails; the frame still continues the loop.
+        node._on_loop_closure(_closure(13, 2, query_id=102))
+        node._on_posterior(_posterior(13, [2, 1]))
+        node._on_posterior(_posterior(20, [1], candidate=False))  # 7 s after the last verified closure: over
+        closures = [(m.query_id, m.header.stamp.sec, m.matched_place_id, m.matched_stamp.sec)
+                    for m in verified.messages]
+        # Place 9 is 8 s from the tracked place 1 in map time: not a tracking candidate (only 2 and 1 are;
+        # 2 fails geometry). The tracked closures carry their place's own posterior, not a detection's.
+        assert closures == [(100, 10, 1, 1), (0, 11, 1, 1), (0, 13, 1, 1)]
+        assert [m.probability for m in verified.messages] == [0.995, 0.9 / 4, 0.9 / 2]
+        assert all(m.inliers >= 100 for m in verified.messages)
+        counts = node.counter.counts
+        assert counts["accepted"] == 1 and counts["accepted_by_tracking"] == 2 and counts["rejected"] == 1
+        assert not node.posteriors and not node.pending  # every frame decided once
     finally:
         node.destroy_node()
 
