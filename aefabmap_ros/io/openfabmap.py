@@ -3,8 +3,8 @@
 openFABMAP (``openFABMAPcli``) keeps its vocabulary (node ``Vocabulary``, K x D float32),
 Chow-Liu tree (node ``ChowLiuTree``, 4 x V float64 [parent; p(z); p(z|zp=1); p(z|zp=0)]) and
 bags-of-words (node ``BOWImageDescs``, N x V float32, a word is present when its value is > 0)
-in such files. This module reads and writes them without OpenCV (a small parser of the YAML
-subset FileStorage writes); files written here open with ``cv2.FileStorage`` and openFABMAP.
+in such files. OpenCV's own ``cv2.FileStorage`` reads and writes them (in memory, so that the
+file is read and written by us: errors name the file, writes are atomic).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import re
 from collections.abc import Mapping
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from aefabmap_ros.core.atomic import atomic_write_text
@@ -23,19 +24,8 @@ VOCABULARY_NODE = "Vocabulary"
 TREE_NODE = "ChowLiuTree"
 BOW_NODE = "BOWImageDescs"
 
-# OpenCV FileStorage element type codes.
-_DTYPES: dict[str, np.dtype] = {
-    "u": np.dtype(np.uint8),
-    "c": np.dtype(np.int8),
-    "w": np.dtype(np.uint16),
-    "s": np.dtype(np.int16),
-    "i": np.dtype(np.int32),
-    "f": np.dtype(np.float32),
-    "d": np.dtype(np.float64),
-}
-_CODES = {dtype: code for code, dtype in _DTYPES.items()}
-_SPECIAL = {".nan": "nan", ".inf": "inf", "-.inf": "-inf", "+.inf": "inf"}
-_NODE_RE = r"^{name}\s*:\s*!!opencv-matrix\s*$"
+# Element types FileStorage stores as single-channel matrices; anything else is written as float64.
+_WRITABLE = {np.dtype(t) for t in (np.uint8, np.int8, np.uint16, np.int16, np.int32, np.float32, np.float64)}
 
 
 def read_opencv_matrix(path: Path | str, node: str) -> np.ndarray:
@@ -47,75 +37,43 @@ def read_opencv_matrix(path: Path | str, node: str) -> np.ndarray:
         raise ModelError(f"cannot read openFABMAP file {path}: {error}") from error
     if not text.lstrip().startswith("%YAML"):
         raise ModelError(f"{path} is not an OpenCV YAML file (no %YAML header)")
-    match = re.search(_NODE_RE.format(name=re.escape(node)), text, flags=re.MULTILINE)
-    if match is None:
-        raise ModelError(f"{path} has no matrix node {node!r}")
-    body = text[match.end() :]
-    fields = {}
-    for key in ("rows", "cols", "dt"):
-        found = re.search(rf"^\s+{key}\s*:\s*(\S+)\s*$", body, flags=re.MULTILINE)
-        if found is None:
-            raise ModelError(f"{path}: node {node!r} lacks '{key}'")
-        fields[key] = found.group(1)
-    data_match = re.search(r"^\s+data\s*:\s*\[(.*?)\]", body, flags=re.MULTILINE | re.DOTALL)
-    if data_match is None:
-        raise ModelError(f"{path}: node {node!r} lacks 'data: [...]'")
     try:
-        rows, cols = int(fields["rows"]), int(fields["cols"])
-    except ValueError as error:
-        raise ModelError(f"{path}: node {node!r} has non-integer rows/cols {fields}") from error
-    dtype = _DTYPES.get(fields["dt"])
-    if dtype is None:
-        raise ModelError(f"{path}: node {node!r} has unsupported dt {fields['dt']!r} (single-channel only)")
-    tokens = data_match.group(1).replace(",", " ").split()
+        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except cv2.error as error:
+        raise ModelError(f"{path} is not readable by OpenCV's FileStorage: {_first_line(error)}") from error
     try:
-        values = np.array([_SPECIAL.get(t.lower(), t) for t in tokens], dtype=np.float64)
-    except ValueError as error:
-        raise ModelError(f"{path}: node {node!r} has a non-numeric value: {error}") from error
-    if values.size != rows * cols:
-        raise ModelError(f"{path}: node {node!r} has {values.size} values for {rows} x {cols}")
-    return values.reshape(rows, cols).astype(dtype)
+        found = storage.getNode(node)
+        if found.empty() or found.isNone():
+            raise ModelError(f"{path} has no matrix node {node!r}")
+        try:
+            matrix = found.mat()
+        except cv2.error as error:
+            raise ModelError(f"{path}: node {node!r} is a malformed matrix: {_first_line(error)}") from error
+    finally:
+        storage.release()
+    if not isinstance(matrix, np.ndarray) or matrix.ndim != 2:
+        raise ModelError(f"{path}: node {node!r} is not a single-channel matrix")
+    return matrix
 
 
-def _format_values(values: np.ndarray) -> list[str]:
-    if values.dtype == np.float64:
-        return [_float_token(repr(float(v))) for v in values]
-    if values.dtype == np.float32:
-        return [_float_token(f"{float(v):.9g}") for v in values]
-    return [str(int(v)) for v in values]
-
-
-def _float_token(token: str) -> str:
-    lowered = token.lower()
-    if lowered == "nan":
-        return ".Nan"
-    if lowered in ("inf", "-inf"):
-        return ("-" if lowered.startswith("-") else "") + ".Inf"
-    return token
+def _first_line(error: cv2.error) -> str:
+    return str(error).strip().splitlines()[-1]
 
 
 def write_opencv_matrices(path: Path | str, nodes: Mapping[str, np.ndarray]) -> None:
     """Write 2-D single-channel matrices as an OpenCV YAML file, atomically (temp file + os.replace)."""
     path = Path(path)
-    lines = ["%YAML:1.0", "---"]
+    storage = cv2.FileStorage(".yml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     for name, matrix in nodes.items():
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            storage.release()
             raise ModelError(f"invalid OpenCV node name {name!r}")
         array = np.asarray(matrix)
         if array.ndim != 2:
+            storage.release()
             raise ModelError(f"node {name!r}: only 2-D matrices can be written, got shape {array.shape}")
-        if array.dtype not in _CODES:
-            array = array.astype(np.float64)
-        tokens = _format_values(array.ravel())
-        lines += [
-            f"{name}: !!opencv-matrix",
-            f"   rows: {array.shape[0]}",
-            f"   cols: {array.shape[1]}",
-            f"   dt: {_CODES[array.dtype]}",
-        ]
-        chunks = [", ".join(tokens[i : i + 8]) for i in range(0, len(tokens), 8)] or [""]
-        lines.append("   data: [ " + (",\n       ".join(chunks)) + " ]")
-    text = "\n".join(lines) + "\n"
+        storage.write(name, np.ascontiguousarray(array if array.dtype in _WRITABLE else array.astype(np.float64)))
+    text = storage.releaseAndGetString()
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
 
