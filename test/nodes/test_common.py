@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import pytest
 
@@ -24,7 +24,7 @@ class TwoStepNode(Node):
     stamp); the first tick sends this process ``signal_to_send`` between the steps and, in a pool
     thread, takes a while to reach the second step. close() records whether the state was whole."""
 
-    closed_states: list[tuple[int, int]] = []
+    closed_states: ClassVar[list[tuple[int, int]]] = []
 
     def __init__(self, name: str, signal_to_send: int | None, pause_s: float) -> None:
         super().__init__(name)
@@ -74,7 +74,7 @@ def test_a_stop_signal_lets_the_running_callback_finish_before_the_nodes_close(t
 class SignalledDuringCloseNode(IdleNode):
     """Its close (the final save) is interrupted by another stop signal half-way."""
 
-    saved: list[bool] = []
+    saved: ClassVar[list[bool]] = []
 
     def __init__(self) -> None:
         super().__init__()

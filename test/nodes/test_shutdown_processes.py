@@ -13,12 +13,12 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("aefabmap_msgs.msg")
 
-from aefabmap_ros.core.chowliu import ChowLiuTree  # noqa: E402
-from aefabmap_ros.core.detector import PlaceRecognizer  # noqa: E402
-from aefabmap_ros.core.fabmap import FabMapConfig  # noqa: E402
-from aefabmap_ros.core.model import load_model  # noqa: E402
-from test.revisit_fixture import RevisitData  # noqa: E402
-from test.ros_processes import LoggedProcess, running, write_script  # noqa: E402
+from aefabmap_ros.core.chowliu import ChowLiuTree
+from aefabmap_ros.core.detector import PlaceRecognizer
+from aefabmap_ros.core.fabmap import FabMapConfig
+from aefabmap_ros.core.model import load_model
+from test.revisit_fixture import RevisitData
+from test.ros_processes import LoggedProcess, running, write_script
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
