@@ -7,12 +7,17 @@ beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 --no-verify leaves the verifier out and remaps FAB-MAP's candidates onto ``loop_closures``
 (``inliers`` -1: not verified). With --map, the map and the verifier's feature store (folder
 ``<map>.features``) are saved and reloaded, so both survive a restart. Ctrl-C (or SIGTERM) stops
-every node cleanly; if one node dies, the others are stopped and the exit code is 1.
+every node cleanly; if one node dies, the others are stopped and the exit code is 1. The nodes die
+with the launcher (Linux): killed with SIGKILL, it leaves no node running that a relaunch would
+duplicate (two FAB-MAP nodes writing one map).
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
+import functools
+import os
 import signal
 import subprocess
 import sys
@@ -73,8 +78,26 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     ]
 
 
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _stop_with_parent(parent_pid: int) -> None:
+    """Run in each child between fork and exec: the kernel sends it SIGTERM when the launcher dies,
+    however it dies, so the node saves its state and stops instead of running on unsupervised."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent_pid:  # the launcher died before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def start_node(command: list[str]) -> subprocess.Popen[bytes]:
+    if sys.platform.startswith("linux"):
+        return subprocess.Popen(command, preexec_fn=functools.partial(_stop_with_parent, os.getpid()))
+    return subprocess.Popen(command)
+
+
 def supervise(commands: list[list[str]]) -> int:
-    processes = [subprocess.Popen(command) for command in commands]
+    processes = [start_node(command) for command in commands]
     stopping = False
 
     def stop(_signum: int, _frame: FrameType | None) -> None:

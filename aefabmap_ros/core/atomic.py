@@ -26,3 +26,22 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
+
+
+def remove_stale_temporaries(folder: Path, name_pattern: str) -> list[Path]:
+    """Delete the temporaries :func:`atomic_write_bytes` left in ``folder`` for files named like
+    ``name_pattern`` (a glob, e.g. ``map.npz`` or ``chunk-*.npz``) when a writer was killed mid-write.
+
+    Call it at start-up, before this process writes there: a temporary being written by a live
+    writer of the same file would go too (and two writers of one file are a mistake anyway).
+    Returns the files removed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    removed = []
+    for temporary in sorted(folder.glob(f".{name_pattern}.*.tmp")):
+        if temporary.is_file():
+            temporary.unlink(missing_ok=True)
+            removed.append(temporary)
+    return removed

@@ -41,15 +41,17 @@ The map (places' words, stamps, frames, counters, last posterior) is saved atomi
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.consistency import TemporalConsistency
-from aefabmap_ros.core.errors import DataError, ModelError, VocabularyMismatchError
+from aefabmap_ros.core.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.core.fabmap import (
     FabMapConfig,
     GrowableArray,
@@ -121,6 +123,34 @@ def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
     return bool(np.any(not_increasing))
 
 
+# Settings read afresh for every frame (nothing is built from them at start-up), so they can change
+# while the recognizer runs; the others shape the engine or the consistency chain, built once.
+RUNTIME_SETTINGS = frozenset({
+    "match_threshold", "likelihood_temperature", "top_k", "min_words", "add_policy",
+    "exclude_recent_frames", "exclude_recent_seconds", "keyframe_max_overlap", "keyframe_max_seconds",
+})
+
+ConfigDifferences = dict[str, tuple[Any, Any]]  # setting -> (value the map was made with, value now)
+
+
+def config_differences(saved_json: str, config: FabMapConfig) -> ConfigDifferences:
+    """The settings of ``config`` that differ from those a map was saved with (its ``config_json``).
+
+    A setting the saved map does not name (an older version) or names but ``config`` lacks (a newer
+    one) differs too, with None on the missing side; an unreadable ``config_json`` is one difference
+    named ``config_json``.
+    """
+    try:
+        saved = json.loads(saved_json)
+    except json.JSONDecodeError:
+        saved = None
+    if not isinstance(saved, dict):
+        return {"config_json": (saved_json, "unreadable")}
+    current = asdict(config)
+    return {key: (saved.get(key), current.get(key)) for key in sorted(saved.keys() | current.keys())
+            if saved.get(key) != current.get(key)}
+
+
 class PlaceRecognizer:
     """FAB-MAP 2 place recognizer over a growing map of places (see module doc for the policies)."""
 
@@ -174,6 +204,15 @@ class PlaceRecognizer:
     def memory_bytes(self) -> int:
         """Bytes held by the place index (word lists, postings, defaults)."""
         return self._engine.places.nbytes + 16 * self.num_places
+
+    def reconfigure(self, changes: Mapping[str, Any]) -> None:
+        """Change settings of :data:`RUNTIME_SETTINGS` from the next frame on (validated as a whole);
+        ConfigError for any other setting or a bad value, and then nothing changes."""
+        fixed = sorted(set(changes) - RUNTIME_SETTINGS)
+        if fixed:
+            raise ConfigError(f"{', '.join(fixed)} cannot change while the recognizer runs "
+                              f"(only {', '.join(sorted(RUNTIME_SETTINGS))} can)")
+        self.config = replace(self.config, **changes)
 
     # -- processing ---------------------------------------------------------------------------
 
@@ -334,11 +373,14 @@ class PlaceRecognizer:
         }
         write_npz_atomically(path, arrays)
 
-    def load_map(self, path: Path) -> None:
-        """Replace the map by the one saved at ``path``.
+    def load_map(self, path: Path) -> ConfigDifferences:
+        """Replace the map by the one saved at ``path``; returns the settings it was made with that
+        differ from this recognizer's (:func:`config_differences`), for the caller to report.
 
         Raises VocabularyMismatchError (naming both ids) if it belongs to another vocabulary,
-        ModelError if it is missing, corrupt or of another format version.
+        ModelError if it is missing, corrupt or of another format version. Other settings do not
+        refuse a map: places are stored as word sets, which only the vocabulary gives a meaning to;
+        the settings change how later frames are matched and added, not what the places are.
         """
         arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, MAP_FORMAT_VERSION)
         state = self._validated_state(Path(path), arrays)
@@ -348,6 +390,9 @@ class PlaceRecognizer:
         self._place_frames.extend(state["place_frames"].astype(np.int64))
         self._next_query_id = int(state["next_query_id"])
         self._previous_posterior = state["previous_posterior"] if bool(state["has_previous_posterior"]) else None
+        if "config_json" not in state:  # written by a version that did not record its settings
+            return {"config_json": (None, "not recorded in the map")}
+        return config_differences(str(state["config_json"]), self.config)
 
     def _validated_state(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         map_vocabulary_id = str(arrays["vocabulary_id"])

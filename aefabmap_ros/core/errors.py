@@ -26,6 +26,10 @@ class ImageError(AefabmapError, ValueError):
     """An image cannot be decoded: unsupported encoding, wrong size, corrupt data."""
 
 
+class ImageTooLargeError(ImageError):
+    """An image has more pixels than allowed: refused before it is decoded."""
+
+
 class BagError(AefabmapError):
     """A rosbag2 bag is missing, corrupt, empty, or lacks the requested topic."""
 

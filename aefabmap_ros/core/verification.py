@@ -167,6 +167,9 @@ def match_descriptors(query: Features, place: Features, ratio: float) -> tuple[n
     binary = query.descriptors.dtype == np.uint8
     if binary != (place.descriptors.dtype == np.uint8):
         raise DataError(f"descriptor dtypes differ: {query.descriptors.dtype} vs {place.descriptors.dtype}")
+    if query.descriptors.shape[1] != place.descriptors.shape[1]:  # e.g. 128-d SIFT vs 64-d SURF
+        raise DataError(f"cannot match {query.descriptors.shape[1]}-d descriptors against "
+                        f"{place.descriptors.shape[1]}-d ones")
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
     dtype = np.uint8 if binary else np.float32
     pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=dtype),
@@ -319,10 +322,22 @@ class FeatureStore:
         return self._nbytes
 
     def add(self, stamp_ns: int, features: Features) -> None:
-        """Store (or replace) the features of the frame stamped ``stamp_ns``."""
+        """Store (or replace) the features of the frame stamped ``stamp_ns``.
+
+        DataError for malformed features and for a descriptor kind (type, dtype, length) other than
+        that of the frames already stored: one store is saved as one kind, and a stray frame of
+        another would make every later save fail.
+        """
         _check_features(features, "stored frame")
+        kind = _kind(features.descriptor_type, features.descriptors)
+        stored_kind = self.descriptor_kind
+        if stored_kind is not None and kind != stored_kind:
+            raise DataError(f"features of kind {kind} (type, dtype, length), but the store holds {stored_kind}")
         keep = np.arange(len(features))
         if self.max_features_per_frame and len(features) > self.max_features_per_frame:
+            if features.keypoints.shape[1] < 5:
+                raise DataError(f"stored frame keypoints of shape {features.keypoints.shape} have no response "
+                                "column (5th) to keep the strongest by")
             # Strongest first; a stable sort keeps the detector's order among equal responses.
             keep = np.sort(np.argsort(-features.keypoints[:, 4], kind="stable")[: self.max_features_per_frame])
         descriptors = features.descriptors[keep]
@@ -336,6 +351,14 @@ class FeatureStore:
         self._nbytes += compact.keypoints.nbytes + compact.descriptors.nbytes
         while len(self._frames) > self.max_frames:
             self._forget(next(iter(self._frames)))
+
+    @property
+    def descriptor_kind(self) -> tuple[str, str, int] | None:
+        """(type, stored dtype, length) of the stored frames' descriptors; None when the store is empty."""
+        if not self._frames:
+            return None
+        first = next(iter(self._frames.values()))
+        return _kind(first.descriptor_type, first.descriptors)
 
     def get(self, stamp_ns: int) -> Features | None:
         """The stored features of that frame (float descriptors back as float32), None if unknown."""
@@ -371,6 +394,12 @@ class FeatureStore:
         self._unsaved.pop(stamp_ns, None)
         if stored is not None:
             self._nbytes -= stored.keypoints.nbytes + stored.descriptors.nbytes
+
+
+def _kind(descriptor_type: str, descriptors: np.ndarray) -> tuple[str, str, int]:
+    """A descriptor kind as stored: float descriptors are kept as float16, so float32 and float16 agree."""
+    dtype = np.dtype(np.uint8) if descriptors.dtype == np.uint8 else np.dtype(np.float16)
+    return descriptor_type, dtype.str, int(descriptors.shape[1])
 
 
 _STORE_KEYS = ("descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")

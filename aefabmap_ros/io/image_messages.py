@@ -2,15 +2,44 @@
 
 from __future__ import annotations
 
+import io
+import warnings
 from typing import Any
 
 import numpy as np
+from PIL import Image as PILImage
 
+from aefabmap_ros.core.errors import ImageTooLargeError
 from aefabmap_ros.core.images import decode_compressed, image_to_gray
 
 
-def image_message_to_gray(message: Any) -> np.ndarray:
-    """``sensor_msgs/Image`` or ``CompressedImage`` -> (H, W) uint8; ``ImageError`` when undecodable."""
+def image_message_pixels(message: Any) -> int | None:
+    """Pixels the message's image has, read without decoding it (a compressed image's header only);
+    None when a compressed image's header is not one Pillow reads (the decoder then decides)."""
+    if hasattr(message, "encoding"):
+        return int(message.height) * int(message.width)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PILImage.DecompressionBombWarning)
+            with PILImage.open(io.BytesIO(bytes(message.data))) as header:  # lazy: reads the header only
+                width, height = header.size
+    except PILImage.DecompressionBombError:  # Pillow's own bound (~179 MP): larger still
+        return 2 * PILImage.MAX_IMAGE_PIXELS if PILImage.MAX_IMAGE_PIXELS else None
+    except Exception:  # not a header Pillow knows: no size to check before decoding
+        return None
+    return int(width) * int(height)
+
+
+def image_message_to_gray(message: Any, max_pixels: int = 0) -> np.ndarray:
+    """``sensor_msgs/Image`` or ``CompressedImage`` -> (H, W) uint8; ``ImageError`` when undecodable.
+
+    ``max_pixels`` > 0: an image with more pixels is refused (``ImageTooLargeError``) before it is
+    decoded -- a 69 KB PNG can decode to 8000 x 8000, and the decoder's buffers then take gigabytes.
+    """
+    if max_pixels > 0:
+        pixels = image_message_pixels(message)
+        if pixels is not None and pixels > max_pixels:
+            raise ImageTooLargeError(f"image of {pixels} pixels exceeds max_image_pixels {max_pixels}")
     if hasattr(message, "encoding"):
         return image_to_gray(
             bytes(message.data), message.encoding, int(message.height), int(message.width), int(message.step)

@@ -74,9 +74,12 @@ def message_to_features(message: Features) -> core_features.Features:
             f"Features has {count} keypoints but {len(raw)} descriptor values for descriptor_length {length}"
         )
     dtype = np.uint8 if is_binary else np.float32
+    descriptors = np.frombuffer(raw, dtype=dtype).reshape(count, length)
+    if not is_binary and not np.all(np.isfinite(descriptors)):
+        # NaN would become some word (the autoencoder) or a confusing range error (k-means).
+        raise DataError(f"Features has {int(np.count_nonzero(~np.isfinite(descriptors)))} NaN/Inf descriptor values")
     keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],
                          axis=1) if count else np.zeros((0, 5), np.float32)
-    descriptors = np.frombuffer(raw, dtype=dtype).reshape(count, length)
     return core_features.Features(
         keypoints=keypoints, descriptors=descriptors, descriptor_type=str(message.descriptor_type)
     )
@@ -115,6 +118,8 @@ def message_to_word_ids(message: BagOfWords, vocabulary_id: str, vocabulary_size
             f"BagOfWords vocabulary_size {message.vocabulary_size} != model's {vocabulary_size}"
         )
     word_ids = np.frombuffer(message.word_ids, dtype=np.uint32).astype(np.int64)
+    if len(message.counts) != word_ids.size:
+        raise DataError(f"BagOfWords has {word_ids.size} word ids but {len(message.counts)} counts")
     if word_ids.size and (word_ids.max() >= vocabulary_size):
         raise DataError(f"BagOfWords word id {int(word_ids.max())} >= vocabulary_size {vocabulary_size}")
     if word_ids.size > 1 and np.any(np.diff(word_ids) <= 0):

@@ -8,18 +8,21 @@ dataclass's own validation is the single check of every value.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import signal
 import sys
+import threading
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from types import FrameType
 from typing import Any, TypeVar
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 
@@ -97,6 +100,97 @@ def report_when_connected(node: Node, subscription: Any, what: str, period_s: fl
     timer = node.create_timer(period_s, check)
 
 
+class CallbackGate:
+    """Counts the node callbacks running now; once closed, lets no new one start.
+
+    A multi-threaded executor runs callbacks in pool threads that ``Executor.shutdown`` does not
+    wait for (rclpy Jazzy): the final save must wait here, or it saves a map halfway through an
+    update. Callbacks already handed to the pool when the spin stops are skipped, not half run.
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._running = 0
+        self._open = True
+
+    def enter(self) -> bool:
+        with self._condition:
+            if self._open:
+                self._running += 1
+            return self._open
+
+    def leave(self) -> None:
+        with self._condition:
+            self._running -= 1
+            self._condition.notify_all()
+
+    def close_and_wait(self) -> None:
+        with self._condition:
+            self._open = False
+            self._condition.wait_for(lambda: self._running == 0)
+
+    def reopen(self) -> None:
+        with self._condition:
+            self._open = True
+
+
+CALLBACKS = CallbackGate()
+
+
+def node_callback(callback: Callable[..., None]) -> Callable[..., None]:
+    """Wrap a node's callback (a message's, or a timer's): no new run once shutdown began, and any
+    exception is counted and dropped (``self.counter``) with a throttled log naming its type -- a
+    ``cv2.error`` or a torch ``RuntimeError`` from one bad message must not take the node (and the
+    launch) down."""
+
+    @functools.wraps(callback)
+    def guarded(self: Any, *message: Any) -> None:
+        if not CALLBACKS.enter():
+            return
+        try:
+            callback(self, *message)
+        except Exception as exc:  # the point: nothing a message causes stops the node
+            self.counter.drop(type(exc).__name__, f"{type(exc).__name__}: {exc}")
+        finally:
+            CALLBACKS.leave()
+
+    return guarded
+
+
+class RuntimeParameters:
+    """A node's answer to ``ros2 param set``: the ``settable`` parameters are applied by ``apply``
+    (which raises ConfigError to refuse a value); every other parameter is read once at start-up,
+    so a change is refused with that reason instead of being reported as a success and ignored."""
+
+    def __init__(self, node: Node, settable: Collection[str], apply: Callable[[dict[str, Any]], None]) -> None:
+        self._node = node
+        self.settable = frozenset(settable)
+        self._apply = apply
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
+        fixed = sorted(p.name for p in parameters if p.name not in self.settable)
+        if fixed:
+            settable = ", ".join(sorted(self.settable)) or "none"
+            return SetParametersResult(successful=False, reason=(
+                f"{', '.join(fixed)}: read at start-up only; restart {self._node.get_name()} with the new value "
+                f"(settable while running: {settable})"))
+        try:
+            self._apply({p.name: _coerced(p.value, self._node.get_parameter(p.name).value) for p in parameters})
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self._node.get_logger().info(
+            "parameters changed: " + ", ".join(f"{p.name}={p.value!r}" for p in parameters))
+        return SetParametersResult(successful=True)
+
+
+def _coerced(value: Any, current: Any) -> Any:
+    """An int where a float parameter is expected becomes a float (YAML and the CLI write 1 for 1.0)."""
+    if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
 class DropCounter:
     """Counts inputs by outcome and logs every drop, throttled, so a bad stream never floods the log."""
 
@@ -133,12 +227,21 @@ class PeriodicSave:
         self._what = what
         self.unsaved_changes = False
         if path is not None and period_s > 0:
-            node.create_timer(period_s, self.save_if_changed)
+            node.create_timer(period_s, self._on_timer)
 
     def mark_changed(self) -> None:
         self.unsaved_changes = True
 
+    def _on_timer(self) -> None:
+        if not CALLBACKS.enter():  # shutting down: the final save follows
+            return
+        try:
+            self.save_if_changed()
+        finally:
+            CALLBACKS.leave()
+
     def save_if_changed(self) -> None:
+        """The periodic save: a failure is logged (throttled) and retried at the next period."""
         if self.path is None or not self.unsaved_changes:
             return
         try:
@@ -148,50 +251,70 @@ class PeriodicSave:
             self._node.get_logger().error(f"cannot save {self._what} to {self.path}: {exc}",
                                           throttle_duration_sec=30.0)
 
-
-class _StopSignalError(Exception):
-    """Raised from our SIGINT/SIGTERM handler to leave the spin loop."""
-
-
-def _raise_stop(_signum: int, _frame: FrameType | None) -> None:
-    raise _StopSignalError
+    def final_save(self) -> bool:
+        """The save at shutdown: False (and an unthrottled error naming what is lost) when it failed."""
+        if self.path is None or not self.unsaved_changes:
+            return True
+        try:
+            self._save(self.path)
+        except (AefabmapError, OSError) as exc:
+            self._node.get_logger().error(
+                f"FINAL SAVE FAILED: {self._what} not saved to {self.path} ({type(exc).__name__}: {exc}); "
+                "the file holds the last successful save only")
+            return False
+        self.unsaved_changes = False
+        return True
 
 
 def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = None) -> int:
     """The Jazzy ``main()`` pattern for one node or several in one process (multi-threaded executor).
 
-    Init, build every node, spin, and always close, destroy and shut down. SIGINT and SIGTERM are
-    handled here rather than by rclpy, so the context is still valid while nodes close: the FAB-MAP
-    node's final map save and every node's summary log happen on a clean, live context.
-    A start-up error (bad parameter, missing model) is printed as ``ERROR: ...`` and gives exit 1.
+    Init, build every node, spin, and always close, destroy and shut down. SIGINT and SIGTERM only
+    *request* the stop (a handler that raised would interrupt a callback at any line, e.g. between
+    adding a place and recording its stamp, and that half-updated map would be saved): the spin
+    ends, the callbacks still running are waited for, and only then each node closes (the FAB-MAP
+    node's final save) on a live context. Further signals during the close are ignored, so a second
+    SIGTERM cannot cut the final save short.
+    Exit code: 0; 1 for a start-up error (printed as ``ERROR: ...``) or when a node's close reports
+    that its state could not be saved.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {sig: signal.signal(sig, _raise_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    stop_requested = threading.Event()
+
+    def request_stop(_signum: int, _frame: FrameType | None) -> None:
+        stop_requested.set()
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     nodes: list[Any] = []
     executor: Executor = (MultiThreadedExecutor(num_threads=max(2, len(factories))) if len(factories) > 1
                           else SingleThreadedExecutor())
+    exit_code = 0
+    CALLBACKS.reopen()
     try:
         for factory in factories:
             nodes.append(factory())
             executor.add_node(nodes[-1])
-        # Short waits so a signal is handled promptly (Python runs handlers between bytecodes only).
-        while rclpy.ok():
+        # Short waits so a stop request is seen promptly.
+        while rclpy.ok() and not stop_requested.is_set():
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, _StopSignalError, ExternalShutdownException):
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except AefabmapError as exc:
         print(f"ERROR: {exc}", file=sys.stderr)
-        return 1
+        exit_code = 1
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-        for node in reversed(nodes):
-            node.close()
+        CALLBACKS.close_and_wait()
         executor.shutdown()
+        for node in reversed(nodes):
+            if node.close() is False:
+                exit_code = 1
         for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+        CALLBACKS.reopen()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return exit_code
 
 
 def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:

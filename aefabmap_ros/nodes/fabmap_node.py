@@ -7,7 +7,14 @@ on ``loop_closures``. Without a verifier, remap ``loop_closure_candidates:=loop_
 
 Keeps the map of places; saves it atomically every ``save_period_s`` (when it changed) and on
 shutdown, and reloads it on start, so a restart loses no saved place. A map made with another
-vocabulary is refused at start-up rather than silently mixed.
+vocabulary is refused at start-up rather than silently mixed; one made with other FAB-MAP
+settings is used, with a warning naming them. Temporaries a killed save left beside the map are
+deleted at start. A frame stamped more than ``max_future_stamp_s`` ahead of the node's clock is
+dropped (counted): it would make every later frame "out of order", and, saved in the map, would
+do so after every restart too.
+
+While running, the settings of ``detector.RUNTIME_SETTINGS`` (e.g. ``match_threshold``) can be
+changed with ``ros2 param set``; any other change is refused with the reason.
 """
 
 from __future__ import annotations
@@ -18,8 +25,9 @@ from typing import Any
 from aefabmap_msgs.msg import BagOfWords, LoopClosure, PlacePosterior
 from rclpy.node import Node
 
+from aefabmap_ros.core.atomic import remove_stale_temporaries
 from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.detector import PlaceRecognizer
+from aefabmap_ros.core.detector import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
 from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.core.fabmap import FabMapConfig, warm_up_kernels
 from aefabmap_ros.core.model import load_model
@@ -33,8 +41,10 @@ from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
     PeriodicSave,
+    RuntimeParameters,
     declare_config,
     declare_parameter,
+    node_callback,
     pipeline_qos,
     report_when_connected,
     run_node,
@@ -52,6 +62,13 @@ class FabMapNode(Node):
             self, "save_period_s", 10.0, "Save the map this often when it changed (seconds; 0 = only on shutdown)."
         )
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the words subscription.")
+        max_future_s = declare_parameter(
+            self, "max_future_stamp_s", 600.0,
+            "Drop frames stamped more than this ahead of the node's clock (seconds; 0 = accept any stamp).",
+        )
+        if max_future_s < 0.0:
+            raise ConfigError(f"fabmap_node: parameter max_future_stamp_s={max_future_s} must be >= 0")
+        self.max_future_ns = int(max_future_s * 1e9)
         config = declare_config(self, FabMapConfig)
         if not model_dir:
             raise ConfigError("fabmap_node: parameter model_dir is required (a directory made by aefabmap_train)")
@@ -65,9 +82,14 @@ class FabMapNode(Node):
         )
         warm_up_kernels()  # compile/load FAB-MAP's kernels now, not on the first image
         map_path = Path(map_file) if map_file else None
+        if map_path is not None:
+            for leftover in remove_stale_temporaries(map_path.parent, map_path.name):
+                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
         if map_path is not None and map_path.exists():
-            self.recognizer.load_map(map_path)
+            differences = self.recognizer.load_map(map_path)
             self.get_logger().info(f"reloaded {self.recognizer.num_places} places from {map_path}")
+            if differences:
+                self.get_logger().warning(_differences_text(map_path, differences))
         # Frames at or before the newest saved place are already in the map: replaying them after a
         # restart must not add them twice.
         places = self.recognizer.num_places
@@ -78,15 +100,23 @@ class FabMapNode(Node):
         words = self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
         report_when_connected(self, words, "words")
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
+        self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self.recognizer.reconfigure)
         self.get_logger().info(
             f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
         )
 
+    @node_callback
     def _on_words(self, message: BagOfWords) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
         if stamp_ns <= self.last_stamp_ns:
             self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns")
+            return
+        now_ns = self.get_clock().now().nanoseconds
+        # now 0: simulated time before the first /clock message, no reference to judge by.
+        if self.max_future_ns and now_ns > 0 and stamp_ns > now_ns + self.max_future_ns:
+            self.counter.drop("stamp_in_future", f"stamp {stamp_ns} ns is {(stamp_ns - now_ns) / 1e9:.0f} s ahead of "
+                              f"the node's clock (max_future_stamp_s {self.max_future_ns / 1e9:g})")
             return
         try:
             word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)
@@ -95,11 +125,13 @@ class FabMapNode(Node):
             self.counter.drop(type(exc).__name__, str(exc))
             return
         self.last_stamp_ns = stamp_ns
-        if not recognition.informative:  # too few words to say anything: no posterior, no place
+        # Every frame gets its posterior, a blank one too (no places, new-place probability NaN): a
+        # lockstep replay and any subscriber counting frames wait for one answer per image.
+        self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
+        if not recognition.informative:  # too few words to say anything: no place, no match
             self.counter.ok("frames_below_min_words")
             return
         self.map_saver.mark_changed()
-        self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
         loop_closure = recognition_to_loop_closure(recognition, message.header)
         if loop_closure is not None:
             self.loop_publisher.publish(loop_closure)
@@ -110,9 +142,18 @@ class FabMapNode(Node):
             )
         self.counter.ok()
 
-    def close(self) -> None:
-        self.map_saver.save_if_changed()
-        self.get_logger().info(f"fabmap_node: {self.recognizer.num_places} places; {self.counter.summary()}")
+    def close(self) -> bool:
+        """The final map save; False when it failed (the process then exits 1)."""
+        saved = self.map_saver.final_save()
+        self.get_logger().info(f"fabmap_node: {self.recognizer.num_places} places"
+                               f"{'' if saved else ' (NOT all saved)'}; {self.counter.summary()}")
+        return saved
+
+
+def _differences_text(map_path: Path, differences: ConfigDifferences) -> str:
+    changes = ", ".join(f"{key} {saved!r} -> {now!r}" for key, (saved, now) in differences.items())
+    return (f"map {map_path} was made with other FAB-MAP settings ({changes}); its places are used as they are, "
+            "the current settings apply from now on")
 
 
 def main(args: list[str] | None = None) -> int:

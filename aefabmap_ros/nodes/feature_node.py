@@ -8,12 +8,20 @@ from aefabmap_msgs.msg import Features
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 
-from aefabmap_ros.core.errors import AefabmapError
+from aefabmap_ros.core.errors import AefabmapError, ConfigError, ImageTooLargeError
 from aefabmap_ros.core.features import FeatureConfig, extract_features
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.io.messages import features_to_message
-from aefabmap_ros.nodes.common import DropCounter, declare_config, declare_parameter, image_qos, pipeline_qos, run_node
+from aefabmap_ros.nodes.common import (
+    DropCounter,
+    declare_config,
+    declare_parameter,
+    image_qos,
+    node_callback,
+    pipeline_qos,
+    run_node,
+)
 
 
 class FeatureNode(Node):
@@ -30,6 +38,12 @@ class FeatureNode(Node):
         subscribe_compressed = declare_parameter(
             self, "subscribe_compressed", False, "Also subscribe to image/compressed (sensor_msgs/CompressedImage)."
         )
+        self.max_image_pixels = declare_parameter(
+            self, "max_image_pixels", 25_000_000,
+            "Refuse images with more pixels than this, before decoding them (0 = no bound); 25 MP: above 4K.",
+        )
+        if self.max_image_pixels < 0:
+            raise ConfigError(f"feature_node: parameter max_image_pixels={self.max_image_pixels} must be >= 0")
         parameter_config = declare_config(self, FeatureConfig)
         self.config = load_model(model_dir).feature_config if model_dir else parameter_config
         self.counter = DropCounter(self)
@@ -39,10 +53,14 @@ class FeatureNode(Node):
             self.create_subscription(CompressedImage, "image/compressed", self._on_image, image_qos(qos_kind, depth))
         self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image)")
 
+    @node_callback
     def _on_image(self, message: Any) -> None:
         try:
-            gray = image_message_to_gray(message)
+            gray = image_message_to_gray(message, self.max_image_pixels)
             features = extract_features(gray, self.config)
+        except ImageTooLargeError as exc:
+            self.counter.drop("image_too_large", str(exc))
+            return
         except AefabmapError as exc:
             self.counter.drop("bad_image", str(exc))
             return
@@ -51,8 +69,9 @@ class FeatureNode(Node):
         self.publisher.publish(features_to_message(features, message.header, (gray.shape[1], gray.shape[0])))
         self.counter.ok()
 
-    def close(self) -> None:
+    def close(self) -> bool:
         self.get_logger().info(f"feature_node: {self.counter.summary()}")
+        return True
 
 
 def main(args: list[str] | None = None) -> int:

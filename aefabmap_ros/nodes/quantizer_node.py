@@ -12,7 +12,14 @@ from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.core.vocabulary import bag_of_words
 from aefabmap_ros.io.messages import bag_of_words_to_message, message_to_features
-from aefabmap_ros.nodes.common import DropCounter, declare_parameter, pipeline_qos, report_when_connected, run_node
+from aefabmap_ros.nodes.common import (
+    DropCounter,
+    declare_parameter,
+    node_callback,
+    pipeline_qos,
+    report_when_connected,
+    run_node,
+)
 
 
 class QuantizerNode(Node):
@@ -35,6 +42,7 @@ class QuantizerNode(Node):
             f"(vocabulary {self.vocabulary_id})"
         )
 
+    @node_callback
     def _on_features(self, message: Features) -> None:
         if message.descriptor_type != self.descriptor_type:
             self.counter.drop(
@@ -55,8 +63,9 @@ class QuantizerNode(Node):
         ))
         self.counter.ok()
 
-    def close(self) -> None:
+    def close(self) -> bool:
         self.get_logger().info(f"quantizer_node: {self.counter.summary()}")
+        return True
 
 
 def main(args: list[str] | None = None) -> int:

@@ -28,12 +28,14 @@ still be verified.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from rclpy.node import Node
 
+from aefabmap_ros.core.atomic import remove_stale_temporaries
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.features import Features as CoreFeatures
 from aefabmap_ros.core.loop_tracking import LoopTrack
@@ -51,8 +53,10 @@ from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
     PeriodicSave,
+    RuntimeParameters,
     declare_config,
     declare_parameter,
+    node_callback,
     pipeline_qos,
     report_when_connected,
     run_node,
@@ -61,6 +65,11 @@ from aefabmap_ros.nodes.common import (
 # Posteriors kept by query stamp: a closure is published right after its query's posterior, so
 # only the last few are ever looked up; the rest bounds memory when no closures come.
 POSTERIOR_HISTORY = 1000
+
+# The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
+# next closure on. The others size the store or the subscriptions at start-up and are refused.
+RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
+                              "max_iterations"})
 
 
 class Candidate(NamedTuple):
@@ -100,6 +109,8 @@ class VerifierNode(Node):
         self.store = FeatureStore(max_frames, max_features)
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
         if self.store_folder is not None:
+            for leftover in remove_stale_temporaries(self.store_folder.folder, "chunk-*.npz"):
+                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
             self.store_folder.load_into(self.store)  # a corrupt chunk stops start-up (ERROR), is not overwritten
             if len(self.store):
                 self.get_logger().info(
@@ -120,6 +131,7 @@ class VerifierNode(Node):
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
             "the feature store", save_period_s,
         )
+        self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
             f"{self.config.min_inlier_ratio:.0%} of the keypoints, "
@@ -127,6 +139,7 @@ class VerifierNode(Node):
             f"tracking loops for {self.config.track_seconds:g} s, features of the last {max_frames} frames"
         )
 
+    @node_callback
     def _on_features(self, message: Features) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
         try:
@@ -137,6 +150,7 @@ class VerifierNode(Node):
         self.store_saver.mark_changed()
         self._verify_if_ready(stamp_ns)
 
+    @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
         self.posteriors[stamp_ns] = message
@@ -145,6 +159,7 @@ class VerifierNode(Node):
             self.posteriors.popitem(last=False)
         self._verify_if_ready(stamp_ns)
 
+    @node_callback
     def _on_loop_closure(self, message: LoopClosure) -> None:
         query_ns = stamp_to_ns(message.header.stamp)
         self.pending[query_ns] = message
@@ -265,16 +280,22 @@ class VerifierNode(Node):
         self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
         self.publisher.publish(message)
 
+    def _reconfigure(self, changes: dict[str, Any]) -> None:
+        self.config = replace(self.config, **changes)  # validated as a whole: ConfigError refuses the change
+
     def _save_store(self, _folder: Path) -> None:
         if self.store_folder is not None:
             self.store_folder.save(self.store)
 
-    def close(self) -> None:
-        self.store_saver.save_if_changed()
+    def close(self) -> bool:
+        """The final store save; False when it failed (the process then exits 1)."""
+        saved = self.store_saver.final_save()
         self.get_logger().info(
-            f"verifier_node: {len(self.store)} frames stored ({self.store.nbytes / 2**20:.1f} MiB), "
-            f"{len(self.pending)} closures still waiting; {self.counter.summary()}"
+            f"verifier_node: {len(self.store)} frames stored ({self.store.nbytes / 2**20:.1f} MiB"
+            f"{'' if saved else ', NOT all saved'}), {len(self.pending)} closures still waiting; "
+            f"{self.counter.summary()}"
         )
+        return saved
 
 
 def main(args: list[str] | None = None) -> int:

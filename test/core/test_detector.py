@@ -289,3 +289,31 @@ def test_likelihood_temperature_is_a_softmax_of_scaled_log_likelihoods():
     assert result.candidates[0].place_id == 2
     with pytest.raises(ConfigError, match=r"likelihood_temperature = 0\.0"):
         openfabmap(likelihood_temperature=0.0)
+
+
+def test_a_map_reports_the_settings_it_was_made_with_that_differ(tmp_path):
+    path = tmp_path / "map.npz"
+    maker = PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "v")
+    maker.process(_frames(1)[0], 0)
+    maker.save_map(path)
+    assert PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "v").load_map(path) == {}
+    other = PlaceRecognizer(_tree(), SAMPLES, openfabmap(match_threshold=0.5, top_k=3), "v")
+    assert other.load_map(path) == {"match_threshold": (openfabmap().match_threshold, 0.5),
+                                    "top_k": (openfabmap().top_k, 3)}
+    assert other.num_places == 1  # used as it is
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    del arrays["config_json"]
+    np.savez(tmp_path / "old.npz", **arrays)
+    assert set(other.load_map(tmp_path / "old.npz")) == {"config_json"}
+
+
+def test_runtime_settings_change_from_the_next_frame_and_the_rest_are_refused():
+    recognizer = _place_recognizer()
+    recognizer.reconfigure({"match_threshold": 0.5, "top_k": 2})
+    assert recognizer.config.match_threshold == 0.5 and recognizer.config.top_k == 2
+    with pytest.raises(ConfigError, match="p_z_given_e cannot change"):
+        recognizer.reconfigure({"p_z_given_e": 0.5, "match_threshold": 0.2})
+    with pytest.raises(ConfigError, match="match_threshold"):
+        recognizer.reconfigure({"match_threshold": 1.5})
+    assert recognizer.config.match_threshold == 0.5  # a refused change changes nothing

@@ -493,9 +493,9 @@ def test_store_folder_refuses_bad_chunks_and_mixed_kinds(tmp_path: Path) -> None
     assert len(store) == 1 and 1 in store  # every failed load left the store as it was
     mixed = FeatureStore(max_frames=3)
     mixed.add(1, query)
-    mixed.add(2, _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8)))
-    with pytest.raises(DataError, match="mixes descriptor kinds"):  # one chunk holds one kind
-        FeatureStoreFolder(tmp_path / "mixed").save(mixed)
+    with pytest.raises(DataError, match="the store holds"):  # one store (and chunk) holds one kind
+        mixed.add(2, _features(np.zeros((4, 2)), np.zeros((4, 32), np.uint8)))
+    FeatureStoreFolder(tmp_path / "mixed").save(mixed)  # the stray frame did not poison the save
 
 
 def test_verification_lifts_openfabmaps_own_posteriors_on_the_corridor(golden_dir: Path, rtabmap_dir: Path) -> None:
@@ -522,3 +522,25 @@ def test_verification_lifts_openfabmaps_own_posteriors_on_the_corridor(golden_di
     default = evaluate_scores(verified_scores(scores, cached_pair_verifier(features, VerificationConfig()), 5, 10),
                               gt, 10, 0.99)
     assert default.recall_at_100_precision >= 0.75
+
+
+def test_store_refuses_a_frame_of_another_descriptor_kind_so_saves_keep_working(tmp_path: Path) -> None:
+    query, place, _ = _two_views(seed=41)
+    store = FeatureStore(10, max_features_per_frame=50)
+    store.add(1, place)
+    short = Features(query.keypoints, np.ascontiguousarray(query.descriptors[:, :64]), query.descriptor_type)
+    with pytest.raises(DataError, match="the store holds"):
+        store.add(2, short)
+    no_response = Features(query.keypoints[:, :2].copy(), query.descriptors, query.descriptor_type)
+    with pytest.raises(DataError, match="no response column"):
+        store.add(3, no_response)  # more than 50 keypoints to trim, nothing to rank them by
+    folder = FeatureStoreFolder(tmp_path / "store")
+    folder.save(store)
+    assert len(store) == 1 and len(list((tmp_path / "store").glob("chunk-*.npz"))) == 1
+
+
+def test_descriptors_of_different_lengths_are_a_data_error_not_a_cv2_error() -> None:
+    query, place, _ = _two_views(seed=42)
+    short = Features(place.keypoints, np.ascontiguousarray(place.descriptors[:, :64]), place.descriptor_type)
+    with pytest.raises(DataError, match="128-d descriptors against 64-d"):
+        match_descriptors(query, short, 0.8)

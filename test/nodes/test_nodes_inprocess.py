@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
 
 from aefabmap_ros.core.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
+from aefabmap_ros.core.fabmap import FabMapConfig  # noqa: E402
 from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
@@ -137,15 +139,21 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         node._on_words(_words([2, 3], 11, "another-vocabulary"))
         node._on_words(_words([2, 3], 12, vid, size=1000))
         node._on_words(_words([3, 400], 13, vid))  # word id out of range
-        node._on_words(_words([], 14, vid))  # an image without words: a query, but no posterior, no place
+        node._on_words(_words([], 14, vid))  # an image without words: a query and a blank posterior, no place
         node._on_words(_words([2, 7], 15, vid))
+        uncounted = _words([4, 8], 16, vid)
+        uncounted.counts = [1]  # one count for two word ids
+        node._on_words(uncounted)
         counts = node.counter.counts
         assert counts["dropped_out_of_order"] == 2
         assert counts["dropped_VocabularyMismatchError"] == 2
-        assert counts["dropped_DataError"] == 1
+        assert counts["dropped_DataError"] == 2
         assert counts["frames_below_min_words"] == 1
-        assert [p.query_id for p in posteriors.messages] == [0, 2]
-        assert [p.current_place_id for p in posteriors.messages] == [0, 1]  # each frame's own place
+        # Every image answered (a lockstep replay waits for one posterior per image), the blank one too.
+        assert [p.query_id for p in posteriors.messages] == [0, 1, 2]
+        assert [p.current_place_id for p in posteriors.messages] == [0, 0, 1]  # each frame's own place
+        blank = posteriors.messages[1]
+        assert len(blank.place_ids) == 0 and blank.assigned_place_id == -1 and np.isnan(blank.new_place_probability)
         assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
         node.close()  # saves the map
         assert (tmp_path / "map.npz").exists()
@@ -378,3 +386,169 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="cannot read feature store chunk"):
         VerifierNode(parameter_overrides=_params(store_dir=str(store_dir)))
     assert chunk.read_bytes() == b"corrupt"  # refused, not overwritten
+
+
+def _features_of(revisit_data: RevisitData) -> Any:
+    feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        out = Captured(feature_node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        feature_node._on_image(_image(gray.tobytes(), "mono8", gray.shape[0], gray.shape[1], gray.shape[1]))
+        return out.messages[0]
+    finally:
+        feature_node.destroy_node()
+
+
+def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: RevisitData) -> None:
+    import cv2
+
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), max_image_pixels=10_000))
+    try:
+        out = Captured(node.publisher)
+        # Header of an 8000 x 8000 image with 10 bytes of data: refused by its size, not its data.
+        node._on_image(_image(b"\0" * 10, "mono8", 8000, 8000, 8000))
+        ok, png = cv2.imencode(".png", np.zeros((200, 200), np.uint8))  # 40,000 pixels in a few hundred bytes
+        assert ok and len(png) < 2000
+        node._on_image(CompressedImage(format="png", data=png.tobytes()))
+        node._on_image(_image(b"\0" * 10, "mono8", 2, 5, 5))  # small enough: decoded (and published)
+        assert node.counter.counts["dropped_image_too_large"] == 2
+        assert len(out.messages) == 1
+    finally:
+        node.destroy_node()
+
+
+def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData) -> None:
+    features = _features_of(revisit_data)
+    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        words_out = Captured(node.publisher)
+        with_nan = copy.deepcopy(features)
+        values = np.asarray(with_nan.float_descriptors, dtype=np.float32).copy()
+        values[7] = np.nan
+        with_nan.float_descriptors = values
+        node._on_features(with_nan)
+        assert node.counter.counts["dropped_bad_features"] == 1
+
+        real_quantize = node.quantizer.quantize
+
+        def failing(descriptors: np.ndarray) -> np.ndarray:
+            raise RuntimeError("faiss: out of memory")
+
+        node.quantizer.quantize = failing  # type: ignore[method-assign]
+        node._on_features(features)
+        node.quantizer.quantize = real_quantize  # type: ignore[method-assign]
+        node._on_features(features)  # the node is alive: the next frame is quantized
+        assert node.counter.counts["dropped_RuntimeError"] == 1
+        assert len(words_out.messages) == 1
+    finally:
+        node.destroy_node()
+
+
+def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: RevisitData, tmp_path: Path) -> None:
+    import time
+
+    map_path = tmp_path / "map.npz"
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
+    try:
+        vid = revisit_data.model_id
+        node._on_words(_words([1, 5, 9], 10, vid))
+        ten_years = int(time.time()) + 10 * 365 * 86400  # a clock set to 2036
+        node._on_words(_words([2, 3], ten_years, vid))
+        node._on_words(_words([2, 7], 20, vid))  # later frames are not "out of order" because of it
+        assert node.counter.counts["dropped_stamp_in_future"] == 1
+        assert node.counter.counts["processed"] == 2 and "dropped_out_of_order" not in node.counter.counts
+        assert node.close()
+    finally:
+        node.destroy_node()
+    saved = np.load(map_path)["place_stamps_ns"]
+    assert saved.max() < 10**9 * 100  # the future stamp is not in the map
+
+
+def test_fabmap_node_applies_runtime_settings_and_refuses_the_rest(revisit_data: RevisitData) -> None:
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        (applied,) = node.set_parameters([Parameter("match_threshold", value=0.5)])
+        assert applied.successful
+        assert node.recognizer.config.match_threshold == 0.5
+        (fixed,) = node.set_parameters([Parameter("p_z_given_e", value=0.5)])
+        assert not fixed.successful and "p_z_given_e: read at start-up only" in fixed.reason
+        (bad,) = node.set_parameters([Parameter("match_threshold", value=2.0)])
+        assert not bad.successful and "match_threshold" in bad.reason
+        assert node.recognizer.config.match_threshold == 0.5  # a refused change changes nothing
+        assert node.get_parameter("match_threshold").value == 0.5
+        assert node.recognizer.config.p_z_given_e == FabMapConfig().p_z_given_e
+    finally:
+        node.destroy_node()
+
+
+def test_verifier_node_applies_runtime_settings_and_refuses_the_rest() -> None:
+    node = VerifierNode()
+    try:
+        (applied,) = node.set_parameters([Parameter("min_inliers", value=40)])
+        assert applied.successful and node.config.min_inliers == 40
+        (fixed,) = node.set_parameters([Parameter("max_stored_frames", value=5)])
+        assert not fixed.successful and "read at start-up only" in fixed.reason
+        assert node.store.max_frames == 20000
+    finally:
+        node.destroy_node()
+
+
+def test_fabmap_node_warns_about_a_map_made_with_other_settings_and_cleans_killed_saves(
+        revisit_data: RevisitData, tmp_path: Path) -> None:
+    map_path = tmp_path / "map.npz"
+    first = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
+    try:
+        first._on_words(_words([1, 5, 9], 10, revisit_data.model_id))
+        assert first.close()
+    finally:
+        first.destroy_node()
+    leftover = tmp_path / ".map.npz.k1ll3d.tmp"  # what kill -9 during a save leaves
+    leftover.write_bytes(b"half a map")
+    unrelated = tmp_path / ".other.npz.x.tmp"
+    unrelated.write_bytes(b"not ours")
+    second = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path),
+                                                    match_threshold=0.3))
+    try:
+        assert second.recognizer.num_places == 1
+        assert not leftover.exists() and unrelated.exists()
+        differences = second.recognizer.load_map(map_path)  # what the node logged as a warning at start
+        assert differences == {"match_threshold": (FabMapConfig().match_threshold, 0.3)}
+    finally:
+        second.destroy_node()
+
+
+def test_fabmap_node_final_save_failure_is_reported(revisit_data: RevisitData, tmp_path: Path) -> None:
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the map's folder should be")
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                  map_file=str(blocker / "map.npz"), save_period_s=0.0))
+    try:
+        node._on_words(_words([1, 5, 9], 10, revisit_data.model_id))
+        assert node.close() is False  # run_nodes turns this into exit code 1
+    finally:
+        node.destroy_node()
+
+
+def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) -> None:
+    """A 64-d frame among 128-d ones: refused by the store (so it cannot poison a save), and a closure
+    pairing the two kinds is dropped as unverifiable, not a cv2.error that kills the node."""
+    from aefabmap_ros.core.features import Features as CoreFeatures
+    from test.core.test_verification import _two_views
+
+    query, place, _ = _two_views(seed=31)
+    short = CoreFeatures(query.keypoints, np.ascontiguousarray(query.descriptors[:, :64]), query.descriptor_type)
+    store_dir = tmp_path / "store"
+    node = VerifierNode(parameter_overrides=_params(candidates=1, track_seconds=0.0, store_dir=str(store_dir),
+                                                    save_period_s=0.0))
+    try:
+        verified = Captured(node.publisher)
+        node._on_features(_features_message(place, 1))
+        node._on_features(_features_message(short, 2))
+        node._on_features(_features_message(query, 3))
+        node._on_loop_closure(_closure(3, 1, query_id=5))
+        assert [m.query_id for m in verified.messages] == [5]
+        assert node.counter.counts["dropped_bad_features"] == 1 and len(node.store) == 2
+        assert node.close()  # the store saves
+    finally:
+        node.destroy_node()
+    assert len(list(store_dir.glob("chunk-*.npz"))) == 1
