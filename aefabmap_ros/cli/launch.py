@@ -8,11 +8,16 @@ beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 (``inliers`` -1: not verified). With --map, the map and the verifier's feature store (folder
 ``<map>.features``) are saved and reloaded, so both survive a restart. Ctrl-C (or SIGTERM) stops
 every node cleanly; if one node dies, the others are stopped and the exit code is 1.
+
+Each node process gets OMP_NUM_THREADS, OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and NUMBA_NUM_THREADS
+set to its share of the cores (cores / processes, at least 1) unless you set them yourself, so torch,
+OpenBLAS and numba in all the processes together start no more threads than the machine has cores.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import subprocess
 import sys
@@ -20,7 +25,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes
+from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
 NODES = DETECTION_NODES
 
@@ -73,8 +78,14 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     ]
 
 
+def child_environment(process_count: int) -> dict[str, str]:
+    """This process's environment plus each child's share of the thread pools (the user's values win)."""
+    return {**os.environ, **thread_limits(process_count, os.environ)}
+
+
 def supervise(commands: list[list[str]]) -> int:
-    processes = [subprocess.Popen(command) for command in commands]
+    environment = child_environment(len(commands))
+    processes = [subprocess.Popen(command, env=environment) for command in commands]
     stopping = False
 
     def stop(_signum: int, _frame: FrameType | None) -> None:
