@@ -13,6 +13,8 @@ backend's subscription stays the same (``inliers`` -1 there says "not verified")
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +26,10 @@ CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
 POSTERIORS_TOPIC = "place_posteriors"
 DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
 VERIFIER_NODE = "verifier_node"
+# Thread pools that OpenMP (torch), OpenBLAS/MKL (numpy, scipy) and numba each size to the machine's
+# cores by default: with several node processes that is cores x processes x pools threads fighting
+# for the same cores, so the launchers give each process its share unless the user chose a value.
+THREAD_LIMIT_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
 @dataclass(frozen=True)
@@ -80,3 +86,17 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
         nodes.append(NodeLaunch(VERIFIER_NODE, store))
     return nodes
+
+
+def threads_per_process(processes: int, cores: int | None = None) -> int:
+    """Each process's share of the cores (at least 1): the node processes then start no more
+    pool threads together than the machine has cores (rounding down, but never to zero)."""
+    available = cores if cores is not None else (os.cpu_count() or 1)
+    return max(1, available // max(1, processes))
+
+
+def thread_limits(processes: int, environment: Mapping[str, str], cores: int | None = None) -> dict[str, str]:
+    """The thread-pool variables to add to each node process's environment: its share of the cores
+    for every variable of ``THREAD_LIMIT_VARIABLES`` the user has not set (theirs win)."""
+    share = str(threads_per_process(processes, cores))
+    return {name: share for name in THREAD_LIMIT_VARIABLES if not environment.get(name)}

@@ -9,6 +9,7 @@ The nodes, their parameters and remaps come from ``aefabmap_ros.launch_table``, 
 geometrically verified closures (FAB-MAP's raw ones: ``loop_closure_candidates``).
 """
 
+import os
 from typing import Any
 
 from launch import LaunchDescription
@@ -17,7 +18,7 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-from aefabmap_ros.launch_table import PACKAGE, SuiteOptions, parse_bool, suite_nodes
+from aefabmap_ros.launch_table import PACKAGE, SuiteOptions, parse_bool, suite_nodes, thread_limits
 
 
 def _nodes(context: Any) -> list[Node]:
@@ -28,11 +29,14 @@ def _nodes(context: Any) -> list[Node]:
                            image_topic=value("image_topic"), image_qos=value("image_qos"),
                            verify=parse_bool(value("verify"), "verify"))
     params_file = value("params_file")
+    nodes = suite_nodes(options)
+    # Each process's share of the cores for torch/OpenBLAS/numba pools, unless the user set them.
+    limits = thread_limits(len(nodes), os.environ)
     return [
         Node(package=PACKAGE, executable=node.name, name=node.name,
              parameters=[params_file, dict(node.parameters)], remappings=list(node.remaps.items()),
-             output="screen")
-        for node in suite_nodes(options)
+             additional_env=limits, output="screen")
+        for node in nodes
     ]
 
 

@@ -14,16 +14,24 @@ clustering: timing only) unless --model names a trained one.
 from __future__ import annotations
 
 import argparse
+import array
+import functools
+import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
 from aefabmap_ros.core.chowliu import ChowLiuTree
 from aefabmap_ros.core.detector import PlaceRecognizer
 from aefabmap_ros.core.fabmap import FabMapConfig
@@ -41,6 +49,10 @@ quantizer_node:
   ros__parameters: {queue_depth: 1000}
 fabmap_node:
   ros__parameters: {queue_depth: 1000}
+"""
+CAMERA_PARAMS = """
+feature_node:
+  ros__parameters: {image_qos: sensor_data}
 """
 
 
@@ -75,16 +87,61 @@ def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[fl
     return stages
 
 
-def throughput(model_dir: Path, bag: Path, work: Path, num_frames: int) -> tuple[float, int]:
-    """(images/s, posteriors received) through the three node processes."""
+@dataclass(frozen=True)
+class Setup:
+    """One way of running the nodes: whose code (``source`` on PYTHONPATH; None = this code) and how."""
+
+    code: str  # "this" or "baseline"
+    source: Path | None
+    pipeline: bool  # one aefabmap_pipeline process instead of three node processes
+
+    @property
+    def label(self) -> str:
+        return f"{self.code:8s} {'1 process ' if self.pipeline else '3 processes'}"
+
+
+@dataclass
+class RunResult:
+    images_per_s: float
+    received: int
+    sent: int
+    usage: list[ProcessUsage]
+    latencies_ms: list[float] = field(default_factory=list)
+    dropped_busy: int | None = None
+
+
+def _launch(setup: Setup, model_dir: Path, params: Path, log: Any) -> subprocess.Popen[bytes]:
+    environment = dict(os.environ)
+    if setup.source is not None:  # the baseline's package first on the path: its nodes, our messages
+        environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(setup.source), environment.get("PYTHONPATH")]))
+    command = [sys.executable, "-m", "aefabmap_ros.cli.launch", "--model", str(model_dir), "--params", str(params),
+               "--no-verify"] + (["--pipeline"] if setup.pipeline else [])
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment,
+                            cwd=setup.source or None)
+
+
+def _stop(processes: list[subprocess.Popen[bytes]]) -> None:
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def throughput(setup: Setup, model_dir: Path, bag: Path, work: Path, num_frames: int) -> RunResult:
+    """Images/s through the nodes with the bag replayed as fast as possible (reliable, lossless)."""
     params = work / "params.yaml"
     params.write_text(PARAMS)
     recording = work / "recording"
     shutil.rmtree(recording, ignore_errors=True)
     python = sys.executable
     logs = (work / "launch.log").open("w"), (work / "record.log").open("w")
-    launch = subprocess.Popen([python, "-m", "aefabmap_ros.cli.launch", "--model", str(model_dir), "--params",
-                               str(params)], stdout=logs[0], stderr=subprocess.STDOUT)
+    launch = _launch(setup, model_dir, params, logs[0])
+    sampler = NodeProcessSampler(launch.pid)
+    sampler.start()
     record = subprocess.Popen([python, "-m", "aefabmap_ros.cli.record", str(recording), "--topics",
                                "place_posteriors", "--wait-publishers", "60", "--idle-timeout", "10"],
                               stdout=logs[1], stderr=subprocess.STDOUT)
@@ -94,20 +151,138 @@ def throughput(model_dir: Path, bag: Path, work: Path, num_frames: int) -> tuple
             if time.monotonic() > deadline or record.poll() is not None:
                 raise RuntimeError(f"recorder did not start: {(work / 'record.log').read_text()[-2000:]}")
             time.sleep(0.2)
+        sampler.mark()
         subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(bag), "--topic", "/image", "--rate", "0",
                         "--queue-depth", str(num_frames + 10), "--quiet", "--wait-timeout", "60"], check=True)
         record.wait(timeout=600)
+        usage = sampler.stop()
     finally:
-        for process in (record, launch):
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-                process.wait(timeout=30)
+        sampler.stop()
+        _stop([record, launch])
         for log in logs:
             log.close()
     arrivals = np.array([m.log_time_ns for m in read_messages(recording, ["place_posteriors"])], dtype=np.float64)
-    if arrivals.size < 2:
-        return 0.0, int(arrivals.size)
-    return (arrivals.size - 1) / ((arrivals[-1] - arrivals[0]) / 1e9), int(arrivals.size)
+    rate = 0.0 if arrivals.size < 2 else (arrivals.size - 1) / ((arrivals[-1] - arrivals[0]) / 1e9)
+    return RunResult(rate, int(arrivals.size), num_frames, usage)
+
+
+def camera_rate(setup: Setup, model_dir: Path, images: list[np.ndarray], work: Path, rate_hz: float) -> RunResult:
+    """A live camera at ``rate_hz``: images with sensor-data QoS stamped when sent, latency from that
+    stamp to the place posterior's arrival (same clock, this process), frames without a posterior
+    counted as dropped. The nodes keep the parameter file's defaults (feature_node: sensor_data)."""
+    import rclpy
+    from aefabmap_msgs.msg import PlacePosterior
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+
+    from aefabmap_ros.nodes.common import RESULT_QOS
+
+    params = work / "params_camera.yaml"
+    params.write_text(CAMERA_PARAMS)
+    log = (work / "launch_camera.log").open("w")
+    launch = _launch(setup, model_dir, params, log)
+    sampler = NodeProcessSampler(launch.pid)
+    sampler.start()
+    rclpy.init()
+    node = rclpy.create_node("aefabmap_bench_camera")
+    arrivals: dict[int, int] = {}  # image stamp (ns) -> posterior arrival (ns)
+    node.create_subscription(PlacePosterior, "place_posteriors",
+                             lambda m: arrivals.setdefault(m.header.stamp.sec * 1_000_000_000
+                                                           + m.header.stamp.nanosec, time.time_ns()),
+                             RESULT_QOS)
+    publisher = node.create_publisher(Image, "image", qos_profile_sensor_data)
+    messages = []
+    for gray in images:
+        message = Image(height=gray.shape[0], width=gray.shape[1], encoding="mono8", step=gray.shape[1])
+        message.data = array.array("B", gray.tobytes())
+        messages.append(message)
+
+    def send(message: Any) -> int:
+        stamp = time.time_ns()
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        publisher.publish(message)
+        return stamp
+
+    try:
+        # Warm up until the whole chain answers (discovery), slowly, so nothing queues.
+        deadline = time.monotonic() + 180
+        while not arrivals:
+            if time.monotonic() > deadline or launch.poll() is not None:
+                raise RuntimeError(f"the nodes never answered: {(work / 'launch_camera.log').read_text()[-2000:]}")
+            send(messages[0])
+            rclpy.spin_once(node, timeout_sec=0.5)
+        end_warm_up = time.monotonic() + 2.0
+        while time.monotonic() < end_warm_up:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        sampler.mark()
+        sent: list[int] = []
+        started = time.monotonic()
+        for index, message in enumerate(messages):
+            while (wait := started + index / rate_hz - time.monotonic()) > 0:
+                rclpy.spin_once(node, timeout_sec=wait)
+            sent.append(send(message))
+        idle_until = time.monotonic() + 5.0
+        count = len(arrivals)
+        while time.monotonic() < idle_until:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if len(arrivals) != count:
+                count, idle_until = len(arrivals), time.monotonic() + 5.0
+        usage = sampler.stop()
+    finally:
+        sampler.stop()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        _stop([launch])
+        log.close()
+    latencies = [(arrivals[stamp] - stamp) / 1e6 for stamp in sent if stamp in arrivals]
+    answered = sorted(arrivals[stamp] for stamp in sent if stamp in arrivals)
+    rate = 0.0 if len(answered) < 2 else (len(answered) - 1) / ((answered[-1] - answered[0]) / 1e9)
+    busy = re.findall(r"dropped_busy=(\d+)", (work / "launch_camera.log").read_text())
+    return RunResult(rate, len(latencies), len(sent), usage, latencies, int(busy[-1]) if busy else None)
+
+
+def _usage_text(result: RunResult) -> str:
+    received = max(1, result.received)
+    return "; ".join(f"{entry.name} {1e3 * entry.cpu_since_mark_s() / received:.1f} ms CPU/image, "
+                     f"{entry.max_threads} threads" for entry in result.usage)
+
+
+def _through_nodes(setups: list[Setup], repeats: int,
+                   run: Callable[[Setup], RunResult]) -> dict[Setup, list[RunResult]]:
+    """Every setup ``repeats`` times, interleaved, so a change of the machine's load hits all alike."""
+    results: dict[Setup, list[RunResult]] = {setup: [] for setup in setups}
+    for repeat in range(repeats):
+        for setup in setups:
+            result = run(setup)
+            results[setup].append(result)
+            line = (f"  {setup.label} run {repeat + 1}: {result.images_per_s:6.1f} images/s "
+                    f"({result.received}/{result.sent} answered)")
+            if result.latencies_ms:
+                line += (f", latency p50 {np.percentile(result.latencies_ms, 50):.0f} ms "
+                         f"p95 {np.percentile(result.latencies_ms, 95):.0f} ms, "
+                         f"dropped {result.sent - result.received}")
+                if result.dropped_busy is not None:
+                    line += f" (feature_node dropped_busy={result.dropped_busy})"
+            print(f"{line}  [load {_load()}]\n      {_usage_text(result)}", flush=True)
+    return results
+
+
+def _print_ratios(results: dict[Setup, list[RunResult]]) -> None:
+    median = {setup: float(np.median([r.images_per_s for r in runs])) for setup, runs in results.items()}
+    for setup, value in median.items():
+        print(f"  median {setup.label}: {value:6.1f} images/s")
+    for setup, value in median.items():
+        if setup.code != "this":
+            continue
+        for other, other_value in median.items():
+            if other != setup and other_value > 0 and ((other.code == "baseline" and other.pipeline == setup.pipeline)
+                                                      or other.code == "this"):
+                print(f"  ratio {' '.join(setup.label.split())} / {' '.join(other.label.split())}: "
+                      f"{value / other_value:.2f}x")
+
+
+def _load() -> str:
+    return " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,15 +295,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--features", nargs="+", default=["sift", "orb"], choices=["sift", "rootsift", "orb"])
     parser.add_argument("--model", type=Path, help="use this trained model (its feature type) instead")
     parser.add_argument("--no-ros", action="store_true", help="per-stage latency only")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="source tree of the code to compare with (e.g. a worktree of an older commit): its "
+                        "nodes run with this tree's messages, and images/s are given as ratios against it")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each setup, interleaved (default 2)")
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="0 (default): replay as fast as possible, reliable QoS, images/s; > 0: a camera at "
+                        "this many Hz with sensor-data QoS, latency image stamp -> posterior and drops")
+    parser.add_argument("--no-pipeline", action="store_true",
+                        help="only the three-process launch, not also the one-process --pipeline")
     parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (small frames, no ROS)")
     args = parser.parse_args(argv)
+    if args.baseline is not None and not (args.baseline / "aefabmap_ros" / "cli" / "launch.py").is_file():
+        print(f"ERROR: --baseline {args.baseline} is not an aefabmap_ros source tree", file=sys.stderr)
+        return 1
+    if args.repeats < 1 or args.rate < 0:
+        print("ERROR: --repeats must be >= 1 and --rate >= 0", file=sys.stderr)
+        return 1
     if args.quick:
         args.frames, args.width, args.height, args.size, args.no_ros = 24, 320, 240, 100, True
 
     sequence = generate_sequence(SynthConfig(num_frames=args.frames, width=args.width, height=args.height))
     images = sequence.images
     print(f"{len(images)} synthetic frames {args.width}x{args.height}; "
-          f"{'model ' + str(args.model) if args.model else f'sampled {args.size}-word vocabulary'}")
+          f"{'model ' + str(args.model) if args.model else f'sampled {args.size}-word vocabulary'}; "
+          f"{os.cpu_count()} cores, load average {_load()}")
+    setups = [Setup("this", None, pipeline) for pipeline in ([False] if args.no_pipeline else [False, True])]
+    if args.baseline is not None:
+        setups += [Setup("baseline", args.baseline.resolve(), setup.pipeline) for setup in setups]
     with tempfile.TemporaryDirectory(prefix="aefabmap_bench_") as tmp:
         work = Path(tmp)
         bag = work / "bag"
@@ -150,10 +344,20 @@ def main(argv: list[str] | None = None) -> int:
             for stage, values in stages.items():
                 print(f"  {stage:9s} {_summary(values)}")
             print(f"  {'total':9s} {_summary(list(total))}  -> {1e3 / np.median(total):.1f} images/s on one core")
-            if not args.no_ros:
-                rate, received = throughput(model_dir, bag, work, len(images))
-                print(f"  ROS nodes (3 processes): {rate:.1f} images/s end to end "
-                      f"({received}/{len(images)} posteriors received)")
+            if args.no_ros:
+                continue
+            if args.rate > 0:
+                print(f"\n[{label}] through the nodes: camera at {args.rate:g} Hz, sensor-data QoS, "
+                      f"{len(images)} images")
+                results = _through_nodes(setups, args.repeats,
+                                         functools.partial(camera_rate, model_dir=model_dir, images=images, work=work,
+                                                           rate_hz=args.rate))
+            else:
+                print(f"\n[{label}] through the nodes: replay as fast as possible, reliable QoS, {len(images)} images")
+                results = _through_nodes(setups, args.repeats,
+                                         functools.partial(throughput, model_dir=model_dir, bag=bag, work=work,
+                                                           num_frames=len(images)))
+            _print_ratios(results)
     return 0
 
 

@@ -10,6 +10,11 @@ beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 every node cleanly; if one node dies, the others are stopped and the exit code is 1. The nodes die
 with the launcher (Linux): killed with SIGKILL, it leaves no node running that a relaunch would
 duplicate (two FAB-MAP nodes writing one map).
+
+
+Each node process gets OMP_NUM_THREADS, OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and NUMBA_NUM_THREADS
+set to its share of the cores (cores / processes, at least 1) unless you set them yourself, so torch,
+OpenBLAS and numba in all the processes together start no more threads than the machine has cores.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes
+from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
 NODES = DETECTION_NODES
 
@@ -90,14 +95,21 @@ def _stop_with_parent(parent_pid: int) -> None:
         os.kill(os.getpid(), signal.SIGTERM)
 
 
-def start_node(command: list[str]) -> subprocess.Popen[bytes]:
+def child_environment(process_count: int) -> dict[str, str]:
+    """This process's environment plus each child's share of the thread pools (the user's values win)."""
+    return {**os.environ, **thread_limits(process_count, os.environ)}
+
+
+def start_node(command: list[str], environment: dict[str, str]) -> subprocess.Popen[bytes]:
     if sys.platform.startswith("linux"):
-        return subprocess.Popen(command, preexec_fn=functools.partial(_stop_with_parent, os.getpid()))
-    return subprocess.Popen(command)
+        return subprocess.Popen(command, env=environment,
+                                preexec_fn=functools.partial(_stop_with_parent, os.getpid()))
+    return subprocess.Popen(command, env=environment)
 
 
 def supervise(commands: list[list[str]]) -> int:
-    processes = [start_node(command) for command in commands]
+    environment = child_environment(len(commands))
+    processes = [start_node(command, environment) for command in commands]
     stopping = False
 
     def stop(_signum: int, _frame: FrameType | None) -> None:

@@ -275,6 +275,13 @@ def _embed(model: ConvAutoencoder, x: np.ndarray) -> np.ndarray:
     return out
 
 
+def limit_torch_threads(num_threads: int) -> None:
+    """Cap torch's CPU thread pool for this process (a node sharing the cores with other nodes)."""
+    if num_threads < 1:
+        raise ConfigError(f"torch threads must be >= 1, got {num_threads}")
+    torch.set_num_threads(num_threads)
+
+
 @contextlib.contextmanager
 def _torch_settings(num_threads: int) -> Iterator[None]:
     """Deterministic algorithms and the requested thread count, restored afterwards."""

@@ -138,6 +138,28 @@ def descriptor_dtype(feature: str | FeatureConfig) -> type[np.generic]:
     return np.uint8 if name == "orb" else np.float32
 
 
+def compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """The rows as uint8 when that is lossless, else unchanged: the smaller form to send or store.
+
+    OpenCV's SIFT values are integers 0-255 held in float32, so they fit a byte exactly (4x smaller);
+    RootSIFT and SURF values are fractions and stay float32. ``restore_descriptors`` undoes this.
+    """
+    values = np.asarray(descriptors)
+    if values.dtype == np.uint8:
+        return values
+    if values.size and (values.min() < 0 or values.max() > 255 or not np.array_equal(values, np.rint(values))):
+        return values
+    return values.astype(np.uint8)
+
+
+def restore_descriptors(values: np.ndarray, descriptor_type: str) -> np.ndarray:
+    """Descriptor rows in the dtype their type's consumers expect (``descriptor_dtype``), e.g. uint8
+    SIFT from ``compact_descriptors`` back to float32; exact, since the bytes were integers."""
+    if descriptor_type not in FEATURE_TYPES:  # not ours to judge here; consumers check the type
+        return np.asarray(values)
+    return np.asarray(values).astype(descriptor_dtype(descriptor_type), copy=False)
+
+
 def surf_available() -> bool:
     """True when this OpenCV build really provides SURF (contrib + non-free)."""
     xfeatures2d = getattr(cv2, "xfeatures2d", None)

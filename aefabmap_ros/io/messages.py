@@ -54,10 +54,12 @@ def features_to_message(features: core_features.Features, header: Any, image_siz
     for column, name in enumerate(KEYPOINT_FIELDS):
         setattr(message, name, _typed_array("f", keypoints[:, column]))
     message.descriptor_length = core_features.descriptor_length(features.descriptor_type)
-    if descriptors.dtype == np.uint8:
-        message.binary_descriptors = _typed_array("B", descriptors.reshape(-1))
+    # ORB, and SIFT whose values are integers 0-255 (OpenCV's), cross as bytes: 4x less to send.
+    compact = core_features.compact_descriptors(descriptors)
+    if compact.dtype == np.uint8:
+        message.binary_descriptors = _typed_array("B", compact.reshape(-1))
     else:
-        message.float_descriptors = _typed_array("f", descriptors.reshape(-1))
+        message.float_descriptors = _typed_array("f", compact.reshape(-1))
     return message
 
 
@@ -74,8 +76,10 @@ def message_to_features(message: Features) -> core_features.Features:
             f"Features has {count} keypoints but {len(raw)} descriptor values for descriptor_length {length}"
         )
     dtype = np.uint8 if is_binary else np.float32
-    descriptors = np.frombuffer(raw, dtype=dtype).reshape(count, length)
-    if not is_binary and not np.all(np.isfinite(descriptors)):
+    # Byte-carried SIFT goes back to float32 (the type's dtype); older float32 messages read as before.
+    descriptors = core_features.restore_descriptors(np.frombuffer(raw, dtype=dtype).reshape(count, length),
+                                                    str(message.descriptor_type))
+    if descriptors.dtype != np.uint8 and not np.all(np.isfinite(descriptors)):
         # NaN would become some word (the autoencoder) or a confusing range error (k-means).
         raise DataError(f"Features has {int(np.count_nonzero(~np.isfinite(descriptors)))} NaN/Inf descriptor values")
     keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],

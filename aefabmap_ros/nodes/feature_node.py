@@ -1,7 +1,15 @@
-"""feature_node: ``image`` (Image, optionally ``image/compressed``) -> ``aefabmap/features``."""
+"""feature_node: ``image`` (Image, optionally ``image/compressed``) -> ``aefabmap/features``.
+
+With ``image_qos`` sensor_data (a live camera) frames are dropped at the door: the subscription
+only hands the newest frame to a worker thread through a one-frame gate, a frame that arrives while
+the previous one still waits replaces it (counted as ``dropped_busy``), so no queue builds up and
+the delay from image to result stays bounded. With reliable QoS (bag replay) every frame is
+processed, in order.
+"""
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from aefabmap_msgs.msg import Features
@@ -10,6 +18,7 @@ from sensor_msgs.msg import CompressedImage, Image
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError, ImageTooLargeError
 from aefabmap_ros.core.features import FeatureConfig, extract_features
+from aefabmap_ros.core.frame_gate import LatestFrameGate
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.io.messages import features_to_message
@@ -32,8 +41,11 @@ class FeatureNode(Node):
             "Model directory; when set, its feature settings are used so features match the vocabulary "
             "(the feature parameters below are then ignored).",
         )
-        qos_kind = declare_parameter(self, "image_qos", "sensor_data",
-                                     "QoS of the image subscription: sensor_data (cameras) or reliable (bag replay).")
+        qos_kind = declare_parameter(
+            self, "image_qos", "sensor_data",
+            "QoS of the image subscription: sensor_data (cameras; frames arriving while busy are "
+            "dropped, counted, never queued) or reliable (bag replay; every frame is processed).",
+        )
         depth = declare_parameter(self, "queue_depth", 10, "Queue depth of subscriptions and publications.")
         subscribe_compressed = declare_parameter(
             self, "subscribe_compressed", False, "Also subscribe to image/compressed (sensor_msgs/CompressedImage)."
@@ -48,10 +60,35 @@ class FeatureNode(Node):
         self.config = load_model(model_dir).feature_config if model_dir else parameter_config
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
-        self.create_subscription(Image, "image", self._on_image, image_qos(qos_kind, depth))
+        self.gate: LatestFrameGate[Any] = LatestFrameGate()
+        self._worker: threading.Thread | None = None
+        receive = self._on_image
+        if qos_kind == "sensor_data":
+            receive = self._on_camera_image
+            self._worker = threading.Thread(target=self._process_frames, name="feature_worker", daemon=True)
+            self._worker.start()
+        self.create_subscription(Image, "image", receive, image_qos(qos_kind, depth))
         if subscribe_compressed:
-            self.create_subscription(CompressedImage, "image/compressed", self._on_image, image_qos(qos_kind, depth))
+            self.create_subscription(CompressedImage, "image/compressed", receive, image_qos(qos_kind, depth))
         self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image)")
+
+    def _on_camera_image(self, message: Any) -> None:
+        """Live camera: hand the frame to the worker; the one still waiting, if any, is dropped."""
+        if not self.gate.offer(message):
+            self.counter.drop("busy", "a newer frame arrived before feature extraction took the previous one")
+
+    def _process_frames(self) -> None:
+        while (message := self.gate.take()) is not None:
+            self._on_image(message)
+
+    def _stop_worker(self) -> None:
+        self.gate.close()
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(timeout=10)
+
+    def destroy_node(self) -> None:
+        self._stop_worker()
+        super().destroy_node()
 
     @node_callback
     def _on_image(self, message: Any) -> None:
@@ -70,6 +107,7 @@ class FeatureNode(Node):
         self.counter.ok()
 
     def close(self) -> bool:
+        self._stop_worker()  # the frame in hand is finished first (one still waiting is not), so counts are final
         self.get_logger().info(f"feature_node: {self.counter.summary()}")
         return True
 

@@ -8,6 +8,7 @@ import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features
 from rclpy.node import Node
 
+from aefabmap_ros.core.autoencoder import limit_torch_threads
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.model import load_model
 from aefabmap_ros.core.vocabulary import bag_of_words
@@ -27,6 +28,15 @@ class QuantizerNode(Node):
         super().__init__("quantizer_node", **node_kwargs)
         model_dir = declare_parameter(self, "model_dir", "", "Model directory (from aefabmap_train). Required.")
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of subscriptions and publications.")
+        torch_threads = declare_parameter(
+            self, "torch_threads", 0,
+            "Threads of torch's CPU pool for the autoencoder quantizer (0 = torch's default, which follows "
+            "OMP_NUM_THREADS; aefabmap_launch sets that to this process's share of the cores).",
+        )
+        if torch_threads < 0:
+            raise ConfigError(f"quantizer_node: parameter torch_threads={torch_threads} must be >= 0")
+        if torch_threads > 0:
+            limit_torch_threads(torch_threads)
         if not model_dir:
             raise ConfigError("quantizer_node: parameter model_dir is required (a directory made by aefabmap_train)")
         model = load_model(model_dir)  # at start-up, never in a callback

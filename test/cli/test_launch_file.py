@@ -203,3 +203,21 @@ def test_launch_file_with_the_real_launch_packages() -> None:
     assert len(opaque.execute(context)) == 4
     context.launch_configurations["verify"] = "false"
     assert len(opaque.execute(context)) == 3
+
+
+def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file: Any,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    from aefabmap_ros.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
+
+    for name in THREAD_LIMIT_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")  # the user's own choice stays theirs
+    description = launch_file.generate_launch_description()
+    (opaque,) = [e for e in description.entities if isinstance(e, _OpaqueFunction)]
+    context = _Context({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "", "image_topic": "image",
+                        "image_qos": "", "verify": "true"})
+    nodes = opaque.execute(context)
+    share = str(threads_per_process(len(nodes)))
+    for node in nodes:
+        assert node.kwargs["additional_env"] == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": share,
+                                                 "MKL_NUM_THREADS": share}

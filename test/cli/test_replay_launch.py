@@ -91,3 +91,34 @@ def test_launch_no_verify_remaps_the_candidates_onto_loop_closures(tmp_path: Pat
         (fabmap,) = [c for c in commands if c[2] == fabmap_module]
         remap = fabmap.index("loop_closure_candidates:=loop_closures")
         assert fabmap[remap - 1] == "-r"
+
+
+def test_thread_share_never_exceeds_the_cores_across_processes() -> None:
+    from aefabmap_ros.launch_table import threads_per_process
+
+    assert threads_per_process(4, cores=2) == 1  # never zero
+    assert threads_per_process(3, cores=2) == 1
+    assert threads_per_process(2, cores=8) == 4
+    assert threads_per_process(1, cores=2) == 2
+
+
+def test_launched_processes_get_thread_limits_unless_the_user_set_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The real children of supervise() see the limits in their environment."""
+    import json
+    import sys
+
+    from aefabmap_ros.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
+
+    for name in THREAD_LIMIT_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "7")
+    script = ("import json, os, sys; json.dump({k: os.environ.get(k) for k in sys.argv[2:]}, "
+              "open(sys.argv[1], 'w'))")
+    outputs = [tmp_path / f"child{index}.json" for index in range(3)]
+    commands = [[sys.executable, "-c", script, str(out), *THREAD_LIMIT_VARIABLES] for out in outputs]
+    assert launch.supervise(commands) == 0
+    share = str(threads_per_process(3))
+    for out in outputs:
+        assert json.loads(out.read_text()) == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": "7",
+                                               "MKL_NUM_THREADS": share, "NUMBA_NUM_THREADS": share}

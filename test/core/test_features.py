@@ -133,3 +133,19 @@ def test_match_features_finds_a_known_shift() -> None:
     orb = extract_features(image, FeatureConfig(type="orb"))
     with pytest.raises(ConfigError, match="cannot match sift with orb"):
         match_features(a, orb)
+
+
+def test_compact_descriptors_is_lossless_and_only_bytes_when_exact() -> None:
+    from aefabmap_ros.core.features import compact_descriptors, restore_descriptors
+
+    integers = np.array([[0.0, 17.0, 255.0]], np.float32)
+    compact = compact_descriptors(integers)
+    assert compact.dtype == np.uint8
+    restored = restore_descriptors(compact, "sift")
+    assert restored.dtype == np.float32
+    np.testing.assert_array_equal(restored, integers)
+    for not_a_byte in ([[0.25, 1.0, 2.0]], [[-1.0, 0.0, 0.0]], [[256.0, 0.0, 0.0]]):
+        values = np.array(not_a_byte, np.float32)
+        assert compact_descriptors(values).dtype == np.float32
+    orb = np.array([[1, 2, 3]], np.uint8)
+    assert restore_descriptors(compact_descriptors(orb), "orb").dtype == np.uint8

@@ -71,7 +71,9 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) 
         assert len(out.messages) == 2
         assert out.messages[0].descriptor_type == "sift"
         assert 0 < len(out.messages[0].x) <= 300  # the model's max_features, not the parameter default
-        assert len(out.messages[0].float_descriptors) == 128 * len(out.messages[0].x)
+        # OpenCV SIFT values are integers 0-255: they cross as bytes, 4x smaller than float32
+        assert len(out.messages[0].binary_descriptors) == 128 * len(out.messages[0].x)
+        assert len(out.messages[0].float_descriptors) == 0
 
         node._on_image(_image(b"\0" * 12, "yuv420_weird", 2, 2, 6))  # unsupported encoding
         node._on_image(_image(b"\0" * 5, "mono8", 2, 3, 3))  # data shorter than step * height
@@ -86,6 +88,36 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) 
         assert out.messages[2].header.stamp.sec == 9
         assert node.counter.counts["images_without_features"] == 1
     finally:
+        node.destroy_node()
+
+
+def test_feature_node_drops_camera_frames_at_the_door_while_busy(revisit_data: RevisitData) -> None:
+    """sensor_data: a frame that arrives while the worker is busy waits in a one-frame gate; a newer
+    one replaces it (counted), so the worker's next frame is the newest and nothing queues."""
+    import threading
+
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), image_qos="sensor_data"))
+    started, release, second = threading.Event(), threading.Event(), threading.Event()
+    processed: list[int] = []
+
+    def slow_extraction(message: Any) -> None:
+        processed.append(message.header.stamp.sec)
+        (second if started.is_set() else started).set()
+        release.wait()
+
+    node._on_image = slow_extraction  # type: ignore[method-assign]
+    try:
+        node._on_camera_image(_image(b"", "mono8", 0, 0, 0, sec=1))
+        assert started.wait(timeout=30)  # the worker holds frame 1
+        for sec in (2, 3, 4):
+            node._on_camera_image(_image(b"", "mono8", 0, 0, 0, sec=sec))
+        assert node.counter.counts["dropped_busy"] == 2  # 2 and 3 were replaced before being taken
+        release.set()
+        assert second.wait(timeout=30)
+        assert processed == [1, 4]
+        assert node.gate.take(timeout_s=0) is None  # nothing left queued
+    finally:
+        release.set()
         node.destroy_node()
 
 
@@ -116,6 +148,41 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> Non
     finally:
         feature_node.destroy_node()
         node.destroy_node()
+
+
+def test_quantizer_node_words_are_the_same_from_byte_and_float_sift(revisit_data: RevisitData) -> None:
+    feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        features_out, words_out = Captured(feature_node.publisher), Captured(node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        feature_node._on_image(_image(gray.tobytes(), "mono8", gray.shape[0], gray.shape[1], gray.shape[1]))
+        as_bytes = features_out.messages[0]
+        as_floats = msg.Features(header=as_bytes.header, descriptor_type="sift", descriptor_length=128,
+                                 x=as_bytes.x, y=as_bytes.y, size=as_bytes.size, angle=as_bytes.angle,
+                                 response=as_bytes.response,
+                                 float_descriptors=np.asarray(as_bytes.binary_descriptors, np.float32).tolist())
+        node._on_features(as_bytes)
+        node._on_features(as_floats)
+        assert len(words_out.messages) == 2
+        assert list(words_out.messages[0].keypoint_words) == list(words_out.messages[1].keypoint_words)
+    finally:
+        feature_node.destroy_node()
+        node.destroy_node()
+
+
+def test_quantizer_node_caps_torch_threads_from_its_parameter(revisit_data: RevisitData) -> None:
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), torch_threads=1))
+        node.destroy_node()
+        assert torch.get_num_threads() == 1
+        with pytest.raises(ConfigError, match="torch_threads=-1"):
+            QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), torch_threads=-1))
+    finally:
+        torch.set_num_threads(before)
 
 
 def _words(word_ids: list[int], sec: int, vocabulary_id: str, size: int = 400) -> Any:
