@@ -490,8 +490,10 @@ def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptor
     try:
         words_out = Captured(node.publisher)
         with_nan = copy.deepcopy(features)
-        values = np.asarray(with_nan.float_descriptors, dtype=np.float32).copy()
+        # SIFT crosses as bytes; a float32 message (RootSIFT's layout, or an older sender) can carry NaN.
+        values = np.asarray(with_nan.binary_descriptors, dtype=np.float32).copy()
         values[7] = np.nan
+        with_nan.binary_descriptors = np.zeros(0, np.uint8)
         with_nan.float_descriptors = values
         node._on_features(with_nan)
         assert node.counter.counts["dropped_bad_features"] == 1
