@@ -87,6 +87,27 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) 
         node.destroy_node()
 
 
+def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revisit_data: RevisitData) -> None:
+    """A camera behind image_transport publishes each frame raw and compressed; both are subscribed by default."""
+    import cv2
+
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        out = Captured(node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        height, width = gray.shape
+        png = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
+        png.header.stamp = Time(sec=1)
+        node._on_image(_image(gray.tobytes(), "mono8", height, width, width, sec=1), transport="raw")
+        node._on_image(png, transport="compressed")
+        assert len(out.messages) == 1 and node.counter.counts["skipped_compressed_copies"] == 1
+        png.header.stamp = Time(sec=2)  # a new frame that only the compressed transport brings
+        node._on_image(png, transport="compressed")
+        assert len(out.messages) == 2
+    finally:
+        node.destroy_node()
+
+
 def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> None:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
