@@ -7,7 +7,7 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -42,11 +42,15 @@ def running(*argv: str | Path) -> Iterator[subprocess.Popen[str]]:
 class LoggedProcess:
     """``python -m module args...`` with output to a log file; always stopped and reaped on exit."""
 
-    def __init__(self, log_path: Path, module: str, *args: str | Path) -> None:
+    def __init__(self, log_path: Path, module: str, *args: str | Path, prefix: Sequence[str] = (),
+                 env: Mapping[str, str] | None = None) -> None:
+        """``prefix``: a command the program runs under (``ip netns exec NS``: it execs, so the pid is ours);
+        ``env``: the environment instead of this process's."""
         self.log_path = log_path
         self._log = log_path.open("w")
         self.process = subprocess.Popen(
-            [sys.executable, "-m", module, *map(str, args)], stdout=self._log, stderr=subprocess.STDOUT, text=True
+            [*prefix, sys.executable, "-m", module, *map(str, args)], stdout=self._log, stderr=subprocess.STDOUT,
+            text=True, env=env,
         )
 
     def log(self) -> str:

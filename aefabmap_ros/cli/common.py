@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, suppress
+from pathlib import Path
 
 from aefabmap_ros.core.errors import AefabmapError
 
@@ -42,3 +44,28 @@ def parse_or_report(parser: argparse.ArgumentParser, argv: Sequence[str] | None)
         print(f"ERROR: {error}", file=sys.stderr)
         parser.print_usage(sys.stderr)
         return None
+
+
+def _created_by(folder: Path) -> list[Path]:
+    """The folders ``folder.mkdir(parents=True)`` would create, deepest first (empty if it exists)."""
+    missing = []
+    for path in (folder.absolute(), *folder.absolute().parents):
+        if path.exists():
+            break
+        missing.append(path)
+    return missing
+
+
+@contextmanager
+def no_empty_folders_left_on_error(*folders: Path) -> Iterator[None]:
+    """Folders the body creates (with their missing parents) are removed again if it fails while they are
+    still empty: a refused command leaves no trace, while cached work in them is kept for a rerun."""
+    to_remove = sorted({path for folder in folders for path in _created_by(folder)},
+                       key=lambda path: len(path.parts), reverse=True)
+    try:
+        yield
+    except BaseException:
+        for path in to_remove:
+            with suppress(OSError):
+                path.rmdir()  # only succeeds on an empty folder
+        raise

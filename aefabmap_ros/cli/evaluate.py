@@ -64,7 +64,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import (
+    RESUME_HINT,
+    ArgumentParser,
+    no_empty_folders_left_on_error,
+    parse_or_report,
+    report_errors,
+)
 from aefabmap_ros.cli.train import extract_all, source_provenance
 from aefabmap_ros.core.atomic import atomic_write_text
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
@@ -519,14 +525,16 @@ def run_evaluation(args: argparse.Namespace) -> int:
     started = time.monotonic()
     settings = Settings(args)
     methods = parse_methods(args.methods.split(","))
-    prepare_output(args.out)
-    run = Run(args, settings)
     extra = ""
     extra_json: dict[str, Any] = {}
-    if args.recording is not None:
-        results, gt, header, extra, extra_json = evaluate_recording(run)
-    else:
-        results, gt, header = evaluate_images(run, methods)
+    # Some arguments are validated only by the stage that uses them: a refusal must not leave OUT/.cache.
+    with no_empty_folders_left_on_error(args.out, args.work_dir or args.out / ".cache"):
+        prepare_output(args.out)
+        run = Run(args, settings)
+        if args.recording is not None:
+            results, gt, header, extra, extra_json = evaluate_recording(run)
+        else:
+            results, gt, header = evaluate_images(run, methods)
     header["wall_seconds"] = round(time.monotonic() - started, 1)
     header["stage_seconds"] = {k: round(v, 1) for k, v in run.seconds.items()}
     written = write_results(args.out, results, gt, header, extra, extra_json)

@@ -143,6 +143,34 @@ def supervise(commands: list[list[str]]) -> int:
     return exit_code
 
 
+def params_file_problem(path: Path) -> str | None:
+    """Why rcl would refuse this parameter file, found before any node starts (each node would otherwise
+    print its own traceback), or None. rcl wants ``<node name>: {ros__parameters: {...}}`` at the top."""
+    import yaml
+
+    try:
+        content = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        return f"--params {path}: cannot read it: {exc}"
+    except yaml.YAMLError as exc:
+        return f"--params {path} is not valid YAML: {' '.join(str(exc).split())}"
+    if not isinstance(content, dict):
+        return f"--params {path} must map node names to their parameters, got {type(content).__name__}"
+    for node_name, section in content.items():
+        if not _is_parameter_section(section):
+            return f"--params {path}: section {node_name!r} must hold a 'ros__parameters:' mapping"
+    return None
+
+
+def _is_parameter_section(section: object) -> bool:
+    """``{ros__parameters: {...}}``, or a namespace level (``/ns: {node: {ros__parameters: ...}}``)."""
+    if not isinstance(section, dict) or not section:
+        return False
+    if "ros__parameters" in section:
+        return isinstance(section["ros__parameters"], dict)
+    return all(_is_parameter_section(inner) for inner in section.values())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if not args.model.is_dir():
@@ -151,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
     params = args.params or default_params_file()
     if not params.is_file():
         print(f"ERROR: --params {params} does not exist", file=sys.stderr)
+        return 1
+    problem = params_file_problem(params)
+    if problem is not None:
+        print(f"ERROR: {problem}", file=sys.stderr)
         return 1
     return supervise(node_commands(args))
 

@@ -4,15 +4,23 @@ Messages go out as the bag's own CDR bytes, with their original header stamps, p
 log times divided by ``--rate``. ``--lockstep TOPIC`` publishes the next image only once the
 pipeline answered the previous one on TOPIC (e.g. place_posteriors), so a replay is lossless and
 its results reproducible on any machine, however slow.
+
+The summary counts what may not have arrived: images published while no subscriber was matched,
+lockstep images never answered, and (reliable QoS) whether every subscriber acknowledged the last
+ones. Ctrl-C or SIGTERM stops it cleanly, with the summary and the number of images left unpublished:
+exit code 130 (SIGINT) or 143 (SIGTERM), or 0 when the stop came after every image was published.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
@@ -24,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", type=Path, help="rosbag2 bag directory (mcap or sqlite3)")
     parser.add_argument("--topic", default="/image", help="image topic in the bag (default: /image)")
-    parser.add_argument("--out-topic", default="image", help="topic to publish on (default: image)")
+    parser.add_argument("--out-topic", default="image",
+                        help="image topic to publish on (default: image); a CompressedImage topic goes to "
+                        "OUT_TOPIC/compressed, where image_transport and feature_node listen for it")
     parser.add_argument("--rate", type=float, default=1.0,
                         help="playback speed factor; 0 = as fast as possible (default: 1.0)")
     parser.add_argument("--start", type=float, default=0.0, help="skip the first START seconds of the bag")
@@ -54,6 +64,14 @@ def _validate(args: argparse.Namespace) -> None:
         raise ConfigError("--loop and --lockstep together would never end; choose one")
 
 
+def publish_topic(out_topic: str, msgtype: str) -> str:
+    """Where a bag topic of ``msgtype`` goes: raw images on ``out_topic``, compressed ones on
+    ``out_topic/compressed`` (image_transport's convention), unless ``out_topic`` already names it."""
+    if msgtype != bags.COMPRESSED_IMAGE_TYPE or out_topic.rstrip("/").endswith("/compressed"):
+        return out_topic
+    return f"{out_topic.rstrip('/')}/compressed"
+
+
 def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
     """The message with its header stamp moved by ``offset_ns`` (used for --loop laps after the first)."""
     if offset_ns == 0:
@@ -77,20 +95,66 @@ def _laps(bag: Path, topic: str, start_ns: int | None, loop: bool) -> Iterator[t
         lap += 1
 
 
+# How long the end of a reliable replay waits for every subscriber to acknowledge the last images.
+ACK_TIMEOUT_S = 5.0
+
+
+class StopRequest:
+    """SIGINT/SIGTERM only set a flag that the replay's loops check: no exception at an arbitrary line,
+    so no traceback, and the summary of what was (not) published is still printed."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def __call__(self, signum: int, _frame: FrameType | None) -> None:
+        self.signum = signum
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
+
+    def install(self) -> None:
+        signal.signal(signal.SIGINT, self)
+        signal.signal(signal.SIGTERM, self)
+
+    def exit_code(self) -> int:
+        """The shell's convention for a process ended by a signal: 128 + its number (130, 143)."""
+        return 128 + (self.signum or 0)
+
+
+@dataclass
+class Delivery:
+    """What a replay published, and what it knows was (maybe) not delivered."""
+
+    published: int = 0
+    without_subscriber: int = 0  # published while no subscriber was matched: lost
+    missed_answers: int = 0  # --lockstep: no answer within the timeout (dropped or late)
+    acknowledged: bool | None = None  # reliable QoS: every subscriber acknowledged the last images
+
+    def summary(self, lockstep_topic: str) -> str:
+        parts = [f"{self.without_subscriber} published with no subscriber matched"]
+        if lockstep_topic:
+            parts.append(f"{self.missed_answers} without an answer on {lockstep_topic}")
+        if self.acknowledged is False:
+            parts.append(f"the last ones not acknowledged by every subscriber within {ACK_TIMEOUT_S:.0f} s")
+        return ", ".join(parts)
+
+
 class Replayer:
-    def __init__(self, args: argparse.Namespace, msgtype: str) -> None:
+    def __init__(self, args: argparse.Namespace, msgtype: str, stop: StopRequest) -> None:
         import rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from sensor_msgs.msg import CompressedImage, Image
 
         self.rclpy = rclpy
+        self.stop = stop
         self.args = args
         self.msgtype = msgtype
         self.node = rclpy.create_node("aefabmap_replay")
         msg_class = Image if msgtype == bags.IMAGE_TYPE else CompressedImage
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
-        self.publisher = self.node.create_publisher(msg_class, args.out_topic, qos)
+        self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)
         self.answers = 0
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
@@ -103,12 +167,14 @@ class Replayer:
 
     def wait_for_subscribers(self) -> None:
         wanted = self.args.wait_subscribers
+        print(f"[replay] waiting for {wanted} subscriber(s) on {self.publisher.topic_name}",
+              file=sys.stderr, flush=True)
         deadline = time.monotonic() + self.args.wait_timeout
-        while self.publisher.get_subscription_count() < wanted:
+        while self.publisher.get_subscription_count() < wanted and not self.stop.requested:
             if time.monotonic() > deadline:
                 raise AefabmapError(
                     f"no subscriber on {self.publisher.topic_name} after {self.args.wait_timeout:.0f} s "
-                    f"(wanted {wanted}); is the pipeline running?"
+                    f"(wanted {wanted}); {self._why_no_subscriber()}"
                 )
             self.rclpy.spin_once(self.node, timeout_sec=0.05)
         if self.args.lockstep:
@@ -116,11 +182,23 @@ class Replayer:
             # (count_publishers) is not yet a matched one, which a just-restarted node showed.
             self._spin_until(lambda: self.answer_subscription.get_publisher_count() > 0, self.args.wait_timeout)
 
-    def _spin_until(self, done: Any, timeout_s: float) -> bool:
+    def _why_no_subscriber(self) -> str:
+        """Name subscribers of another message type on our topic (they never match us), else the usual cause."""
+        topic = self.publisher.topic_name
+        ours = self.msgtype.replace("/msg/", "/")
+        subscribers = self.node.get_subscriptions_info_by_topic(topic)
+        others = sorted({info.topic_type.replace("/msg/", "/") for info in subscribers} - {ours})
+        if others:
+            return (f"{topic} has subscriber(s) of type {', '.join(others)}, but {self.args.topic} in the bag is "
+                    f"{ours}, so they never connect (a CompressedImage topic is published on OUT_TOPIC/compressed)")
+        return "is the pipeline running?"
+
+    def _spin_until(self, done: Callable[..., bool], timeout_s: float) -> bool:
+        """Spin until ``done()``; False on timeout or on a stop request."""
         deadline = time.monotonic() + timeout_s
         while not done():
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if remaining <= 0 or self.stop.requested:
                 return False
             self.rclpy.spin_once(self.node, timeout_sec=min(0.05, remaining))
         return True
@@ -132,10 +210,17 @@ class Replayer:
         if args.start > 0:
             first_log_ns = next(iter(bags.read_messages(args.bag, [args.topic]))).log_time_ns
             start_ns = first_log_ns + int(args.start * 1e9)
-        published, missed_answers = 0, 0
+        from rclpy.duration import Duration
+
+        delivery = Delivery()
+        finished = False  # every image published: a stop after that is no early stop
         wall_start = time.monotonic()
         lap_span_ns, lap_origin_ns = 0, None
+        print(f"[replay] publishing {args.topic} of {args.bag} on {self.publisher.topic_name}", file=sys.stderr,
+              flush=True)
         for lap, message in _laps(args.bag, args.topic, start_ns, args.loop):
+            if self.stop.requested:
+                break
             if lap_origin_ns is None:
                 lap_origin_ns = message.log_time_ns
             bag_offset_ns = message.log_time_ns - lap_origin_ns
@@ -143,22 +228,36 @@ class Replayer:
             elapsed_bag_s = (lap * (lap_span_ns + 1) + bag_offset_ns) / 1e9
             if args.rate > 0 and not args.lockstep:
                 self._spin_until(lambda t=elapsed_bag_s: time.monotonic() - wall_start >= t / args.rate, 3600.0)
+                if self.stop.requested:
+                    break
             stamp_offset_ns = lap * (lap_span_ns + 100_000_000)
+            if self.publisher.get_subscription_count() == 0:
+                delivery.without_subscriber += 1
             self.publisher.publish(_restamped(message.raw, self.msgtype, stamp_offset_ns))
-            published += 1
-            if args.lockstep and not self._spin_until(lambda n=published: self.answers >= n, args.lockstep_timeout):
-                missed_answers += 1
-                self.answers = published  # resynchronise: the pipeline dropped this image
-            if not args.quiet and published % 50 == 0:
-                print(f"[replay] {published} images", file=sys.stderr)
+            delivery.published += 1
+            if args.lockstep and not self._spin_until(lambda n=delivery.published: self.answers >= n,
+                                                      args.lockstep_timeout):
+                if self.stop.requested:
+                    break
+                delivery.missed_answers += 1
+                self.answers = delivery.published  # resynchronise: the pipeline dropped this image
+            if not args.quiet and delivery.published % 50 == 0:
+                print(f"[replay] {delivery.published} images", file=sys.stderr)
+        else:
+            finished = True
+        if args.qos == "reliable" and not self.stop.requested:
+            # Reliable delivery of the last messages must complete before the node goes away.
+            delivery.acknowledged = self.publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
         seconds = time.monotonic() - wall_start
-        summary = f"[replay] published {published} images from {args.bag} {args.topic} in {seconds:.1f} s"
-        if args.lockstep:
-            summary += f" ({missed_answers} without an answer on {args.lockstep})"
-        print(summary, file=sys.stderr)
-        # Let reliable delivery of the last messages complete before the node goes away.
-        self._spin_until(lambda: False, 0.5)
-        return 0
+        print(f"[replay] published {delivery.published} images from {args.bag} {args.topic} in {seconds:.1f} s "
+              f"({delivery.summary(args.lockstep)})", file=sys.stderr)
+        if finished:
+            return 0
+        left = ""
+        if not args.loop and args.start == 0:
+            left = f"; {bags.message_count(args.bag, args.topic) - delivery.published} images of the bag not published"
+        print(f"[replay] stopped by {signal.Signals(self.stop.signum or 0).name}{left}", file=sys.stderr)
+        return self.stop.exit_code()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
         cut = raw_argv.index("--ros-args")
         raw_argv, ros_args = raw_argv[:cut], raw_argv[cut:]
     args = parser.parse_args(raw_argv)
+    stop = StopRequest()
+    stop.install()  # before anything slow: a signal during start-up is a clean stop too
     try:
         _validate(args)
         msgtype = bags.require_image_topic(args.bag, args.topic)
@@ -177,19 +278,22 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=["aefabmap_replay", *ros_args])
+    # rclpy's own handlers would shut the context down under a running spin (a traceback); ours stop the loops.
+    rclpy.init(args=["aefabmap_replay", *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     replayer = None
     try:
-        replayer = Replayer(args, msgtype)
+        replayer = Replayer(args, msgtype, stop)
         if args.wait_subscribers > 0:
             replayer.wait_for_subscribers()
+        if stop.requested:
+            print(f"[replay] stopped by {signal.Signals(stop.signum or 0).name} before publishing", file=sys.stderr)
+            return stop.exit_code()
         return replayer.run()
     except AefabmapError as exc:
         print(f"ERROR: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        return 0
     finally:
         if replayer is not None:
             replayer.node.destroy_node()

@@ -20,7 +20,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from aefabmap_ros.cli.common import RESUME_HINT, report_errors
+from aefabmap_ros.cli.common import RESUME_HINT, no_empty_folders_left_on_error, report_errors
 from aefabmap_ros.core.errors import ConfigError
 from aefabmap_ros.core.features import FeatureConfig, Features
 from aefabmap_ros.core.model import save_model
@@ -123,7 +123,13 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.out, args.overwrite)
     sources = gather_sources(args)
     work_dir = args.work_dir or args.out.resolve().parent / f".{args.out.name}.work"
-    work_dir.mkdir(parents=True, exist_ok=True)
+    with no_empty_folders_left_on_error(work_dir):  # a failure before any cached stage leaves nothing behind
+        work_dir.mkdir(parents=True, exist_ok=True)
+        return train_in(work_dir, args, sources, feature_config, vocabulary_config, training_config)
+
+
+def train_in(work_dir: Path, args: argparse.Namespace, sources: list[ImageSource], feature_config: FeatureConfig,
+             vocabulary_config: VocabularyConfig, training_config: TrainingConfig) -> int:
     started = time.monotonic()
     sequences = extract_all(sources, feature_config, work_dir, args.quiet)
     feature_seconds = time.monotonic() - started

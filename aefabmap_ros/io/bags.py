@@ -147,16 +147,23 @@ class BagWriter:
         if not self.path.parent.is_dir():
             raise BagError(f"output folder does not exist: {self.path.parent}")
         self._overwrite = overwrite
-        self._tmp_path = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
-        shutil.rmtree(self._tmp_path, ignore_errors=True)
+        # rosbags names the data file after the bag folder (<folder>/<folder>.mcap) and writes that name
+        # into metadata.yaml (and the mcap's own metadata record). Writing into a folder already named
+        # as rosbag2 names the first split, "<name>_0", inside a hidden staging folder, gives the finished
+        # bag rosbag2's layout (<name>/<name>_0.mcap) with every reference consistent, and nothing hidden.
+        self._staging_dir = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
+        self._tmp_path = self._staging_dir / f"{self.path.name}_0"
         self._writer = Writer(self._tmp_path, version=9, storage_plugin=_storage_plugin(storage))
         self._connections: dict[str, Any] = {}
         self._typestore = get_typestore()
 
     def __enter__(self) -> BagWriter:
+        shutil.rmtree(self._staging_dir, ignore_errors=True)
         try:
+            self._staging_dir.mkdir()
             self._writer.open()
         except Exception as exc:  # rosbags raises several unrelated types for unwritable paths
+            shutil.rmtree(self._staging_dir, ignore_errors=True)
             raise BagError(f"cannot create bag {self.path}: {exc}") from exc
         return self
 
@@ -176,11 +183,12 @@ class BagWriter:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        self._writer.close()
-        if exc_type is None:
-            _replace_path(self._tmp_path, self.path, self._overwrite)
-        else:
-            shutil.rmtree(self._tmp_path, ignore_errors=True)
+        try:
+            self._writer.close()
+            if exc_type is None:
+                _replace_path(self._tmp_path, self.path, self._overwrite)
+        finally:
+            shutil.rmtree(self._staging_dir, ignore_errors=True)
 
 
 def write_image_bag(

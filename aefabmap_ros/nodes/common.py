@@ -144,11 +144,11 @@ def node_callback(callback: Callable[..., None]) -> Callable[..., None]:
     launch) down."""
 
     @functools.wraps(callback)
-    def guarded(self: Any, *message: Any) -> None:
+    def guarded(self: Any, *message: Any, **options: Any) -> None:
         if not CALLBACKS.enter():
             return
         try:
-            callback(self, *message)
+            callback(self, *message, **options)
         except Exception as exc:  # the point: nothing a message causes stops the node
             self.counter.drop(type(exc).__name__, f"{type(exc).__name__}: {exc}")
         finally:

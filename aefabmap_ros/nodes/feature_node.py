@@ -1,4 +1,8 @@
-"""feature_node: ``image`` (Image, optionally ``image/compressed``) -> ``aefabmap/features``.
+"""feature_node: ``image`` (Image) and ``<image>/compressed`` (CompressedImage) -> ``aefabmap/features``.
+
+The compressed topic follows image_transport's convention: it is the *resolved* image topic plus
+``/compressed``, so remapping ``image:=/camera/image_raw`` moves it to ``/camera/image_raw/compressed``;
+a frame that arrives on both is processed once.
 
 With ``image_qos`` sensor_data (a live camera) frames are dropped at the door: the subscription
 only hands the newest frame to a worker thread through a one-frame gate, a frame that arrives while
@@ -10,6 +14,7 @@ processed, in order.
 from __future__ import annotations
 
 import threading
+from functools import partial
 from typing import Any
 
 from aefabmap_msgs.msg import Features
@@ -20,6 +25,7 @@ from aefabmap_ros.core.errors import AefabmapError, ConfigError, ImageTooLargeEr
 from aefabmap_ros.core.features import FeatureConfig, extract_features
 from aefabmap_ros.core.frame_gate import LatestFrameGate
 from aefabmap_ros.core.model import load_model
+from aefabmap_ros.core.stamps import TransportDeduplicator, stamp_to_ns
 from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.io.messages import features_to_message
 from aefabmap_ros.nodes.common import (
@@ -48,7 +54,9 @@ class FeatureNode(Node):
         )
         depth = declare_parameter(self, "queue_depth", 10, "Queue depth of subscriptions and publications.")
         subscribe_compressed = declare_parameter(
-            self, "subscribe_compressed", False, "Also subscribe to image/compressed (sensor_msgs/CompressedImage)."
+            self, "subscribe_compressed", True,
+            "Also subscribe to <image topic>/compressed (sensor_msgs/CompressedImage, image_transport's name); "
+            "a frame arriving on both is processed once.",
         )
         self.max_image_pixels = declare_parameter(
             self, "max_image_pixels", 25_000_000,
@@ -60,21 +68,28 @@ class FeatureNode(Node):
         self.config = load_model(model_dir).feature_config if model_dir else parameter_config
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
+        self.transports = TransportDeduplicator()
         self.gate: LatestFrameGate[Any] = LatestFrameGate()
         self._worker: threading.Thread | None = None
-        receive = self._on_image
         if qos_kind == "sensor_data":
-            receive = self._on_camera_image
             self._worker = threading.Thread(target=self._process_frames, name="feature_worker", daemon=True)
             self._worker.start()
-        self.create_subscription(Image, "image", receive, image_qos(qos_kind, depth))
+        self.create_subscription(Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth))
         if subscribe_compressed:
-            self.create_subscription(CompressedImage, "image/compressed", receive, image_qos(qos_kind, depth))
+            self.create_subscription(CompressedImage, compressed_topic(self.resolve_topic_name("image")),
+                                     partial(self._on_frame, transport="compressed"), image_qos(qos_kind, depth))
         self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image)")
 
-    def _on_camera_image(self, message: Any) -> None:
-        """Live camera: hand the frame to the worker; the one still waiting, if any, is dropped."""
-        if not self.gate.offer(message):
+    @node_callback
+    def _on_frame(self, message: Any, transport: str = "raw") -> None:
+        """A frame from one transport: skipped if the other brought it already; else extracted now (bag
+        replay), or handed to the worker (live camera), replacing -- and dropping -- one still waiting."""
+        if self.transports.is_duplicate(stamp_to_ns(message.header.stamp), transport):
+            self.counter.ok(f"skipped_{transport}_copies")  # the other transport brought this frame already
+            return
+        if self._worker is None:
+            self._on_image(message)
+        elif not self.gate.offer(message):
             self.counter.drop("busy", "a newer frame arrived before feature extraction took the previous one")
 
     def _process_frames(self) -> None:
@@ -110,6 +125,11 @@ class FeatureNode(Node):
         self._stop_worker()  # the frame in hand is finished first (one still waiting is not), so counts are final
         self.get_logger().info(f"feature_node: {self.counter.summary()}")
         return True
+
+
+def compressed_topic(image_topic: str) -> str:
+    """image_transport's compressed topic of a resolved image topic: ``/cam/image`` -> ``/cam/image/compressed``."""
+    return f"{image_topic.rstrip('/')}/compressed"
 
 
 def main(args: list[str] | None = None) -> int:

@@ -435,3 +435,26 @@ def test_recording_with_query_beyond_the_ground_truth(tmp_path, capsys):
     err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
                      "--out", str(tmp_path / "out")], capsys)
     assert "query id 5 outside the 3 frames" in err
+
+
+@pytest.mark.parametrize("extra", [[], ["--work-dir", "cache/deep"]])
+def test_a_refused_evaluation_leaves_no_out_folder_and_no_empty_cache(tmp_path: Path, extra: list[str],
+                                                                       capsys: pytest.CaptureFixture[str],
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The vocabulary source is validated only once the output and cache folders exist; refused, it removes them."""
+    monkeypatch.chdir(tmp_path)
+    gt = tmp_path / "gt.npz"
+    np.savez(gt, gt=np.zeros((3, 3), bool))
+    images = tmp_path / "images"
+    images.mkdir()
+    assert main(["--images", str(images), "--gt", str(gt), "--out", "OUT", "--quiet", *extra]) == 1
+    assert capsys.readouterr().err.startswith("ERROR: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gt.npz", "images"]
+
+
+def test_a_refused_evaluation_keeps_an_out_folder_that_existed(tmp_path: Path) -> None:
+    out = tmp_path / "OUT"
+    out.mkdir()
+    (out / "results.md").write_text("an earlier run")
+    assert main(["--gt", str(tmp_path / "missing.npz"), "--out", str(out), "--quiet"]) == 1
+    assert sorted(p.name for p in out.iterdir()) == ["results.md"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import pytest
 
 from aefabmap_ros.cli import launch, record, replay
 from aefabmap_ros.io.bags import write_image_bag
+from test.ros_processes import LoggedProcess
 
 
 def _bag(tmp_path: Path) -> Path:
@@ -122,3 +124,55 @@ def test_launched_processes_get_thread_limits_unless_the_user_set_them(
     for out in outputs:
         assert json.loads(out.read_text()) == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": "7",
                                                "MKL_NUM_THREADS": share, "NUMBA_NUM_THREADS": share}
+
+
+def _long_bag(tmp_path: Path, frames: int) -> Path:
+    path = tmp_path / "long"
+    write_image_bag(path, "/cam", [((i + 1) * 100_000_000, np.zeros((4, 4), np.uint8)) for i in range(frames)])
+    return path
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(("sig", "code", "waiting"), [(signal.SIGINT, 130, False), (signal.SIGTERM, 143, False),
+                                                       (signal.SIGINT, 130, True)])
+def test_replay_stops_cleanly_on_a_signal(tmp_path: Path, sig: int, code: int, waiting: bool) -> None:
+    """Ctrl-C / SIGTERM while publishing (or while waiting for subscribers): no traceback, the summary, how many
+    images were left unpublished, and the shell's exit code for a signal."""
+    pytest.importorskip("rclpy")
+    bag = _long_bag(tmp_path, 100)  # 10 s of bag at --rate 1: the signal comes at image 50, 5 s before the end
+    wait = ["--wait-subscribers", "1", "--wait-timeout", "120"] if waiting else ["--wait-subscribers", "0"]
+    with LoggedProcess(tmp_path / "replay.log", "aefabmap_ros.cli.replay", bag, "--topic", "/cam",
+                       "--out-topic", "/nobody_listens", *wait) as replay:
+        replay.wait_for_log("waiting for 1 subscriber" if waiting else "[replay] 50 images", timeout_s=60)
+        assert replay.stop(sig) == code, replay.log()
+    log = replay.log()
+    assert "Traceback" not in log, log
+    assert f"stopped by {signal.Signals(sig).name}" in log, log
+    if not waiting:
+        assert "images of the bag not published" in log and "published with no subscriber matched" in log, log
+
+
+@pytest.mark.ros
+def test_replay_counts_images_published_with_no_subscriber(tmp_path: Path) -> None:
+    pytest.importorskip("rclpy")
+    bag = _long_bag(tmp_path, 3)
+    with LoggedProcess(tmp_path / "replay.log", "aefabmap_ros.cli.replay", bag, "--topic", "/cam",
+                       "--out-topic", "/nobody_listens", "--rate", "0", "--wait-subscribers", "0") as replay:
+        assert replay.wait(timeout_s=60) == 0, replay.log()
+    assert "published 3 images" in replay.log() and "(3 published with no subscriber matched" in replay.log()
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("feature_node:\n  ros__parameters:\n    queue_depth: [1,\n", "is not valid YAML"),
+    ("- just\n- a list\n", "must map node names"),
+    ("feature_node:\n  queue_depth: 3\n", "'feature_node' must hold a 'ros__parameters:' mapping"),
+])
+def test_launch_refuses_a_malformed_params_file_in_one_line(tmp_path: Path, content: str, message: str,
+                                                            capfd: pytest.CaptureFixture[str]) -> None:
+    """One ERROR line and exit 1 before any node starts (not one traceback per node process)."""
+    params = tmp_path / "p.yaml"
+    params.write_text(content)
+    assert launch.main(["--model", str(tmp_path), "--params", str(params)]) == 1
+    out, err = capfd.readouterr()
+    assert err.startswith("ERROR: ") and message in err and err.count("\n") == 1, err
+    assert "Traceback" not in out + err

@@ -97,3 +97,13 @@ def test_bad_inputs(tmp_path: Path, revisit_data: RevisitData, capsys: pytest.Ca
         locked.mkdir(mode=0o500)
         assert "not writable" in _error(capsys, ["--bag", bag, "--out", str(locked / "m"), *SMALL])
     assert "does not exist" in _error(capsys, ["--bag", bag, "--out", str(tmp_path / "no" / "m"), *SMALL])
+
+
+def test_a_failure_before_any_cached_stage_leaves_no_work_folder(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    (images / "a.png").write_bytes(b"not a png")  # the folder exists: the failure comes at extraction
+    assert main(["--images", str(images), "--out", str(tmp_path / "model"), "--quiet"]) == 1
+    assert capsys.readouterr().err.startswith("ERROR: cannot read image file")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]  # no .model.work, no model

@@ -153,3 +153,19 @@ def test_rgbd_bag_errors(tmp_path: Path) -> None:
         bags.write_rgbd_bag(tmp_path / "b", "/image", [(1, image, np.zeros((3, 4), np.uint16))], np.eye(2))
     with pytest.raises(BagError, match="got int32 \\(3, 4\\)"):
         bags.make_image_message(np.zeros((3, 4), np.int32), 0)
+
+
+@pytest.mark.parametrize(("storage", "extension"), [("mcap", "mcap"), ("sqlite3", "db3")])
+def test_finished_bag_is_named_as_rosbag2_names_it(tmp_path: Path, storage: str, extension: str) -> None:
+    """A finished bag holds <name>_0.<ext> and metadata.yaml naming it: nothing hidden, nothing left beside it
+    (a hidden data file is skipped by `cp bag/* dest` and looks like an unfinished recording)."""
+    import yaml
+
+    path = tmp_path / "run"
+    bags.write_image_bag(path, "/image", _frames(3), storage=storage)
+    assert sorted(p.name for p in path.iterdir()) == sorted(["metadata.yaml", f"run_0.{extension}"])
+    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == [f"run_0.{extension}"]
+    assert [f["path"] for f in info["files"]] == [f"run_0.{extension}"]
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]  # no staging folder left beside it
+    assert len(list(bags.read_messages(path, ["/image"]))) == 3

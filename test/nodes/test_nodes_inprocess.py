@@ -107,10 +107,10 @@ def test_feature_node_drops_camera_frames_at_the_door_while_busy(revisit_data: R
 
     node._on_image = slow_extraction  # type: ignore[method-assign]
     try:
-        node._on_camera_image(_image(b"", "mono8", 0, 0, 0, sec=1))
+        node._on_frame(_image(b"", "mono8", 0, 0, 0, sec=1))
         assert started.wait(timeout=30)  # the worker holds frame 1
         for sec in (2, 3, 4):
-            node._on_camera_image(_image(b"", "mono8", 0, 0, 0, sec=sec))
+            node._on_frame(_image(b"", "mono8", 0, 0, 0, sec=sec))
         assert node.counter.counts["dropped_busy"] == 2  # 2 and 3 were replaced before being taken
         release.set()
         assert second.wait(timeout=30)
@@ -118,6 +118,28 @@ def test_feature_node_drops_camera_frames_at_the_door_while_busy(revisit_data: R
         assert node.gate.take(timeout_s=0) is None  # nothing left queued
     finally:
         release.set()
+        node.destroy_node()
+
+
+def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revisit_data: RevisitData) -> None:
+    """A camera behind image_transport publishes each frame raw and compressed; both are subscribed by default."""
+    import cv2
+
+    # reliable: frames are extracted in the callback (sensor_data hands them to a worker thread)
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), image_qos="reliable"))
+    try:
+        out = Captured(node.publisher)
+        gray = _first_frames(revisit_data, 1)[0]
+        height, width = gray.shape
+        png = CompressedImage(format="png", data=cv2.imencode(".png", gray)[1].tobytes())
+        png.header.stamp = Time(sec=1)
+        node._on_frame(_image(gray.tobytes(), "mono8", height, width, width, sec=1), transport="raw")
+        node._on_frame(png, transport="compressed")
+        assert len(out.messages) == 1 and node.counter.counts["skipped_compressed_copies"] == 1
+        png.header.stamp = Time(sec=2)  # a new frame that only the compressed transport brings
+        node._on_frame(png, transport="compressed")
+        assert len(out.messages) == 2
+    finally:
         node.destroy_node()
 
 
