@@ -25,6 +25,7 @@ from enum import Enum
 
 import gtsam
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.core.errors import ConfigError
 
@@ -225,7 +226,8 @@ class PoseGraph:
         # long drift keeps most of its weight; one the graph later contradicts (other closures) loses it.
         scale = self.config.cauchy_scale * float(np.sqrt(np.trace(drift[3:, 3:] + loop_covariance[3:, 3:])
                                                          / np.trace(loop_covariance[3:, 3:])))
-        graph, values, removed = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        removed: list[int] = []
         tags: list[tuple[int, int] | None] = []  # per factor added: the keyframe pair of an odometry factor
         if not self.keyframes and self.odometry.first_ns is not None:
             # map == odom at the first odometry pose: the anchor (prior) of the whole graph.
@@ -340,14 +342,15 @@ class PoseGraph:
         for _ in range(MAX_EXTRA_ITERATIONS):
             before = self._isam.calculateEstimate()
             self._isam.update()
-            if _largest_change(before, self._isam.calculateEstimate()) < SETTLED_M:
+            keys = [keyframe.key for keyframe in self.keyframes]
+            if _largest_change(before, self._isam.calculateEstimate(), keys) < SETTLED_M:
                 break
         self._estimate = self._isam.calculateEstimate()
 
 
-def _largest_change(before: gtsam.Values, after: gtsam.Values) -> float:
+def _largest_change(before: gtsam.Values, after: gtsam.Values, keys: list[int]) -> float:
     return max((float(np.linalg.norm(before.atPose3(key).translation() - after.atPose3(key).translation()))
-                for key in before.keys()), default=0.0)
+                for key in keys), default=0.0)
 
 
 def to_tum_lines(trajectory: list[tuple[int, gtsam.Pose3]]) -> list[str]:
@@ -355,7 +358,6 @@ def to_tum_lines(trajectory: list[tuple[int, gtsam.Pose3]]) -> list[str]:
     lines = []
     for stamp_ns, pose in trajectory:
         t = pose.translation()
-        q = pose.rotation().toQuaternion()
-        lines.append(f"{stamp_ns / 1e9:.9f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} "
-                     f"{q.x():.9f} {q.y():.9f} {q.z():.9f} {q.w():.9f}")
+        qx, qy, qz, qw = Rotation.from_matrix(pose.rotation().matrix()).as_quat()
+        lines.append(f"{stamp_ns / 1e9:.9f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}")
     return lines

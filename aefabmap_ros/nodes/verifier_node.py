@@ -42,7 +42,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-
 from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import gtsam
 import numpy as np
 import pytest
@@ -36,7 +38,7 @@ def square_truth() -> list[gtsam.Pose3]:
 def drifting_odometry(truth: list[gtsam.Pose3]) -> list[gtsam.Pose3]:
     """Each step's motion 2 % too long and turned 0.15 degrees further left: the loop does not close."""
     odometry = [truth[0]]
-    for before, after in zip(truth, truth[1:], strict=False):
+    for before, after in itertools.pairwise(truth):
         step = before.between(after)
         drifted = gtsam.Pose3(step.rotation().compose(gtsam.Rot3.Yaw(np.radians(0.15))), 1.02 * step.translation())
         odometry.append(odometry[-1].compose(drifted))
@@ -107,7 +109,7 @@ def end_error_after_wrong_then_true_closures(config: PoseGraphConfig) -> float:
     graph = PoseGraph(config)
     for index, pose in enumerate(drifting_odometry(truth)):
         graph.add_odometry(stamp(index), pose)
-    start_shifted = [truth[0].compose(gtsam.Pose3(gtsam.Rot3(), np.array([2.0, 0.0, 0.0])))] + truth[1:]
+    start_shifted = [truth[0].compose(gtsam.Pose3(gtsam.Rot3(), np.array([2.0, 0.0, 0.0]))), *truth[1:]]
     assert graph.add_closure(closure(start_shifted, end, 0)) is ClosureResult.ADDED
     for step in range(1, 6):
         assert graph.add_closure(closure(truth, end - step, step)) is ClosureResult.ADDED

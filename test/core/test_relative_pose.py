@@ -10,8 +10,8 @@ from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.relative_pose import (
     UNKNOWN_SCALE_VARIANCE,
     CameraModel,
-    PoseStatus,
     KeypointDepthStore,
+    PoseStatus,
     RelativePoseConfig,
     depth_image_to_metres,
     depths_of_matches,
@@ -172,10 +172,14 @@ def test_keypoint_depths_arrive_in_either_order_and_stay_bounded() -> None:
     store.add_features(20, keypoints)
     assert store.get(20) is None
     store.add_depth(20, depth + 100)
-    np.testing.assert_allclose(store.get(10), [9.0, 3.0, np.nan])  # (row 2, col 1), (row 0, col 3), outside
-    np.testing.assert_allclose(store.get(20), [109.0, 103.0, np.nan])
+    first, second = store.get(10), store.get(20)
+    assert first is not None and second is not None
+    np.testing.assert_allclose(first, np.array([9.0, 3.0, np.nan]))  # (row 2, col 1), (row 0, col 3), outside
+    np.testing.assert_allclose(second, np.array([109.0, 103.0, np.nan]))
     store.add_depth(30, depth)
     store.add_features(30, keypoints)
     assert len(store) == 2 and store.get(10) is None
     matched = keypoints[[1, 0]]
-    np.testing.assert_allclose(depths_of_matches(matched, keypoints, store.get(30)), [3.0, 9.0])
+    third = store.get(30)
+    assert third is not None
+    np.testing.assert_allclose(depths_of_matches(matched, keypoints, third), np.array([3.0, 9.0]))
