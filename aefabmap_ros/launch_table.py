@@ -24,6 +24,7 @@ CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
 POSTERIORS_TOPIC = "place_posteriors"
 DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
 VERIFIER_NODE = "verifier_node"
+BACKEND_NODE = "pose_graph_node"
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class SuiteOptions:
     image_topic: str = "image"
     image_qos: str = ""  # '' = the parameter file's value
     verify: bool = True
+    backend: bool = False  # also start pose_graph_node, the example SLAM backend (odometry on ``odom``)
 
 
 @dataclass(frozen=True)
@@ -79,4 +81,6 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     if options.verify:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
         nodes.append(NodeLaunch(VERIFIER_NODE, store))
+    if options.backend:
+        nodes.append(NodeLaunch(BACKEND_NODE))
     return nodes
