@@ -24,6 +24,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_bag = aefabmap_ros.cli.bag:main",
     "aefabmap_demo = aefabmap_ros.cli.demo:main",
     "aefabmap_bench = aefabmap_ros.cli.bench:main",
+    "aefabmap_ate = aefabmap_ros.cli.ate:main",
 ]
 
 setup(
