@@ -12,6 +12,7 @@ CONSOLE_SCRIPTS = [
     "quantizer_node = aefabmap_ros.nodes.quantizer_node:main",
     "fabmap_node = aefabmap_ros.nodes.fabmap_node:main",
     "verifier_node = aefabmap_ros.nodes.verifier_node:main",
+    "pose_graph_node = aefabmap_ros.nodes.pose_graph_node:main",
     "aefabmap_pipeline = aefabmap_ros.nodes.pipeline:main",
     "aefabmap_launch = aefabmap_ros.cli.launch:main",
     "aefabmap_train = aefabmap_ros.cli.train:main",
@@ -23,6 +24,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_bag = aefabmap_ros.cli.bag:main",
     "aefabmap_demo = aefabmap_ros.cli.demo:main",
     "aefabmap_bench = aefabmap_ros.cli.bench:main",
+    "aefabmap_ate = aefabmap_ros.cli.ate:main",
 ]
 
 setup(

@@ -26,6 +26,7 @@ CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
 POSTERIORS_TOPIC = "place_posteriors"
 DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
 VERIFIER_NODE = "verifier_node"
+BACKEND_NODE = "pose_graph_node"
 # Thread pools that OpenMP (torch), OpenBLAS/MKL (numpy, scipy) and numba each size to the machine's
 # cores by default: with several node processes that is cores x processes x pools threads fighting
 # for the same cores, so the launchers give each process its share unless the user chose a value.
@@ -41,6 +42,7 @@ class SuiteOptions:
     image_topic: str = "image"
     image_qos: str = ""  # '' = the parameter file's value
     verify: bool = True
+    backend: bool = False  # also start pose_graph_node, the example SLAM backend (odometry on ``odom``)
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,8 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     if options.verify:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
         nodes.append(NodeLaunch(VERIFIER_NODE, store))
+    if options.backend:
+        nodes.append(NodeLaunch(BACKEND_NODE))
     return nodes
 
 

@@ -27,7 +27,8 @@ def _nodes(context: Any) -> list[Node]:
 
     options = SuiteOptions(model_dir=value("model_dir"), map_file=value("map_file"),
                            image_topic=value("image_topic"), image_qos=value("image_qos"),
-                           verify=parse_bool(value("verify"), "verify"))
+                           verify=parse_bool(value("verify"), "verify"),
+                           backend=parse_bool(value("backend"), "backend"))
     params_file = value("params_file")
     nodes = suite_nodes(options)
     # Each process's share of the cores for torch/OpenBLAS/numba pools, unless the user set them.
@@ -56,5 +57,7 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("verify", default_value="true",
                               description="run verifier_node: only geometrically verified closures on loop_closures; "
                               "false: FAB-MAP's raw closures on loop_closures (inliers -1)"),
+        DeclareLaunchArgument("backend", default_value="false",
+                              description="also run pose_graph_node, the example SLAM backend (odometry on odom)"),
         OpaqueFunction(function=_nodes),
     ])

@@ -4,6 +4,7 @@
     aefabmap_bench vocab [--quick]      vocabulary training time per stage; AE vs k-means quantization
     aefabmap_bench pipeline [--quick]   per-stage latency and images/s through the ROS nodes
     aefabmap_bench verify [--quick]     geometric verification cost per candidate; verifier memory per frame
+    aefabmap_bench backend [--quick]    pose-graph (iSAM2) update time per loop closure up to 1,000 keyframes
 """
 
 from __future__ import annotations
@@ -11,13 +12,14 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
-from aefabmap_ros.cli import bench_fabmap, bench_pipeline, bench_verify, bench_vocab
+from aefabmap_ros.cli import bench_backend, bench_fabmap, bench_pipeline, bench_verify, bench_vocab
 
 BENCHMARKS: dict[str, Callable[[list[str] | None], int]] = {
     "fabmap": bench_fabmap.main,
     "vocab": bench_vocab.main,
     "pipeline": bench_pipeline.main,
     "verify": bench_verify.main,
+    "backend": bench_backend.main,
 }
 
 

@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
                         help="run verifier_node: only geometrically verified closures on loop_closures (default); "
                         "--no-verify: FAB-MAP's raw closures on loop_closures instead (inliers -1)")
+    parser.add_argument("--backend", action="store_true",
+                        help="also run pose_graph_node, the example SLAM backend (odometry on odom; "
+                        "publishes pose_graph/path and map -> odom)")
     return parser
 
 
@@ -69,7 +72,7 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     params = args.params or default_params_file()
     nodes = suite_nodes(SuiteOptions(model_dir=str(args.model), map_file=str(args.map) if args.map else "",
                                      image_topic=args.image_topic, image_qos=args.image_qos or "",
-                                     verify=args.verify))
+                                     verify=args.verify, backend=args.backend))
     if not args.pipeline:
         return [[sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
                 for node in nodes]

@@ -25,6 +25,11 @@ Each sequence DIR/<train|test>/ holds:
                           depth on <namespace>/depth and sensor_msgs/CameraInfo on
                           <namespace>/camera_info (namespace of --topic), all with the same stamps
   poses.txt               KITTI camera-to-world 3x4 poses, one line per frame
+  groundtruth.tum         the same poses in TUM format (image stamps in seconds), for aefabmap_ate
+  odometry.tum            a drifting odometry of the camera (TUM, same stamps), seeded by --seed:
+                          each step's translation 1.5 % too long (+ 0.5 % noise per step) and turned
+                          by 0.1 degree of yaw per metre (+ 0.02 degree noise per step) about the
+                          vertical (core/trajectory_error.py OdometryDrift)
   times.txt               seconds since the first frame, one line per frame
   calib.txt               KITTI-style projection matrix "P0: ..." of the pinhole camera
   camera_info.yaml        the camera in ROS camera_calibration_parsers' format (K, D = 0, R = I, P)
@@ -54,7 +59,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
-from aefabmap_ros.core.atomic import atomic_write_bytes
+from aefabmap_ros.core.atomic import atomic_write_bytes, atomic_write_text
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
 from aefabmap_ros.core.synth import (
@@ -65,6 +70,7 @@ from aefabmap_ros.core.synth import (
     generate_sequence,
     train_test_configs,
 )
+from aefabmap_ros.core.trajectory_error import OdometryDrift, drifting_odometry, tum_text
 
 PRESETS = ("figure-eight", "dense-video")
 
@@ -141,6 +147,11 @@ def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: 
                                                  strict=True))
         write_rgbd_bag(directory / "bag", topic, frames, sequence.camera_matrix, storage="mcap")
     write_kitti_poses(directory / "poses.txt", sequence.poses)
+    stamps_s = sequence.stamps_ns / 1e9
+    atomic_write_text(directory / "groundtruth.tum", tum_text(stamps_s, sequence.poses))
+    # The camera's y axis points down: the world's up is -y in the camera frame.
+    odometry = drifting_odometry(sequence.poses, np.array([0.0, -1.0, 0.0]), OdometryDrift(seed=config.seed))
+    atomic_write_text(directory / "odometry.tum", tum_text(stamps_s, odometry))
     atomic_write_bytes(directory / "camera_info.yaml",
                        camera_info_yaml(sequence.camera_matrix, config.width, config.height).encode())
     seconds = (sequence.stamps_ns - sequence.stamps_ns[0]) / 1e9

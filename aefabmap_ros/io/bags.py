@@ -50,6 +50,16 @@ def find_message_dir() -> Path:
     raise BagError(f"cannot find the {MESSAGE_PACKAGE} .msg definitions (searched: {searched})")
 
 
+def no_pose_fields() -> dict[str, Any]:
+    """LoopClosure's relative-pose fields for a closure without a pose (rosbags messages need every field)."""
+    types = get_typestore().types
+    pose = types["geometry_msgs/msg/Pose"](position=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                                           orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
+                                                                                             w=1.0))
+    return {"pose_available": False, "pose_status": 5, "pose": pose, "pose_covariance": np.zeros(36),
+            "translation_metric": False}
+
+
 @cache
 def get_typestore() -> Typestore:
     """The ROS 2 Jazzy type store with the aefabmap_msgs types registered."""
@@ -290,6 +300,26 @@ def message_count(path: Path, topic: str) -> int:
         reader.close()
 
 
+def _connection_typestore(connection: Any, ours: Typestore) -> Typestore:
+    """Our type store, unless the bag recorded one of our message types with another definition (a
+    recording made before a field was added, e.g. LoopClosure's relative pose): then a store built from
+    the bag's own definition, so older recordings stay readable."""
+    if not connection.msgtype.startswith(f"{MESSAGE_PACKAGE}/"):
+        return ours
+    definition = getattr(getattr(connection, "msgdef", None), "data", "")
+    if not definition:
+        return ours
+    try:
+        recorded = get_types_from_msg(definition, connection.msgtype)
+    except Exception:  # an unparsable definition: try ours, which reports a bad message as corrupt
+        return ours
+    if recorded[connection.msgtype][1] == ours.fielddefs.get(connection.msgtype, (None, None))[1]:
+        return ours
+    store = _rosbags_typestore(Stores.ROS2_JAZZY)
+    store.register({name: fields for name, fields in recorded.items() if name.startswith(f"{MESSAGE_PACKAGE}/")})
+    return store
+
+
 def read_messages(
     path: Path, topics: Iterable[str], start_ns: int | None = None, stop_ns: int | None = None
 ) -> Iterator[BagMessage]:
@@ -305,9 +335,10 @@ def read_messages(
                 f"topic(s) {missing} not in bag {path}; it has: {sorted(available) or 'no topics'}"
             )
         connections = [c for c in reader.connections if c.topic in wanted]
+        stores = {connection.id: _connection_typestore(connection, typestore) for connection in connections}
         try:
             for connection, log_time_ns, raw in reader.messages(connections, start=start_ns, stop=stop_ns):
-                message = typestore.deserialize_cdr(raw, connection.msgtype)
+                message = stores[connection.id].deserialize_cdr(raw, connection.msgtype)
                 header = getattr(message, "header", None)
                 stamp_ns = stamp_to_ns(header.stamp) if header is not None else 0
                 yield BagMessage(

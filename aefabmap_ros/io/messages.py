@@ -13,11 +13,13 @@ from typing import Any
 import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features, LoopClosure, PlacePosterior
 from builtin_interfaces.msg import Time
+from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from aefabmap_ros.core import features as core_features
 from aefabmap_ros.core.detector import Candidate, Recognition
 from aefabmap_ros.core.errors import DataError, VocabularyMismatchError
+from aefabmap_ros.core.relative_pose import CameraModel, PoseOutcome
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
 
@@ -169,3 +171,26 @@ def recognition_to_loop_closure(recognition: Recognition, header: Any) -> LoopCl
     message.probability = float(match.probability)
     message.log_likelihood = float(match.log_likelihood)
     return message
+
+
+def camera_info_to_model(message: Any) -> CameraModel | None:
+    """``sensor_msgs/CameraInfo`` -> intrinsics; None for an uncalibrated camera (K all zero)."""
+    matrix = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    if matrix[0, 0] == 0.0:
+        return None
+    return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))
+
+
+def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
+    """Write a relative pose (or why there is none) into a LoopClosure's pose fields."""
+    message.pose_status = int(outcome.status)
+    message.pose_available = outcome.pose is not None
+    if outcome.pose is None:
+        return
+    x, y, z, w = Rotation.from_matrix(outcome.pose.rotation).as_quat()
+    message.pose.orientation.x, message.pose.orientation.y = float(x), float(y)
+    message.pose.orientation.z, message.pose.orientation.w = float(z), float(w)
+    tx, ty, tz = (float(value) for value in outcome.pose.translation)
+    message.pose.position.x, message.pose.position.y, message.pose.position.z = tx, ty, tz
+    message.pose_covariance = [float(value) for value in outcome.pose.covariance.reshape(36)]
+    message.translation_metric = outcome.pose.metric

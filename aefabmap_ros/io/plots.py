@@ -117,3 +117,19 @@ def plot_reliability(diagrams: Sequence[tuple[str, Reliability]], path: Path,
     axes.legend(loc="upper left", fontsize="small")
     figure.tight_layout()
     _save(figure, path)
+
+
+def plot_trajectories(reference: np.ndarray, estimates: Sequence[tuple[str, np.ndarray]], path: Path,
+                      title: str = "Trajectories (aligned to the reference)") -> None:
+    """Top view (x, y) of (N, 3) positions: the reference and each aligned estimate."""
+    figure, axes = plt.subplots(figsize=(6.5, 6.0))
+    axes.plot(reference[:, 0], reference[:, 1], "k--", linewidth=1.5, label="ground truth")
+    for label, positions in estimates:
+        axes.plot(positions[:, 0], positions[:, 1], linewidth=1.2, label=label)
+    axes.set_xlabel("x (m)")
+    axes.set_ylabel("y (m)")
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.set_title(title)
+    axes.legend(loc="best")
+    figure.tight_layout()
+    _save(figure, path)

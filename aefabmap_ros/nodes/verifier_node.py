@@ -23,6 +23,16 @@ A closure can arrive before its query's features or posterior (separate topics):
 to that folder (every ``save_period_s`` the frames added since the last save, as one more chunk
 file, and on shutdown) and reloaded on start, so after a restart the places seen before it can
 still be verified.
+
+Relative pose (core/relative_pose.py): every published closure carries the matched place's camera
+pose in the query camera's frame, computed from the matches, or ``pose_available`` false and the
+reason in ``pose_status`` (counted). Intrinsics come from ``camera_info`` (``sensor_msgs/CameraInfo``)
+or the ``camera_matrix`` parameter (fx, fy, cx, cy; it wins when set). Without depth the pose is
+the essential matrix's (rotation and translation direction, ``translation_metric`` false); with
+``depth_topic`` set (an aligned ``sensor_msgs/Image``, 16UC1 in mm or 32FC1 in m, stamped like the
+images) the depth at each stored keypoint is kept beside the features (same frame bound) and the
+pose is PnP's, in metres. The depth at keypoints is not saved to ``store_dir``: after a restart the
+reloaded places give monocular poses.
 """
 
 from __future__ import annotations
@@ -32,22 +42,33 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
 from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
 
 from aefabmap_ros.core.atomic import remove_stale_temporaries
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.features import Features as CoreFeatures
 from aefabmap_ros.core.loop_tracking import LoopTrack
+from aefabmap_ros.core.relative_pose import (
+    CameraModel,
+    KeypointDepthStore,
+    RelativePoseConfig,
+    depths_of_matches,
+    relative_pose,
+)
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.core.verification import (
     FeatureStore,
     FeatureStoreFolder,
     VerificationConfig,
+    match_descriptors,
     rerank_by_inliers,
     verify_pair,
 )
-from aefabmap_ros.io.messages import message_to_features
+from aefabmap_ros.io.image_messages import depth_message_to_metres
+from aefabmap_ros.io.messages import camera_info_to_model, fill_relative_pose, message_to_features
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
     RESULT_QOS,
@@ -103,10 +124,22 @@ class VerifierNode(Node):
             "Save the frames added since the last save this often (seconds; 0 = only on shutdown).",
         )
         self.config = declare_config(self, VerificationConfig)
+        self.pose_config = declare_config(self, RelativePoseConfig, prefix="pose_")
+        camera_matrix = declare_parameter(
+            self, "camera_matrix", [0.0, 0.0, 0.0, 0.0],
+            "Intrinsics fx, fy, cx, cy for the relative pose (all 0 = take them from camera_info).",
+        )
+        depth_topic = declare_parameter(
+            self, "depth_topic", "",
+            "Aligned depth image topic (16UC1 mm or 32FC1 m) for metric relative poses ('' = monocular).",
+        )
         if max_frames < 1 or max_features < 0 or self.max_pending < 1:
             raise ConfigError(f"verifier_node: max_stored_frames ({max_frames}) and max_pending "
                               f"({self.max_pending}) must be >= 1, max_stored_features ({max_features}) >= 0")
         self.store = FeatureStore(max_frames, max_features)
+        self.camera = _camera_from_parameter(camera_matrix)
+        self.camera_fixed = self.camera is not None
+        self.depths = KeypointDepthStore(max_frames) if depth_topic else None
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
         if self.store_folder is not None:
             for leftover in remove_stale_temporaries(self.store_folder.folder, "chunk-*.npz"):
@@ -125,6 +158,9 @@ class VerifierNode(Node):
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
         self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
+        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
+        if depth_topic:
+            self.create_subscription(Image, depth_topic, self._on_depth, pipeline_qos(depth))
         if self.rerank or self.track.enabled:
             self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
         self.store_saver = PeriodicSave(
@@ -148,7 +184,38 @@ class VerifierNode(Node):
             self.counter.drop("bad_features", str(exc))
             return
         self.store_saver.mark_changed()
+        stored = self.store.get(stamp_ns)
+        if self.depths is not None and stored is not None:
+            self.depths.add_features(stamp_ns, stored.keypoints)
         self._verify_if_ready(stamp_ns)
+
+    @node_callback
+    def _on_camera_info(self, message: CameraInfo) -> None:
+        if self.camera_fixed:
+            return
+        try:
+            self.camera = camera_info_to_model(message)
+        except AefabmapError as exc:
+            self.counter.drop("bad_camera_info", str(exc))
+
+    @node_callback
+    def _on_depth(self, message: Image) -> None:
+        if self.depths is None:
+            return
+        try:
+            self.depths.add_depth(stamp_to_ns(message.header.stamp), depth_message_to_metres(message))
+        except AefabmapError as exc:
+            self.counter.drop("bad_depth", str(exc))
+
+    def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures) -> None:
+        """Fill the closure's relative pose from the query-place matches (or say why there is none)."""
+        query_points, place_points = match_descriptors(query, place, self.config.ratio)
+        keypoint_depths = None if self.depths is None else self.depths.get(stamp_to_ns(closure.matched_stamp))
+        place_depths = None if keypoint_depths is None else depths_of_matches(
+            place_points, place.keypoints, keypoint_depths)
+        outcome = relative_pose(query_points, place_points, self.camera, self.pose_config, place_depths)
+        fill_relative_pose(closure, outcome)
+        self.counter.ok(f"pose_{outcome.status.name.lower()}")
 
     @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
@@ -236,6 +303,7 @@ class VerifierNode(Node):
             probability=float(posterior.probabilities[rank]), log_likelihood=float(posterior.log_likelihoods[rank]),
             inliers=outcome.verification.inliers,
         )
+        self._attach_pose(closure, query, place.features)
         self.track.accept(query_ns, stamp_to_ns(place.stamp))
         self.counter.ok("accepted_by_tracking")
         self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
@@ -277,6 +345,7 @@ class VerifierNode(Node):
         self.get_logger().info(f"{text} accepted: {outcome.verification.inliers} inliers of "
                                f"{outcome.verification.matches} matches")
         message.inliers = outcome.verification.inliers
+        self._attach_pose(message, query, winner.features)
         self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
         self.publisher.publish(message)
 
@@ -296,6 +365,18 @@ class VerifierNode(Node):
             f"{self.counter.summary()}"
         )
         return saved
+
+
+def _camera_from_parameter(values: list[float]) -> CameraModel | None:
+    """fx, fy, cx, cy -> intrinsics; None when unset (all zero)."""
+    if len(values) != 4:
+        raise ConfigError(f"verifier_node: camera_matrix must be [fx, fy, cx, cy], got {values}")
+    fx, fy, cx, cy = (float(value) for value in values)
+    if not any((fx, fy, cx, cy)):
+        return None
+    if fx <= 0 or fy <= 0:
+        raise ConfigError(f"verifier_node: camera_matrix focal lengths must be > 0, got {values}")
+    return CameraModel(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -30,3 +30,9 @@ def test_verify_quick(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     for part in ("verify nearby", "verify distant", "per closure, 5 cand.", "KiB per frame", "feature extraction"):
         assert part in out
+
+
+def test_backend_quick(capsys: pytest.CaptureFixture[str]) -> None:
+    assert bench.main(["backend", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "'added': 60" in out and "update per closure at" in out

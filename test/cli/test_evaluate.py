@@ -307,6 +307,7 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                     header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
                     matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
                     probability=probability, log_likelihood=0.0, inliers=inliers[0] if inliers else -1,
+                    **bags.no_pose_fields(),
                 )
                 writer.write(topic, start + query * period, message)
 

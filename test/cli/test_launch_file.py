@@ -162,6 +162,7 @@ CASES = [  # (ros2 launch arguments, the same choice for aefabmap_launch)
       "--image-qos", "reliable", "--params", "/p.yaml"]),
     ({"model_dir": "/m", "verify": "0", "map_file": "/maps/office.npz"},
      ["--model", "/m", "--no-verify", "--map", "/maps/office.npz"]),
+    ({"model_dir": "/m", "backend": "true"}, ["--model", "/m", "--backend"]),
 ]
 
 
@@ -186,6 +187,12 @@ def test_verification_is_on_by_default_and_one_switch_turns_it_off(launch_file: 
         _ros2_launch(launch_file, {"model_dir": "/m", "verify": "maybe"})
 
 
+def test_backend_adds_the_pose_graph_node(launch_file: Any) -> None:
+    with_backend = _ros2_launch(launch_file, {"model_dir": "/m", "backend": "true"})
+    assert [name for name, *_ in with_backend] == ["feature_node", "quantizer_node", "fabmap_node", "verifier_node",
+                                                   "pose_graph_node"]
+
+
 def test_launch_file_with_the_real_launch_packages() -> None:
     """Only where launch and launch_ros are installed (a full ROS 2 Jazzy install)."""
     pytest.importorskip("launch_ros")  # first: from the repository root, `launch` alone finds the launch/ folder
@@ -194,12 +201,14 @@ def test_launch_file_with_the_real_launch_packages() -> None:
     utilities = importlib.import_module("launch.utilities")
     description = _load_launch_file().generate_launch_description()
     arguments = {a.name: a for a in description.entities if isinstance(a, actions.DeclareLaunchArgument)}
-    assert set(arguments) == {"model_dir", "params_file", "map_file", "image_topic", "image_qos", "verify"}
+    assert set(arguments) == {"model_dir", "params_file", "map_file", "image_topic", "image_qos", "verify",
+                              "backend"}
     context = real_launch.LaunchContext()
     assert utilities.perform_substitutions(context, arguments["verify"].default_value) == "true"
     (opaque,) = [e for e in description.entities if isinstance(e, actions.OpaqueFunction)]
     context.launch_configurations.update({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "",
-                                          "image_topic": "image", "image_qos": "", "verify": "true"})
+                                          "image_topic": "image", "image_qos": "", "verify": "true",
+                                          "backend": "false"})
     assert len(opaque.execute(context)) == 4
     context.launch_configurations["verify"] = "false"
     assert len(opaque.execute(context)) == 3

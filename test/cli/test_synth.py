@@ -27,7 +27,14 @@ def test_writes_folder_sequences(tmp_path, capsys):
         image = cv2.imread(str(pngs[0]), cv2.IMREAD_UNCHANGED)
         assert image is not None
         assert image.shape == (72, 96) and image.dtype == np.uint8
-        assert read_kitti_poses(directory / "poses.txt").shape == (12, 3, 4)
+        poses = read_kitti_poses(directory / "poses.txt")
+        assert poses.shape == (12, 3, 4)
+        truth, odometry = np.loadtxt(directory / "groundtruth.tum"), np.loadtxt(directory / "odometry.tum")
+        assert truth.shape == odometry.shape == (12, 8)
+        np.testing.assert_allclose(truth[:, 1:4], poses[:, :, 3], atol=1e-6)
+        np.testing.assert_array_equal(truth[:, 0], odometry[:, 0])
+        np.testing.assert_allclose(odometry[0], truth[0])  # starts at the first true pose, then drifts
+        assert not np.allclose(odometry[-1, 1:4], truth[-1, 1:4], atol=1e-3)
         times = np.loadtxt(directory / "times.txt")
         np.testing.assert_allclose(times, np.arange(12) * 0.1, atol=1e-9)
         with np.load(directory / "loop_gt.npz") as data:

@@ -39,6 +39,7 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
         probability=0.995,
         log_likelihood=-12.5,
         inliers=37,
+        **bags.no_pose_fields(),
     )
     features = types["aefabmap_msgs/msg/Features"](
         header=bags.make_header(5_000_000_123, "cam"),
@@ -169,3 +170,33 @@ def test_finished_bag_is_named_as_rosbag2_names_it(tmp_path: Path, storage: str,
     assert [f["path"] for f in info["files"]] == [f"run_0.{extension}"]
     assert [p.name for p in tmp_path.iterdir()] == ["run"]  # no staging folder left beside it
     assert len(list(bags.read_messages(path, ["/image"]))) == 3
+
+
+# LoopClosure as recorded before the relative-pose fields were added.
+OLD_LOOP_CLOSURE = """std_msgs/Header header
+int64 query_id
+int64 query_place_id
+int64 matched_place_id
+builtin_interfaces/Time matched_stamp
+float64 probability
+float64 log_likelihood
+int32 inliers -1
+"""
+
+
+def test_an_older_loop_closure_recording_stays_readable(tmp_path: Path) -> None:
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    old = get_typestore(Stores.ROS2_JAZZY)
+    old.register(get_types_from_msg(OLD_LOOP_CLOSURE, "aefabmap_msgs/msg/LoopClosure"))
+    message = old.types["aefabmap_msgs/msg/LoopClosure"](
+        header=bags.make_header(5_000_000_123, "cam"), query_id=42, query_place_id=7, matched_place_id=7,
+        matched_stamp=bags.make_time(1_000_000_456), probability=0.995, log_likelihood=-12.5, inliers=37)
+    path = tmp_path / "old"
+    with bags.BagWriter(path) as writer:
+        writer._typestore = old  # what the recorder of that time embedded and serialized
+        writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
+        writer.write("/loop_closures", 5_000_000_123, message)
+    (read,) = bags.read_messages(path, ["/loop_closures"])
+    assert read.message.query_id == 42 and read.message.inliers == 37
+    assert read.stamp_ns == 5_000_000_123

@@ -332,7 +332,8 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
     node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1, track_seconds=0.0))
     try:
         assert node.publisher.topic_name == "/loop_closures"
-        assert [s.topic_name for s in node.subscriptions] == ["/aefabmap/features", "/loop_closure_candidates"]
+        assert [s.topic_name for s in node.subscriptions] == ["/aefabmap/features", "/loop_closure_candidates",
+                                                              "/camera_info"]
         verified = Captured(node.publisher)
         for sec, features in ((1, place), (2, unrelated), (3, query)):
             node._on_features(_features_message(features, sec))
@@ -356,6 +357,77 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
         node.close()
     finally:
         node.destroy_node()
+
+
+def _camera_info() -> Any:
+    from sensor_msgs.msg import CameraInfo
+
+    from test.core.test_verification import FOCAL, HEIGHT, WIDTH
+
+    return CameraInfo(width=WIDTH, height=HEIGHT, k=[FOCAL, 0.0, WIDTH / 2, 0.0, FOCAL, HEIGHT / 2, 0.0, 0.0, 1.0],
+                      d=[0.0] * 5, distortion_model="plumb_bob")
+
+
+def _place_depth_image(sec: int) -> Image:
+    """32FC1 depth of _two_views(seed=21)'s place ("second") camera at its shared keypoints, NaN elsewhere."""
+    from test.core.test_verification import FOCAL, HEIGHT, WIDTH, _rotation_y
+
+    rng = np.random.default_rng(21)  # the same draws as _two_views(seed=21) makes first
+    points = np.column_stack([rng.uniform(-4, 4, 120), rng.uniform(-3, 3, 120), rng.uniform(5, 15, 120)])
+    camera = points @ _rotation_y(0.15).T + np.array([0.8, 0.1, 0.3])
+    pixels = np.stack([FOCAL * camera[:, 0] / camera[:, 2] + WIDTH / 2,
+                       FOCAL * camera[:, 1] / camera[:, 2] + HEIGHT / 2], axis=1)
+    depth = np.full((HEIGHT, WIDTH), np.nan, dtype=np.float32)
+    columns, rows = np.rint(pixels[:, 0]).astype(int), np.rint(pixels[:, 1]).astype(int)
+    inside = (columns >= 1) & (rows >= 1) & (columns < WIDTH - 1) & (rows < HEIGHT - 1)
+    for row, column, z in zip(rows[inside], columns[inside], camera[inside, 2], strict=True):
+        depth[row - 1:row + 2, column - 1:column + 2] = z  # keypoints are ~0.3 px noisy: cover the neighbours
+    return _image(depth.tobytes(), "32FC1", HEIGHT, WIDTH, WIDTH * 4, sec=sec)
+
+
+def test_verifier_node_attaches_the_relative_pose() -> None:
+    """Without camera_info: verified, no pose (flagged); with it: the essential matrix's pose; with depth: metric."""
+    from scipy.spatial.transform import Rotation
+
+    from test.core.test_verification import _rotation_y, _two_views
+
+    query, place, _ = _two_views(seed=21)
+    # _two_views: place points = R (query points) + t, so the place camera in the query frame is (R^T, -R^T t).
+    rotation, translation = _rotation_y(0.15), np.array([0.8, 0.1, 0.3])
+    true_rotation, true_translation = rotation.T, -rotation.T @ translation
+
+    def pose_of(closure: Any) -> tuple[float, float, np.ndarray]:
+        q = closure.pose.orientation
+        estimated = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        rotation_error = np.degrees(np.linalg.norm(Rotation.from_matrix(estimated @ true_rotation.T).as_rotvec()))
+        t = np.array([closure.pose.position.x, closure.pose.position.y, closure.pose.position.z])
+        cosine = t @ true_translation / (np.linalg.norm(t) * np.linalg.norm(true_translation))
+        return float(rotation_error), float(np.degrees(np.arccos(min(cosine, 1.0)))), t
+
+    for depth_topic in ("", "depth"):
+        node = VerifierNode(parameter_overrides=_params(candidates=1, track_seconds=0.0, depth_topic=depth_topic))
+        try:
+            verified = Captured(node.publisher)
+            node._on_features(_features_message(place, 1))
+            node._on_features(_features_message(query, 3))
+            node._on_loop_closure(_closure(3, 1, query_id=10))  # no camera_info yet
+            node._on_camera_info(_camera_info())
+            if depth_topic:
+                node._on_depth(_place_depth_image(1))
+            node._on_loop_closure(_closure(3, 1, query_id=11))
+            first, second = verified.messages
+            assert not first.pose_available and first.pose_status == msg.LoopClosure.POSE_NO_CAMERA_INFO
+            assert second.pose_available and second.pose_status == msg.LoopClosure.POSE_OK
+            rotation_error, direction_error, t = pose_of(second)
+            assert rotation_error <= 1.0 and direction_error <= 3.0
+            assert second.translation_metric == bool(depth_topic)
+            if depth_topic:
+                assert np.linalg.norm(t - true_translation) <= 0.05
+            else:
+                assert np.linalg.norm(t) == pytest.approx(1.0)
+            assert node.counter.counts["pose_no_camera_info"] == 1 and node.counter.counts["pose_ok"] == 1
+        finally:
+            node.destroy_node()
 
 
 def _posterior(query_sec: int, place_secs: list[int], candidate: bool = True) -> Any:

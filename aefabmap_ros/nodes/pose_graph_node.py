@@ -1,0 +1,139 @@
+"""pose_graph_node: an EXAMPLE SLAM backend on ``/loop_closures`` (the pattern to copy into your own).
+
+Subscribes to odometry (``odom``, ``nav_msgs/Odometry``, strictly increasing stamps) and to
+``loop_closures``; every closure with a relative pose adds a keyframe at each endpoint (odometry
+interpolated at the image stamps) and a robust loop factor, and the graph is re-optimised with
+iSAM2 (core/pose_graph.py has the model). Publishes the optimised keyframe trajectory on
+``pose_graph/path`` (``nav_msgs/Path`` in ``map_frame``) and ``map -> odom``: on ``/tf`` when the
+``tf2_msgs`` package is installed, else as a ``geometry_msgs/TransformStamped`` on
+``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). On shutdown the keyframe
+trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not written).
+
+Assumes the camera frame is the odometry's child frame (the closure's pose is used as the
+keyframes' relative pose as it is); a robot with an offset camera conjugates it by the extrinsic.
+Bad input is counted and dropped: odometry out of order, a closure without a pose, a closure to a
+stamp the odometry never covered, a closure the odometry drift cannot explain.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+from aefabmap_msgs.msg import LoopClosure
+from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMessage
+from rclpy.node import Node
+from scipy.spatial.transform import Rotation
+
+from aefabmap_ros.core.atomic import atomic_write_text
+from aefabmap_ros.core.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, to_tum_lines
+from aefabmap_ros.core.stamps import stamp_to_ns
+from aefabmap_ros.io.messages import time_from_ns
+from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
+
+try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # pragma: no cover - depends on the installation
+    TFMessage = None
+
+_DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureResult.INCONSISTENT,
+            ClosureResult.NO_POSE}
+
+
+def pose_to_gtsam(pose: Pose) -> gtsam.Pose3:
+    q = pose.orientation
+    rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    return gtsam.Pose3(gtsam.Rot3(rotation), np.array([pose.position.x, pose.position.y, pose.position.z]))
+
+
+def gtsam_to_pose(pose3: gtsam.Pose3) -> Pose:
+    message = Pose()
+    x, y, z = (float(value) for value in pose3.translation())
+    message.position.x, message.position.y, message.position.z = x, y, z
+    qx, qy, qz, qw = (float(value) for value in Rotation.from_matrix(pose3.rotation().matrix()).as_quat())
+    message.orientation.x, message.orientation.y, message.orientation.z, message.orientation.w = qx, qy, qz, qw
+    return message
+
+
+class PoseGraphNode(Node):
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("pose_graph_node", **node_kwargs)
+        self.map_frame = declare_parameter(self, "map_frame", "map", "Frame of the optimised trajectory.")
+        self.odom_frame = declare_parameter(self, "odom_frame", "odom", "Odometry's fixed frame (map -> odom).")
+        trajectory_file = declare_parameter(
+            self, "trajectory_file", "", "TUM file the keyframe trajectory is written to on shutdown ('' = none).")
+        self.trajectory_file = Path(trajectory_file) if trajectory_file else None
+        self.graph = PoseGraph(declare_config(self, PoseGraphConfig))
+        self.counter = DropCounter(self)
+        self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
+        if TFMessage is not None:
+            self.tf_publisher = self.create_publisher(TFMessage, "/tf", RESULT_QOS)
+        else:
+            self.tf_publisher = self.create_publisher(TransformStamped, "pose_graph/map_to_odom", RESULT_QOS)
+        self.create_subscription(Odometry, "odom", self._on_odometry, RESULT_QOS)
+        self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
+
+    def _on_odometry(self, message: Odometry) -> None:
+        before = self.graph.counts["odometry_out_of_order"]
+        results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose))
+        if self.graph.counts["odometry_out_of_order"] > before:
+            self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+        self._report(results, stamp_to_ns(message.header.stamp))
+
+    def _on_loop_closure(self, message: LoopClosure) -> None:
+        if not message.pose_available:
+            self.counter.drop(ClosureResult.NO_POSE.value, f"closure of query {message.query_id} has no pose "
+                              f"(pose_status {message.pose_status})")
+            return
+        covariance = np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6)
+        closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp),
+                          pose_to_gtsam(message.pose), covariance)
+        self._report([self.graph.add_closure(closure)], closure.query_ns)
+
+    def _report(self, results: list[ClosureResult], stamp_ns: int) -> None:
+        for result in results:
+            if result in _DROPPED:
+                self.counter.drop(result.value, f"loop closure near stamp {stamp_ns} dropped: {result.value}")
+            else:
+                self.counter.ok(result.value)
+        if ClosureResult.ADDED in results:
+            self._publish(stamp_ns)
+
+    def _publish(self, stamp_ns: int) -> None:
+        stamp = time_from_ns(stamp_ns)
+        path = PathMessage()
+        path.header.frame_id, path.header.stamp = self.map_frame, stamp
+        for keyframe_ns, pose in self.graph.trajectory():
+            entry = PoseStamped(pose=gtsam_to_pose(pose))
+            entry.header.frame_id, entry.header.stamp = self.map_frame, time_from_ns(keyframe_ns)
+            path.poses.append(entry)
+        self.path_publisher.publish(path)
+        transform = TransformStamped()
+        transform.header.frame_id, transform.header.stamp = self.map_frame, stamp
+        transform.child_frame_id = self.odom_frame
+        pose = gtsam_to_pose(self.graph.map_to_odom())
+        transform.transform.translation.x = pose.position.x
+        transform.transform.translation.y = pose.position.y
+        transform.transform.translation.z = pose.position.z
+        transform.transform.rotation = pose.orientation
+        self.tf_publisher.publish(TFMessage(transforms=[transform]) if TFMessage is not None else transform)
+
+    def close(self) -> None:
+        if self.trajectory_file is not None:
+            lines = to_tum_lines(self.graph.trajectory())
+            atomic_write_text(self.trajectory_file, "".join(f"{line}\n" for line in lines))
+            self.get_logger().info(f"wrote {len(lines)} keyframes to {self.trajectory_file}")
+        self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(PoseGraphNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
