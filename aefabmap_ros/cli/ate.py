@@ -16,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.core.errors import ConfigError
 from aefabmap_ros.core.trajectory_error import DEFAULT_MAX_DIFF_S, absolute_trajectory_error, read_tum
 
@@ -64,10 +64,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: run(args))
+    return run_cli(build_parser(), argv, run)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.core.errors import ConfigError, ImageError
 from aefabmap_ros.io.bags import STORAGES, write_image_bag
 from aefabmap_ros.io.rgbd import read_times, stamps_from_names
@@ -77,10 +77,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: run(args))
+    return run_cli(build_parser(), argv, run)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import time
 import gtsam
 import numpy as np
 
-from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.core.pose_graph import Closure, PoseGraph, PoseGraphConfig
 
 STEP_M = 0.5
@@ -79,7 +79,4 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: run(args))
+    return run_cli(build_parser(), argv, run)

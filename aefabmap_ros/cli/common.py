@@ -69,3 +69,12 @@ def no_empty_folders_left_on_error(*folders: Path) -> Iterator[None]:
             with suppress(OSError):
                 path.rmdir()  # only succeeds on an empty folder
         raise
+
+
+def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+            run: Callable[[argparse.Namespace], int], interrupted: str = "interrupted") -> int:
+    """A CLI's main: parse (a usage error is one ERROR line, exit 1), then run with errors reported."""
+    args = parse_or_report(parser, argv)
+    if args is None:
+        return 1
+    return report_errors(lambda: run(args), interrupted)

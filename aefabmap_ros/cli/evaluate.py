@@ -64,13 +64,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from aefabmap_ros.cli.common import (
-    RESUME_HINT,
-    ArgumentParser,
-    no_empty_folders_left_on_error,
-    parse_or_report,
-    report_errors,
-)
+from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, no_empty_folders_left_on_error, run_cli
 from aefabmap_ros.cli.train import extract_all, source_provenance
 from aefabmap_ros.core.atomic import atomic_write_text
 from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
@@ -546,10 +540,7 @@ def run_evaluation(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: run_evaluation(args), RESUME_HINT)
+    return run_cli(build_parser(), argv, run_evaluation, RESUME_HINT)
 
 
 if __name__ == "__main__":

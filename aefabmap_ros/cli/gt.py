@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.core.atomic import atomic_write_bytes
 from aefabmap_ros.core.errors import ConfigError, DataError
 from aefabmap_ros.core.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
@@ -154,10 +154,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: run(args))
+    return run_cli(build_parser(), argv, run)
 
 
 if __name__ == "__main__":

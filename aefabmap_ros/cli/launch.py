@@ -119,8 +119,7 @@ def supervise(commands: list[list[str]]) -> int:
         nonlocal stopping
         stopping = True
 
-    signal.signal(signal.SIGINT, stop)
-    signal.signal(signal.SIGTERM, stop)
+    previous_handlers = {signum: signal.signal(signum, stop) for signum in (signal.SIGINT, signal.SIGTERM)}
     exit_code = 0
     try:
         while not stopping:
@@ -143,6 +142,8 @@ def supervise(commands: list[list[str]]) -> int:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+        for signum, handler in previous_handlers.items():  # the caller's handling of Ctrl-C comes back
+            signal.signal(signum, handler)
     return exit_code
 
 

@@ -114,8 +114,12 @@ class StopRequest:
         return self.signum is not None
 
     def install(self) -> None:
-        signal.signal(signal.SIGINT, self)
-        signal.signal(signal.SIGTERM, self)
+        self._previous = {signum: signal.signal(signum, self) for signum in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore(self) -> None:
+        """The handlers from before ``install`` (main() may run inside another program, e.g. a test)."""
+        for signum, handler in getattr(self, "_previous", {}).items():
+            signal.signal(signum, handler)
 
     def exit_code(self) -> int:
         """The shell's convention for a process ended by a signal: 128 + its number (130, 143)."""
@@ -270,6 +274,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(raw_argv)
     stop = StopRequest()
     stop.install()  # before anything slow: a signal during start-up is a clean stop too
+    try:
+        return _replay(args, ros_args, stop)
+    finally:
+        stop.restore()
+
+
+def _replay(args: argparse.Namespace, ros_args: list[str], stop: StopRequest) -> int:
     try:
         _validate(args)
         msgtype = bags.require_image_topic(args.bag, args.topic)

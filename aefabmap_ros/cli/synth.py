@@ -58,7 +58,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.core.atomic import atomic_write_bytes, atomic_write_text
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.core.ground_truth import write_kitti_poses
@@ -213,10 +213,7 @@ def run(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_or_report(build_parser(), argv)
-    if args is None:
-        return 1
-    return report_errors(lambda: _run_reporting_write_errors(args))
+    return run_cli(build_parser(), argv, _run_reporting_write_errors)
 
 
 def _run_reporting_write_errors(args: argparse.Namespace) -> int:

@@ -224,7 +224,7 @@ def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file:
     description = launch_file.generate_launch_description()
     (opaque,) = [e for e in description.entities if isinstance(e, _OpaqueFunction)]
     context = _Context({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "", "image_topic": "image",
-                        "image_qos": "", "verify": "true"})
+                        "image_qos": "", "verify": "true", "backend": "false"})
     nodes = opaque.execute(context)
     share = str(threads_per_process(len(nodes)))
     for node in nodes:

@@ -119,7 +119,9 @@ def test_launched_processes_get_thread_limits_unless_the_user_set_them(
               "open(sys.argv[1], 'w'))")
     outputs = [tmp_path / f"child{index}.json" for index in range(3)]
     commands = [[sys.executable, "-c", script, str(out), *THREAD_LIMIT_VARIABLES] for out in outputs]
+    handlers = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
     assert launch.supervise(commands) == 0
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # restored
     share = str(threads_per_process(3))
     for out in outputs:
         assert json.loads(out.read_text()) == {"OMP_NUM_THREADS": share, "OPENBLAS_NUM_THREADS": "7",

@@ -89,10 +89,11 @@ class SignalledDuringCloseNode(IdleNode):
 
 def test_a_second_stop_signal_during_the_final_save_does_not_cut_it_short() -> None:
     SignalledDuringCloseNode.saved.clear()
+    before = signal.getsignal(signal.SIGINT)
     assert run_nodes([SignalledDuringCloseNode]) == 0
     assert SignalledDuringCloseNode.saved == [True]
     # The handlers are restored afterwards (pytest's own SIGINT handling works again).
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 class FailingSaveNode(IdleNode):
