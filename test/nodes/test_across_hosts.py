@@ -103,6 +103,10 @@ def test_feature_node_on_another_host_feeds_the_rest_of_the_suite(tmp_path: Path
         feature.wait_for_log("extracting", timeout_s=90)
         quantizer.wait_for_log("quantizing", timeout_s=90)
         fabmap.wait_for_log("FAB-MAP 2 on", timeout_s=90)
+        # Discovery across the link takes its time: replay only once the robot's features reach the base
+        # (else the first frame's features go out before the quantizer is matched, and are lost).
+        quantizer.wait_for_log("receiving features", timeout_s=90)
+        fabmap.wait_for_log("receiving words", timeout_s=90)
         sent_before = (_link_bytes(robot), _link_bytes(base))
         # The replay (base) waits until feature_node (robot) subscribed and fabmap_node answers; lockstep: every
         # image must come back as a place posterior, through the robot and back.
