@@ -92,6 +92,11 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     return nodes
 
 
+def compressed_topic(image_topic: str) -> str:
+    """image_transport's compressed topic of an image topic: ``/cam/image`` -> ``/cam/image/compressed``."""
+    return f"{image_topic.rstrip('/')}/compressed"
+
+
 def threads_per_process(processes: int, cores: int | None = None) -> int:
     """Each process's share of the cores (at least 1): the node processes then start no more
     pool threads together than the machine has cores (rounding down, but never to zero)."""

@@ -25,6 +25,7 @@ from typing import Any
 
 from aefabmap_ros.core.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
+from aefabmap_ros.launch_table import compressed_topic
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,7 +70,7 @@ def publish_topic(out_topic: str, msgtype: str) -> str:
     ``out_topic/compressed`` (image_transport's convention), unless ``out_topic`` already names it."""
     if msgtype != bags.COMPRESSED_IMAGE_TYPE or out_topic.rstrip("/").endswith("/compressed"):
         return out_topic
-    return f"{out_topic.rstrip('/')}/compressed"
+    return compressed_topic(out_topic)
 
 
 def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:

@@ -28,6 +28,7 @@ from aefabmap_ros.core.model import load_model
 from aefabmap_ros.core.stamps import TransportDeduplicator, stamp_to_ns
 from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.io.messages import features_to_message
+from aefabmap_ros.launch_table import compressed_topic
 from aefabmap_ros.nodes.common import (
     DropCounter,
     declare_config,
@@ -125,11 +126,6 @@ class FeatureNode(Node):
         self._stop_worker()  # the frame in hand is finished first (one still waiting is not), so counts are final
         self.get_logger().info(f"feature_node: {self.counter.summary()}")
         return True
-
-
-def compressed_topic(image_topic: str) -> str:
-    """image_transport's compressed topic of a resolved image topic: ``/cam/image`` -> ``/cam/image/compressed``."""
-    return f"{image_topic.rstrip('/')}/compressed"
 
 
 def main(args: list[str] | None = None) -> int:
