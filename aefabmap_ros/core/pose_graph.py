@@ -25,7 +25,6 @@ from enum import Enum
 
 import gtsam
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.core.errors import ConfigError
 
@@ -353,11 +352,8 @@ def _largest_change(before: gtsam.Values, after: gtsam.Values, keys: list[int]) 
                 for key in keys), default=0.0)
 
 
-def to_tum_lines(trajectory: list[tuple[int, gtsam.Pose3]]) -> list[str]:
-    """TUM trajectory lines: ``timestamp tx ty tz qx qy qz qw`` (seconds, metres)."""
-    lines = []
-    for stamp_ns, pose in trajectory:
-        t = pose.translation()
-        qx, qy, qz, qw = Rotation.from_matrix(pose.rotation().matrix()).as_quat()
-        lines.append(f"{stamp_ns / 1e9:.9f} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}")
-    return lines
+def trajectory_arrays(trajectory: list[tuple[int, gtsam.Pose3]]) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) stamps in seconds and (N, 4, 4) poses of a keyframe trajectory (for ``trajectory_error.tum_text``)."""
+    stamps_s = np.array([stamp_ns / 1e9 for stamp_ns, _ in trajectory], dtype=np.float64)
+    poses = np.array([pose.matrix() for _, pose in trajectory], dtype=np.float64).reshape(-1, 4, 4)
+    return stamps_s, poses

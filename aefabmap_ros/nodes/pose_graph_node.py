@@ -30,7 +30,7 @@ from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.core.atomic import atomic_write_text
-from aefabmap_ros.core.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, to_tum_lines
+from aefabmap_ros.core.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
 from aefabmap_ros.core.stamps import stamp_to_ns
 from aefabmap_ros.io.messages import time_from_ns
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
@@ -125,9 +125,11 @@ class PoseGraphNode(Node):
 
     def close(self) -> None:
         if self.trajectory_file is not None:
-            lines = to_tum_lines(self.graph.trajectory())
-            atomic_write_text(self.trajectory_file, "".join(f"{line}\n" for line in lines))
-            self.get_logger().info(f"wrote {len(lines)} keyframes to {self.trajectory_file}")
+            from aefabmap_ros.core.trajectory_error import tum_text  # evo: loaded at shutdown only
+
+            stamps_s, poses = trajectory_arrays(self.graph.trajectory())
+            atomic_write_text(self.trajectory_file, tum_text(stamps_s, poses))
+            self.get_logger().info(f"wrote {len(stamps_s)} keyframes to {self.trajectory_file}")
         self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}")
 
 

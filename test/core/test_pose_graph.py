@@ -15,8 +15,9 @@ from aefabmap_ros.core.pose_graph import (
     OdometryBuffer,
     PoseGraph,
     PoseGraphConfig,
-    to_tum_lines,
+    trajectory_arrays,
 )
+from aefabmap_ros.core.trajectory_error import tum_text
 
 SECOND = 1_000_000_000
 STEP_M = 0.5
@@ -162,7 +163,8 @@ def test_odometry_is_interpolated_between_samples() -> None:
 
 
 def test_tum_lines() -> None:
-    line = to_tum_lines([(1_500_000_000, gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 2.0, 3.0])))])[0]
+    trajectory = [(1_500_000_000, gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 2.0, 3.0])))]
+    (line,) = tum_text(*trajectory_arrays(trajectory)).splitlines()
     assert line.split() == ["1.500000000", "1.000000", "2.000000", "3.000000",
                             "0.000000000", "0.000000000", "0.000000000", "1.000000000"]
 
