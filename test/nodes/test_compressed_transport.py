@@ -7,7 +7,6 @@ aefabmap_replay publishes a bag's CompressedImage topic there, and feature_node 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,16 +21,9 @@ from aefabmap_ros.core.stamps import stamp_to_ns  # noqa: E402
 from aefabmap_ros.io import bags  # noqa: E402
 from test.ros_processes import LoggedProcess  # noqa: E402
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.usefixtures("ros_context")]
 
 FRAMES = 4
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_context() -> Iterator[None]:
-    rclpy.init()
-    yield
-    rclpy.try_shutdown()
 
 
 def _frames() -> list[tuple[int, np.ndarray]]:

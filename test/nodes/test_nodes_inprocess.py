@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,14 +25,7 @@ from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
-pytestmark = pytest.mark.ros
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_context() -> Iterator[None]:
-    rclpy.init()
-    yield
-    rclpy.try_shutdown()
+pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
 
 
 class Captured:

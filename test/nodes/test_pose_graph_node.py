@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,14 +18,7 @@ from aefabmap_ros.io.messages import time_from_ns  # noqa: E402
 from aefabmap_ros.nodes.pose_graph_node import PoseGraphNode, gtsam_to_pose  # noqa: E402
 from test.core.test_pose_graph import drifting_odometry, square_truth, stamp  # noqa: E402
 
-pytestmark = pytest.mark.ros
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_context() -> Iterator[None]:
-    rclpy.init()
-    yield
-    rclpy.try_shutdown()
+pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
 
 
 def _odometry(index: int, pose: Any) -> Odometry:
