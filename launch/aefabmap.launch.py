@@ -4,7 +4,7 @@
     # without geometric verification: FAB-MAP's raw closures on loop_closures (inliers -1)
     ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model verify:=false
 
-The nodes, their parameters and remaps come from ``aefabmap_ros.launch_table``, the same table
+The nodes, their parameters and remaps come from ``aefabmap_ros.nodes.launch_table``, the same table
 ``aefabmap_launch`` uses: by default verifier_node runs and ``loop_closures`` carries only
 geometrically verified closures (FAB-MAP's raw ones: ``loop_closure_candidates``).
 """
@@ -18,7 +18,7 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-from aefabmap_ros.launch_table import PACKAGE, SuiteOptions, parse_bool, suite_nodes, thread_limits
+from aefabmap_ros.nodes.launch_table import PACKAGE, SuiteOptions, parse_bool, suite_nodes, thread_limits
 
 
 def _nodes(context: Any) -> list[Node]:

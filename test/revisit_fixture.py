@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aefabmap_ros.core.features import FeatureConfig, extract_features
-from aefabmap_ros.core.ground_truth import loop_matrix_from_poses
-from aefabmap_ros.core.model import Model, save_model
-from aefabmap_ros.core.synth import SynthConfig, generate_sequence, train_test_configs
-from aefabmap_ros.core.training import sampled_centres_model
+from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence, train_test_configs
+from aefabmap_ros.evaluation.ground_truth import loop_matrix_from_poses
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.io.bags import write_image_bag
+from aefabmap_ros.model.directory import Model, save_model
+from aefabmap_ros.model.training import sampled_centres_model
 
 FRAMES_PER_PASS = 16
 FRAME_PERIOD_NS = 1_000_000_000  # one distinct place a second: the second pass is 16 s later

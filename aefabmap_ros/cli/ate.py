@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.core.errors import ConfigError
-from aefabmap_ros.core.trajectory_error import DEFAULT_MAX_DIFF_S, absolute_trajectory_error, read_tum
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.evaluation.trajectory_error import DEFAULT_MAX_DIFF_S, absolute_trajectory_error, read_tum
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"ATE RMSE {label}: {result.rmse_m:.4f} m ({result.matched} poses, {alignment} alignment)")
         plotted.append((label, result.aligned.positions_xyz))
     if args.plot is not None:
-        from aefabmap_ros.io.plots import plot_trajectories
+        from aefabmap_ros.evaluation.plots import plot_trajectories
 
         plot_trajectories(reference.positions_xyz, plotted, args.plot)
         print(f"plot: {args.plot}")

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.core.errors import ConfigError, ImageError
+from aefabmap_ros.errors import ConfigError, ImageError
 from aefabmap_ros.io.bags import STORAGES, write_image_bag
 from aefabmap_ros.io.rgbd import read_times, stamps_from_names
 from aefabmap_ros.io.sources import folder_images, read_gray

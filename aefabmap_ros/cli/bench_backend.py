@@ -1,4 +1,4 @@
-"""Backend benchmark: the example pose graph's (core/pose_graph.py, iSAM2) update time per loop closure.
+"""Backend benchmark: the example pose graph's (backend/pose_graph.py, iSAM2) update time per loop closure.
 
 A robot drives laps of a 10 m square (0.5 m odometry steps, 2 % scale and 0.15 degree-per-step yaw
 drift); from its second lap on, every second step closes a loop to the same spot of the first lap.
@@ -16,8 +16,8 @@ import time
 import gtsam
 import numpy as np
 
+from aefabmap_ros.backend.pose_graph import Closure, PoseGraph, PoseGraphConfig
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.core.pose_graph import Closure, PoseGraph, PoseGraphConfig
 
 STEP_M = 0.5
 SIDE_STEPS = 20

@@ -22,10 +22,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from aefabmap_ros.cli.common import report_errors
-from aefabmap_ros.core.chowliu import learn_chow_liu_tree
-from aefabmap_ros.core.detector import PlaceRecognizer
-from aefabmap_ros.core.errors import AefabmapError
-from aefabmap_ros.core.fabmap import FabMap1, FabMap2, FabMapConfig, FabMapModel, warm_up_kernels
+from aefabmap_ros.errors import AefabmapError
+from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
+from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapConfig, FabMapModel, warm_up_kernels
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 
 
 class ZipfImages:

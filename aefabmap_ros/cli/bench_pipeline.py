@@ -32,15 +32,15 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
-from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.detector import PlaceRecognizer
-from aefabmap_ros.core.fabmap import FabMapConfig
-from aefabmap_ros.core.features import FeatureConfig, extract_features
-from aefabmap_ros.core.images import image_to_gray
-from aefabmap_ros.core.model import Model, load_model, save_model
-from aefabmap_ros.core.synth import SynthConfig, generate_sequence
-from aefabmap_ros.core.training import sampled_centres_model
+from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
+from aefabmap_ros.features.images import image_to_gray
 from aefabmap_ros.io.bags import read_messages, write_image_bag
+from aefabmap_ros.model.directory import Model, load_model, save_model
+from aefabmap_ros.model.training import sampled_centres_model
 
 PARAMS = """
 feature_node:

@@ -20,9 +20,9 @@ from functools import partial
 
 import numpy as np
 
-from aefabmap_ros.core.features import FeatureConfig, Features, extract_features
-from aefabmap_ros.core.synth import SynthConfig, generate_sequence
-from aefabmap_ros.core.verification import (
+from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
+from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.verification.geometric import (
     FeatureStore,
     VerificationConfig,
     match_descriptors,

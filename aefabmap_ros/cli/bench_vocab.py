@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
-from aefabmap_ros.core.errors import AefabmapError
-from aefabmap_ros.core.features import FeatureConfig, extract_features
-from aefabmap_ros.core.vocabulary import VocabularyConfig, train_vocabulary, word_usage
+from aefabmap_ros.errors import AefabmapError
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
+from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary, word_usage
 
 DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 

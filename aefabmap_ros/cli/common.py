@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
-from aefabmap_ros.core.errors import AefabmapError
+from aefabmap_ros.errors import AefabmapError
 
 RESUME_HINT = "interrupted; rerun the same command to resume from the cached stages"
 

@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
-from aefabmap_ros.core.errors import AefabmapError
-from aefabmap_ros.core.metrics import event_scores
+from aefabmap_ros.errors import AefabmapError
+from aefabmap_ros.evaluation.metrics import event_scores
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
-from aefabmap_ros.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
+from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -239,7 +239,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         if printer is not None:
             printer.close()
     if printer is not None:
-        from aefabmap_ros.core.evaluation import EvaluationConfig  # torch: only once the nodes are done
+        from aefabmap_ros.evaluation.protocol import EvaluationConfig  # torch: only once the nodes are done
 
         print(printer.summary(EvaluationConfig().min_gap), flush=True)
     return recording

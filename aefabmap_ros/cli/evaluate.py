@@ -19,7 +19,7 @@ precision, which need no threshold).
 
 Protocol: the best candidate of query i among frames j <= i - --min-gap. FAB-MAP's posterior is over
 all earlier places (openFABMAP's run), unless the config's evaluation: fabmap_exclude_recent removes
-the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.core.evaluation for the measured
+the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.evaluation.protocol for the measured
 reason this is not the default). Vocabularies (one per
 kind, shared by its FAB-MAP and BoW method), Chow-Liu trees and new-place samples come from the
 training images (--train-images / --train-bag, as the paper does) or, with --train-on-test, from
@@ -66,9 +66,11 @@ from tqdm import tqdm
 
 from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, no_empty_folders_left_on_error, run_cli
 from aefabmap_ros.cli.train import extract_all, source_provenance
-from aefabmap_ros.core.atomic import atomic_write_text
-from aefabmap_ros.core.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.core.evaluation import (
+from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.evaluation.ground_truth import loop_matrix_from_kitti
+from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, evaluate_scores
+from aefabmap_ros.evaluation.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
+from aefabmap_ros.evaluation.protocol import (
     METHODS,
     EvaluationConfig,
     MethodResult,
@@ -87,18 +89,16 @@ from aefabmap_ros.core.evaluation import (
     scores_from_recording,
     unique_slugs,
 )
-from aefabmap_ros.core.fabmap import FabMapConfig
-from aefabmap_ros.core.features import FeatureConfig, Features
-from aefabmap_ros.core.ground_truth import loop_matrix_from_kitti
-from aefabmap_ros.core.metrics import DEFAULT_EVENT_GAP, evaluate_scores
-from aefabmap_ros.core.model import Model, load_model, save_model
-from aefabmap_ros.core.training import TrainingConfig, config_digest, evenly_spaced, train_model
-from aefabmap_ros.core.verification import PairVerifier, VerificationConfig, cached_pair_verifier
-from aefabmap_ros.core.vocabulary import VocabularyConfig
+from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.io import bags
+from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.io.config_files import build_config, read_sections
-from aefabmap_ros.io.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
 from aefabmap_ros.io.sources import ImageSource
+from aefabmap_ros.model.directory import Model, load_model, save_model
+from aefabmap_ros.model.training import TrainingConfig, config_digest, evenly_spaced, train_model
+from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, cached_pair_verifier
+from aefabmap_ros.vocabulary.base import VocabularyConfig
 
 SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencoder", "training", "fabmap",
             "evaluation", "verification")

@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.core.atomic import atomic_write_bytes
-from aefabmap_ros.core.errors import ConfigError, DataError
-from aefabmap_ros.core.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
+from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.evaluation.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
+from aefabmap_ros.io.atomic import atomic_write_bytes
 from aefabmap_ros.io.rgbd import (
     associate,
     intrinsics_matrix,

@@ -1,7 +1,7 @@
 """aefabmap_launch: start the loop-closure nodes as separate processes (no ros2 launch needed).
 
 The pip-installed counterpart of ``launch/aefabmap.launch.py``: same parameter file, same topics,
-same nodes (both take them from ``aefabmap_ros.launch_table``). By default verifier_node runs
+same nodes (both take them from ``aefabmap_ros.nodes.launch_table``). By default verifier_node runs
 beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 ``loop_closure_candidates`` and only the geometrically verified ones reach ``loop_closures``.
 --no-verify leaves the verifier out and remaps FAB-MAP's candidates onto ``loop_closures``
@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
-from aefabmap_ros.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
+from aefabmap_ros.nodes.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
 NODES = DETECTION_NODES
 

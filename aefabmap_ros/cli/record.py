@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
 
 # The suite's topics and their types; other topics' types are discovered from the graph.

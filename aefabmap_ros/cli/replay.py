@@ -23,9 +23,9 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
-from aefabmap_ros.launch_table import compressed_topic
+from aefabmap_ros.nodes.launch_table import compressed_topic
 
 
 def build_parser() -> argparse.ArgumentParser:

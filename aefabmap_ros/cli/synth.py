@@ -29,7 +29,7 @@ Each sequence DIR/<train|test>/ holds:
   odometry.tum            a drifting odometry of the camera (TUM, same stamps), seeded by --seed:
                           each step's translation 1.5 % too long (+ 0.5 % noise per step) and turned
                           by 0.1 degree of yaw per metre (+ 0.02 degree noise per step) about the
-                          vertical (core/trajectory_error.py OdometryDrift)
+                          vertical (evaluation/trajectory_error.py OdometryDrift)
   times.txt               seconds since the first frame, one line per frame
   calib.txt               KITTI-style projection matrix "P0: ..." of the pinhole camera
   camera_info.yaml        the camera in ROS camera_calibration_parsers' format (K, D = 0, R = I, P)
@@ -59,10 +59,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.core.atomic import atomic_write_bytes, atomic_write_text
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
-from aefabmap_ros.core.ground_truth import write_kitti_poses
-from aefabmap_ros.core.synth import (
+from aefabmap_ros.datasets.synth.town import (
     SynthConfig,
     SyntheticSequence,
     dense_video_config,
@@ -70,7 +67,10 @@ from aefabmap_ros.core.synth import (
     generate_sequence,
     train_test_configs,
 )
-from aefabmap_ros.core.trajectory_error import OdometryDrift, drifting_odometry, tum_text
+from aefabmap_ros.errors import AefabmapError, ConfigError
+from aefabmap_ros.evaluation.ground_truth import write_kitti_poses
+from aefabmap_ros.evaluation.trajectory_error import OdometryDrift, drifting_odometry, tum_text
+from aefabmap_ros.io.atomic import atomic_write_bytes, atomic_write_text
 
 PRESETS = ("figure-eight", "dense-video")
 

@@ -21,13 +21,13 @@ from typing import Any
 from tqdm import tqdm
 
 from aefabmap_ros.cli.common import RESUME_HINT, no_empty_folders_left_on_error, report_errors
-from aefabmap_ros.core.errors import ConfigError
-from aefabmap_ros.core.features import FeatureConfig, Features
-from aefabmap_ros.core.model import save_model
-from aefabmap_ros.core.training import TrainingConfig, config_digest, extract_sequence_features, train_model
-from aefabmap_ros.core.vocabulary import VocabularyConfig
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.io.config_files import build_config, read_sections
 from aefabmap_ros.io.sources import ImageSource
+from aefabmap_ros.model.directory import save_model
+from aefabmap_ros.model.training import TrainingConfig, config_digest, extract_sequence_features, train_model
+from aefabmap_ros.vocabulary.base import VocabularyConfig
 
 SECTIONS = {"feature": FeatureConfig, "vocabulary": VocabularyConfig, "training": TrainingConfig}
 

@@ -23,8 +23,8 @@ from rosbags.typesys import Stores, get_types_from_msg
 from rosbags.typesys import get_typestore as _rosbags_typestore
 from rosbags.typesys.store import Typestore
 
-from aefabmap_ros.core.errors import BagError
-from aefabmap_ros.core.stamps import stamp_to_ns
+from aefabmap_ros.errors import BagError
+from aefabmap_ros.stamps import stamp_to_ns
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"

@@ -12,7 +12,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from aefabmap_ros.core.errors import ConfigError
+from aefabmap_ros.errors import ConfigError
 
 ConfigT = TypeVar("ConfigT")
 

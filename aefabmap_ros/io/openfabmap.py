@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.core.atomic import atomic_write_text
-from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.errors import ModelError
+from aefabmap_ros.errors import ModelError
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.io.atomic import atomic_write_text
 
 VOCABULARY_NODE = "Vocabulary"
 TREE_NODE = "ChowLiuTree"

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap_ros.core.errors import DataError, ImageError
+from aefabmap_ros.errors import DataError, ImageError
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.image_messages import image_message_to_gray
 

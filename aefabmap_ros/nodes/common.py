@@ -26,7 +26,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
+from aefabmap_ros.errors import AefabmapError, ConfigError
 
 ConfigT = TypeVar("ConfigT")
 LOG_THROTTLE_S = 5.0

@@ -25,18 +25,12 @@ from typing import Any
 from aefabmap_msgs.msg import BagOfWords, LoopClosure, PlacePosterior
 from rclpy.node import Node
 
-from aefabmap_ros.core.atomic import remove_stale_temporaries
-from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.detector import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
-from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
-from aefabmap_ros.core.fabmap import FabMapConfig, warm_up_kernels
-from aefabmap_ros.core.model import load_model
-from aefabmap_ros.core.stamps import stamp_to_ns
-from aefabmap_ros.io.messages import (
-    message_to_word_ids,
-    recognition_to_loop_closure,
-    recognition_to_posterior,
-)
+from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import FabMapConfig, warm_up_kernels
+from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
+from aefabmap_ros.io.atomic import remove_stale_temporaries
+from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
@@ -49,6 +43,12 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.messages import (
+    message_to_word_ids,
+    recognition_to_loop_closure,
+    recognition_to_posterior,
+)
+from aefabmap_ros.stamps import stamp_to_ns
 
 
 class FabMapNode(Node):

@@ -21,14 +21,10 @@ from aefabmap_msgs.msg import Features
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 
-from aefabmap_ros.core.errors import AefabmapError, ConfigError, ImageTooLargeError
-from aefabmap_ros.core.features import FeatureConfig, extract_features
-from aefabmap_ros.core.frame_gate import LatestFrameGate
-from aefabmap_ros.core.model import load_model
-from aefabmap_ros.core.stamps import TransportDeduplicator, stamp_to_ns
+from aefabmap_ros.errors import AefabmapError, ConfigError, ImageTooLargeError
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.io.image_messages import image_message_to_gray
-from aefabmap_ros.io.messages import features_to_message
-from aefabmap_ros.launch_table import compressed_topic
+from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     DropCounter,
     declare_config,
@@ -38,6 +34,10 @@ from aefabmap_ros.nodes.common import (
     pipeline_qos,
     run_node,
 )
+from aefabmap_ros.nodes.frame_gate import LatestFrameGate
+from aefabmap_ros.nodes.launch_table import compressed_topic
+from aefabmap_ros.nodes.messages import features_to_message
+from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
 
 
 class FeatureNode(Node):

@@ -3,7 +3,7 @@
 Subscribes to odometry (``odom``, ``nav_msgs/Odometry``, strictly increasing stamps) and to
 ``loop_closures``; every closure with a relative pose adds a keyframe at each endpoint (odometry
 interpolated at the image stamps) and a robust loop factor, and the graph is re-optimised with
-iSAM2 (core/pose_graph.py has the model). Publishes the optimised keyframe trajectory on
+iSAM2 (backend/pose_graph.py has the model). Publishes the optimised keyframe trajectory on
 ``pose_graph/path`` (``nav_msgs/Path`` in ``map_frame``) and ``map -> odom``: on ``/tf`` when the
 ``tf2_msgs`` package is installed, else as a ``geometry_msgs/TransformStamped`` on
 ``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). On shutdown the keyframe
@@ -29,11 +29,11 @@ from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
-from aefabmap_ros.core.atomic import atomic_write_text
-from aefabmap_ros.core.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
-from aefabmap_ros.core.stamps import stamp_to_ns
-from aefabmap_ros.io.messages import time_from_ns
+from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
+from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
+from aefabmap_ros.nodes.messages import time_from_ns
+from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
     from tf2_msgs.msg import TFMessage
@@ -125,7 +125,7 @@ class PoseGraphNode(Node):
 
     def close(self) -> None:
         if self.trajectory_file is not None:
-            from aefabmap_ros.core.trajectory_error import tum_text  # evo: loaded at shutdown only
+            from aefabmap_ros.evaluation.trajectory_error import tum_text  # evo: loaded at shutdown only
 
             stamps_s, poses = trajectory_arrays(self.graph.trajectory())
             atomic_write_text(self.trajectory_file, tum_text(stamps_s, poses))

@@ -8,11 +8,8 @@ import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features
 from rclpy.node import Node
 
-from aefabmap_ros.core.autoencoder import limit_torch_threads
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
-from aefabmap_ros.core.model import load_model
-from aefabmap_ros.core.vocabulary import bag_of_words
-from aefabmap_ros.io.messages import bag_of_words_to_message, message_to_features
+from aefabmap_ros.errors import AefabmapError, ConfigError
+from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     DropCounter,
     declare_parameter,
@@ -21,6 +18,9 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.messages import bag_of_words_to_message, message_to_features
+from aefabmap_ros.vocabulary.autoencoder import limit_torch_threads
+from aefabmap_ros.vocabulary.base import bag_of_words
 
 
 class QuantizerNode(Node):

@@ -6,12 +6,12 @@ place's and publishes the closure on ``loop_closures``, with its ``inliers`` cou
 enough matches fit one fundamental matrix (``min_inliers``); otherwise it is counted and logged as
 rejected. ``loop_closures`` is what a SLAM backend subscribes to: every message on it passed.
 
-Re-ranking (``candidates`` > 1, see core/verification.py): once the matched place is accepted, the
+Re-ranking (``candidates`` > 1, see verification/geometric.py): once the matched place is accepted, the
 query's other top candidates from its ``place_posteriors`` message are verified too, and the
 closure is republished to the accepted one with the most inliers -- the view that shares the most
 scene with the query. ``probability`` and ``log_likelihood`` stay those of the detection.
 
-Loop tracking (``track_seconds`` > 0, see core/loop_tracking.py): for a short while after a
+Loop tracking (``track_seconds`` > 0, see verification/loop_tracking.py): for a short while after a
 verified closure, a frame with no candidate of its own (or whose candidate failed) is verified
 against its top candidates from ``place_posteriors`` that lie near the last verified place in map
 time; the accepted one with the most inliers is published like any other closure (``probability``
@@ -24,7 +24,7 @@ to that folder (every ``save_period_s`` the frames added since the last save, as
 file, and on shutdown) and reloaded on start, so after a restart the places seen before it can
 still be verified.
 
-Relative pose (core/relative_pose.py): every published closure carries the matched place's camera
+Relative pose (verification/relative_pose.py): every published closure carries the matched place's camera
 pose in the query camera's frame, computed from the matches, or ``pose_available`` false and the
 reason in ``pose_status`` (counted). Intrinsics come from ``camera_info`` (``sensor_msgs/CameraInfo``)
 or the ``camera_matrix`` parameter (fx, fy, cx, cy; it wins when set). Without depth the pose is
@@ -47,28 +47,10 @@ from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from aefabmap_ros.core.atomic import remove_stale_temporaries
-from aefabmap_ros.core.errors import AefabmapError, ConfigError
-from aefabmap_ros.core.features import Features as CoreFeatures
-from aefabmap_ros.core.loop_tracking import LoopTrack
-from aefabmap_ros.core.relative_pose import (
-    CameraModel,
-    KeypointDepthStore,
-    RelativePoseConfig,
-    depths_of_matches,
-    relative_pose,
-)
-from aefabmap_ros.core.stamps import stamp_to_ns
-from aefabmap_ros.core.verification import (
-    FeatureStore,
-    FeatureStoreFolder,
-    VerificationConfig,
-    match_descriptors,
-    rerank_by_inliers,
-    verify_pair,
-)
+from aefabmap_ros.errors import AefabmapError, ConfigError
+from aefabmap_ros.features.extraction import Features as CoreFeatures
+from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.io.image_messages import depth_message_to_metres
-from aefabmap_ros.io.messages import camera_info_to_model, fill_relative_pose, message_to_features
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
     RESULT_QOS,
@@ -81,6 +63,24 @@ from aefabmap_ros.nodes.common import (
     pipeline_qos,
     report_when_connected,
     run_node,
+)
+from aefabmap_ros.nodes.messages import camera_info_to_model, fill_relative_pose, message_to_features
+from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.verification.geometric import (
+    FeatureStore,
+    FeatureStoreFolder,
+    VerificationConfig,
+    match_descriptors,
+    rerank_by_inliers,
+    verify_pair,
+)
+from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.relative_pose import (
+    CameraModel,
+    KeypointDepthStore,
+    RelativePoseConfig,
+    depths_of_matches,
+    relative_pose,
 )
 
 # Posteriors kept by query stamp: a closure is published right after its query's posterior, so

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.cli.ate import main
-from aefabmap_ros.core.trajectory_error import tum_text
+from aefabmap_ros.evaluation.trajectory_error import tum_text
 
 
 def _write(path: Path, points: list[list[float]]) -> Path:

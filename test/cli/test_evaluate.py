@@ -10,8 +10,8 @@ import pytest
 
 from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
-from aefabmap_ros.core.metrics import evaluate_scores
-from aefabmap_ros.core.verification import VerificationConfig
+from aefabmap_ros.evaluation.metrics import evaluate_scores
+from aefabmap_ros.verification.geometric import VerificationConfig
 
 FRAMES = 30
 # Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from aefabmap_ros.cli import launch
-from aefabmap_ros.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC
+from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC
 from test.conftest import REPO_ROOT
 
 LAUNCH_FILE = REPO_ROOT / "launch" / "aefabmap.launch.py"
@@ -216,7 +216,7 @@ def test_launch_file_with_the_real_launch_packages() -> None:
 
 def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file: Any,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    from aefabmap_ros.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
+    from aefabmap_ros.nodes.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
 
     for name in THREAD_LIMIT_VARIABLES:
         monkeypatch.delenv(name, raising=False)

@@ -96,7 +96,7 @@ def test_launch_no_verify_remaps_the_candidates_onto_loop_closures(tmp_path: Pat
 
 
 def test_thread_share_never_exceeds_the_cores_across_processes() -> None:
-    from aefabmap_ros.launch_table import threads_per_process
+    from aefabmap_ros.nodes.launch_table import threads_per_process
 
     assert threads_per_process(4, cores=2) == 1  # never zero
     assert threads_per_process(3, cores=2) == 1
@@ -110,7 +110,7 @@ def test_launched_processes_get_thread_limits_unless_the_user_set_them(
     import json
     import sys
 
-    from aefabmap_ros.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
+    from aefabmap_ros.nodes.launch_table import THREAD_LIMIT_VARIABLES, threads_per_process
 
     for name in THREAD_LIMIT_VARIABLES:
         monkeypatch.delenv(name, raising=False)

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from aefabmap_ros.cli.synth import main
-from aefabmap_ros.core.ground_truth import read_kitti_poses
+from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
 
 SMALL = ["--frames", "12", "--width", "96", "--height", "72"]
 

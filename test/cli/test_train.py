@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.cli.train import main
-from aefabmap_ros.core.model import load_model
 from aefabmap_ros.io.bags import write_image_bag
+from aefabmap_ros.model.directory import load_model
 from test.revisit_fixture import RevisitData
 
 SMALL = ["--vocabulary", "kmeans", "--size", "40", "--max-features", "150", "--quiet"]

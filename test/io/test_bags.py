@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aefabmap_ros.core.errors import BagError
+from aefabmap_ros.errors import BagError
 from aefabmap_ros.io import bags
 
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.errors import ModelError
+from aefabmap_ros.errors import ModelError
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.io.openfabmap import (
     read_bow,
     read_chow_liu_tree,

@@ -17,8 +17,8 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 msg = pytest.importorskip("aefabmap_msgs.msg")
 
-from aefabmap_ros.core.stamps import stamp_to_ns  # noqa: E402
 from aefabmap_ros.io import bags  # noqa: E402
+from aefabmap_ros.stamps import stamp_to_ns  # noqa: E402
 from test.ros_processes import LoggedProcess  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.usefixtures("ros_context")]

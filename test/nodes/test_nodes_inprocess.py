@@ -16,8 +16,8 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
 
-from aefabmap_ros.core.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
-from aefabmap_ros.core.fabmap import FabMapConfig  # noqa: E402
+from aefabmap_ros.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
+from aefabmap_ros.fabmap.engines import FabMapConfig  # noqa: E402
 from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
@@ -290,8 +290,8 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
 
     import yaml
 
-    from aefabmap_ros.core.fabmap import FabMapConfig
-    from aefabmap_ros.core.verification import VerificationConfig
+    from aefabmap_ros.fabmap.engines import FabMapConfig
+    from aefabmap_ros.verification.geometric import VerificationConfig
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
@@ -303,7 +303,7 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
 def _features_message(features: Any, sec: int) -> Any:
     from std_msgs.msg import Header
 
-    from aefabmap_ros.io.messages import features_to_message
+    from aefabmap_ros.nodes.messages import features_to_message
 
     return features_to_message(features, Header(stamp=Time(sec=sec)), (640, 480))
 
@@ -316,7 +316,7 @@ def _closure(query_sec: int, place_sec: int, query_id: int) -> Any:
 
 
 def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
-    from test.core.test_verification import _two_views
+    from test.verification.test_geometric import _two_views
 
     query, place, _ = _two_views(seed=21)
     _, unrelated, _ = _two_views(seed=22)
@@ -354,7 +354,7 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
 def _camera_info() -> Any:
     from sensor_msgs.msg import CameraInfo
 
-    from test.core.test_verification import FOCAL, HEIGHT, WIDTH
+    from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH
 
     return CameraInfo(width=WIDTH, height=HEIGHT, k=[FOCAL, 0.0, WIDTH / 2, 0.0, FOCAL, HEIGHT / 2, 0.0, 0.0, 1.0],
                       d=[0.0] * 5, distortion_model="plumb_bob")
@@ -362,7 +362,7 @@ def _camera_info() -> Any:
 
 def _place_depth_image(sec: int) -> Image:
     """32FC1 depth of _two_views(seed=21)'s place ("second") camera at its shared keypoints, NaN elsewhere."""
-    from test.core.test_verification import FOCAL, HEIGHT, WIDTH, _rotation_y
+    from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH, _rotation_y
 
     rng = np.random.default_rng(21)  # the same draws as _two_views(seed=21) makes first
     points = np.column_stack([rng.uniform(-4, 4, 120), rng.uniform(-3, 3, 120), rng.uniform(5, 15, 120)])
@@ -381,7 +381,7 @@ def test_verifier_node_attaches_the_relative_pose() -> None:
     """Without camera_info: verified, no pose (flagged); with it: the essential matrix's pose; with depth: metric."""
     from scipy.spatial.transform import Rotation
 
-    from test.core.test_verification import _rotation_y, _two_views
+    from test.verification.test_geometric import _rotation_y, _two_views
 
     query, place, _ = _two_views(seed=21)
     # _two_views: place points = R (query points) + t, so the place camera in the query frame is (R^T, -R^T t).
@@ -434,14 +434,14 @@ def _posterior(query_sec: int, place_secs: list[int], candidate: bool = True) ->
 
 def _weaker_view(features: Any, shared: int, keep: int) -> Any:
     """The same view with only ``keep`` of its ``shared`` scene points (its clutter kept): less overlap."""
-    from aefabmap_ros.core.features import Features as CoreFeatures
+    from aefabmap_ros.features.extraction import Features as CoreFeatures
 
     rows = np.r_[0:keep, shared:len(features)]
     return CoreFeatures(features.keypoints[rows], features.descriptors[rows], features.descriptor_type)
 
 
 def test_verifier_node_moves_a_closure_to_the_best_verified_candidate() -> None:
-    from test.core.test_verification import _two_views
+    from test.verification.test_geometric import _two_views
 
     query, place, shared = _two_views(seed=24)
     _, unrelated, _ = _two_views(seed=25)
@@ -473,7 +473,7 @@ def test_verifier_node_moves_a_closure_to_the_best_verified_candidate() -> None:
 
 
 def test_verifier_node_tracks_a_verified_loop_through_frames_without_a_candidate() -> None:
-    from test.core.test_verification import _two_views
+    from test.verification.test_geometric import _two_views
 
     query, place, _ = _two_views(seed=26)
     _, unrelated, _ = _two_views(seed=27)
@@ -513,7 +513,7 @@ def test_verifier_node_refuses_bad_parameters() -> None:
 
 
 def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
-    from test.core.test_verification import _two_views
+    from test.verification.test_geometric import _two_views
 
     query, place, _ = _two_views(seed=23)
     store_dir = tmp_path / "map.features"
@@ -687,8 +687,8 @@ def test_fabmap_node_final_save_failure_is_reported(revisit_data: RevisitData, t
 def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) -> None:
     """A 64-d frame among 128-d ones: refused by the store (so it cannot poison a save), and a closure
     pairing the two kinds is dropped as unverifiable, not a cv2.error that kills the node."""
-    from aefabmap_ros.core.features import Features as CoreFeatures
-    from test.core.test_verification import _two_views
+    from aefabmap_ros.features.extraction import Features as CoreFeatures
+    from test.verification.test_geometric import _two_views
 
     query, place, _ = _two_views(seed=31)
     short = CoreFeatures(query.keypoints, np.ascontiguousarray(query.descriptors[:, :64]), query.descriptor_type)

@@ -13,10 +13,10 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("aefabmap_msgs.msg")
 
-from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.detector import PlaceRecognizer
-from aefabmap_ros.core.fabmap import FabMapConfig
-from aefabmap_ros.core.model import load_model
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
+from aefabmap_ros.model.directory import load_model
 from test.revisit_fixture import RevisitData
 from test.ros_processes import LoggedProcess, running, write_script
 

@@ -1,0 +1,660 @@
+"""Offline evaluation (DESIGN 6): the paper's four methods on a test sequence, scored against ground truth.
+
+Methods (DESIGN 4.4), each a vocabulary kind and a scorer:
+
+=========  ===========  =============================================================
+FABMAP2    k-means      FAB-MAP 2 posterior p(place j | Z_0..Z_i)
+AE-FABMAP  autoencoder  FAB-MAP 2 posterior
+BoW        k-means      tf-idf cosine similarity (Sivic & Zisserman)
+AE-BoW     autoencoder  tf-idf cosine similarity
+=========  ===========  =============================================================
+
+A vocabulary is trained (or loaded) once per kind and serves both its FAB-MAP and its BoW method.
+
+**FAB-MAP score matrix.** The scores are produced by the online
+:class:`~aefabmap_ros.fabmap.recognizer.PlaceRecognizer` itself (one code path with the nodes), run
+frame by frame with add policy "all" and no keyframing (every informative frame is a place) and
+every candidate reported (``top_k`` = all): ``scores[i, j]`` = posterior of frame j's place for
+query i, ``new_place[i]`` = posterior of "new place". Frames with fewer than the config's
+``min_words`` words are not recognised (a zero row) and are no places (a zero column). The
+metrics then take each query's best candidate among ``j <= i - min_gap`` (``evaluation.metrics``).
+
+Whether the recent frames are hypotheses of the posterior is ``fabmap_exclude_recent``
+(the recognizer's ``exclude_recent_frames``). Default 0, none excluded, as openFABMAP: measured,
+removing the last ``min_gap - 1`` frames from the posterior (-1) lowers both AP and precision at
+the 0.99 threshold: a query of an unvisited place no longer has its look-alike predecessors to
+absorb the mass, and with a new-place model trained on other imagery the mass lands on some
+older look-alike place, a confident false loop (openFABMAP's own inputs on rtabmap_samples:
+AP 0.85 -> 0.50, recall at 100 % precision 0.57 -> 0; synthetic training sequence: precision at
+0.99 1.00 -> 0.65). On very dense video, where the previous frames always win, set it to -1.
+
+**tf-idf score matrix.** Cosine similarity of tf-idf vectors of word counts; the idf comes from
+the model's new-place samples (the training images' binary bag-of-words: idf needs only which
+images hold a word), so a loaded model and a freshly trained one score alike. A model without
+samples falls back to the test sequence's own idf.
+
+**Training on the test sequence.** The sampled new-place likelihood is a mean over training
+images; when those are the test images, query i's own sample matches it perfectly and dominates
+the mean, so it is left out of query i's mean (``exclude_samples``).
+
+**Recordings.** :func:`scores_from_recording` rebuilds a score matrix from the ``place_posteriors``
+(top-K candidates) and ``loop_closures`` of a recorded run of the nodes. Query ids are frame
+indices (the detector numbers every frame it receives). A candidate place is mapped to a frame
+by its stamp when that stamp is a query stamp of the recording (robust to keyframing and the
+"new_only" policy); otherwise its place id is taken as the frame index, which holds under the
+default policy "all" without keyframing. Places missing from a query's top-K score 0. The loop
+closures of each recorded topic (FAB-MAP's candidates, the published and by default verified
+closures) are scored on their own by :func:`score_recorded_closures`: precision, and per revisit
+event and revisiting frame (``evaluation.metrics.event_scores``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.evaluation.calibration import Reliability, reliability
+from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, LoopMetrics, evaluate_scores, event_scores
+from aefabmap_ros.evaluation.online_chain import run_online_chain
+from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
+from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.model.directory import Model
+from aefabmap_ros.model.training import count_bow
+from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, verified_scores
+
+# Method name -> (vocabulary kind, scorer).
+METHODS: dict[str, tuple[str, str]] = {
+    "FABMAP2": ("kmeans", "fabmap"),
+    "AE-FABMAP": ("autoencoder", "fabmap"),
+    "BoW": ("kmeans", "tfidf"),
+    "AE-BoW": ("autoencoder", "tfidf"),
+}
+# tf-idf cosine is not a calibrated probability: this default is near the best-F1 threshold (0.63) of
+# k-means BoW on the synthetic *training* sequence (vocabulary from kitti00_first300). Compare methods by
+# AP and recall at 100 % precision, which need no threshold.
+DEFAULT_BOW_THRESHOLD = 0.6
+
+FrameCallback = Callable[[int], None]
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """How the methods are scored (flat: one YAML key each)."""
+
+    min_gap: int = field(
+        default=10,
+        metadata={"description": "Frames j > i - min_gap are not loop candidates of query i (in the metrics "
+                  "and, for FAB-MAP, not hypotheses of its posterior)."},
+    )
+    threshold: float = field(
+        default=0.99,
+        metadata={"description": "FAB-MAP posterior threshold of the paper's accuracy and recall (0.99)."},
+    )
+    fabmap_exclude_recent: int = field(
+        default=0,
+        metadata={"description": "FAB-MAP: places of the last N frames are not hypotheses of the posterior "
+                  "(0 = none excluded, as openFABMAP; -1 = min_gap - 1, exactly the protocol's "
+                  "non-candidates)."},
+    )
+    bow_threshold: float = field(
+        default=DEFAULT_BOW_THRESHOLD,
+        metadata={"description": "tf-idf cosine threshold of the BoW methods' accuracy and recall."},
+    )
+
+    def __post_init__(self) -> None:
+        if isinstance(self.min_gap, bool) or not isinstance(self.min_gap, int) or self.min_gap < 1:
+            raise ConfigError(f"EvaluationConfig.min_gap={self.min_gap!r} must be an integer >= 1")
+        if isinstance(self.fabmap_exclude_recent, bool) or not isinstance(self.fabmap_exclude_recent, int) \
+                or self.fabmap_exclude_recent < -1:
+            raise ConfigError(f"EvaluationConfig.fabmap_exclude_recent={self.fabmap_exclude_recent!r} must be an "
+                              "integer >= -1")
+        for name in ("threshold", "bow_threshold"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+                raise ConfigError(f"EvaluationConfig.{name}={value!r} must be a number in [0, 1]")
+
+    @property
+    def fabmap_exclusion_frames(self) -> int:
+        """The FAB-MAP posterior's exclusion window in frames (``fabmap_exclude_recent`` resolved)."""
+        return self.min_gap - 1 if self.fabmap_exclude_recent < 0 else self.fabmap_exclude_recent
+
+
+def parse_methods(names: Iterable[str]) -> tuple[str, ...]:
+    """Canonical method names (case-insensitive, order of ``METHODS``); ConfigError naming an unknown one."""
+    by_lower = {name.lower(): name for name in METHODS}
+    chosen = set()
+    for name in names:
+        canonical = by_lower.get(name.strip().lower())
+        if canonical is None:
+            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+        chosen.add(canonical)
+    if not chosen:
+        raise ConfigError(f"no method selected; known: {', '.join(METHODS)}")
+    return tuple(name for name in METHODS if name in chosen)
+
+
+def methods_of_kind(kind: str, selected: Sequence[str]) -> tuple[str, ...]:
+    """The selected methods that use a vocabulary of ``kind``."""
+    return tuple(name for name in selected if METHODS[name][0] == kind)
+
+
+def fabmap_evaluation_config(base: FabMapConfig, exclude_recent_frames: int) -> FabMapConfig:
+    """``base`` with what the evaluation fixes: the exclusion window, every frame a place, all candidates."""
+    if exclude_recent_frames < 0:
+        raise ConfigError(f"exclude_recent_frames={exclude_recent_frames} must be >= 0")
+    return replace(
+        base,
+        exclude_recent_frames=exclude_recent_frames,  # the recognizer keeps places with query - frame > N
+        exclude_recent_seconds=0.0,
+        add_policy="all",
+        keyframe_min_frames=1,
+        keyframe_max_overlap=1.0,
+        keyframe_max_frames=0,
+        keyframe_max_seconds=0.0,
+        exclude_linked_overlap=0.0,
+        consistency_matches=1,  # the score matrix holds every frame's posterior; consistency is the online chain's
+        top_k=1,  # the scores come from the full hypothesis arrays, not from the reported candidates
+    )
+
+
+# ------------------------------------------------------------------------------------------ scorers
+
+
+def fabmap_posterior_matrix(
+    observations: sp.csr_matrix,
+    tree: ChowLiuTree,
+    new_place_samples: sp.csr_matrix | None,
+    config: FabMapConfig,
+    exclude_recent_frames: int,
+    exclude_samples: Sequence[int] | None = None,
+    on_frame: FrameCallback | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """FAB-MAP 2 posteriors of a sequence, the places of the last ``exclude_recent_frames`` frames excluded.
+
+    observations: (N, V) bag-of-words (value > 0 = word present). Returns ``scores`` (N, N) float64
+    with ``[i, j]`` = p(place of frame j | query i) for ``j < i - exclude_recent_frames`` and 0 elsewhere
+    (also 0 in the rows and columns of frames with fewer than ``config.min_words`` words: they are not
+    recognised and are no places), and ``new_place`` (N,) float64 = p(new place | query i), nan for
+    those frames.
+    """
+    matrix = sp.csr_matrix(observations)
+    num_frames = matrix.shape[0]
+    if matrix.shape[1] != tree.vocabulary_size:
+        raise DataError(f"observations have {matrix.shape[1]} words, the Chow-Liu tree {tree.vocabulary_size}")
+    if exclude_samples is not None and len(exclude_samples) != num_frames:
+        raise DataError(f"exclude_samples has {len(exclude_samples)} entries for {num_frames} frames")
+    matrix.sort_indices()
+    recognizer = PlaceRecognizer(tree, new_place_samples, fabmap_evaluation_config(config, exclude_recent_frames),
+                                 "evaluation")
+    scores = np.zeros((num_frames, num_frames))
+    new_place = np.zeros(num_frames)
+    place_frames = np.zeros(num_frames, dtype=np.int64)  # place id -> frame (uninformative frames are no place)
+    for i in range(num_frames):
+        words = matrix.indices[matrix.indptr[i] : matrix.indptr[i + 1]].astype(np.int64)
+        exclude = None if exclude_samples is None or exclude_samples[i] < 0 else int(exclude_samples[i])
+        recognition = recognizer.process(words, i, exclude_sample=exclude)
+        new_place[i] = recognition.new_place_probability
+        # Every hypothesis, as arrays: one Python object per place and query would make a 5,000-frame
+        # sequence take minutes.
+        scores[i, place_frames[recognition.hypothesis_place_ids]] = recognition.hypothesis_probabilities
+        if recognition.added_place_id >= 0:
+            place_frames[recognition.added_place_id] = i
+        if on_frame is not None:
+            on_frame(i)
+    return scores, new_place
+
+
+def leave_one_out_samples(num_frames: int, sample_frames: np.ndarray) -> np.ndarray:
+    """(N,) index of the new-place sample that is frame i, -1 where none (training on the test sequence).
+
+    ``sample_frames``: (S,) frame index of each new-place sample, in sample order.
+    """
+    frames = np.asarray(sample_frames, dtype=np.int64)
+    if frames.size and (frames.min() < 0 or frames.max() >= num_frames):
+        raise DataError(f"sample frames must lie in [0, {num_frames}), got [{frames.min()}, {frames.max()}]")
+    exclude = np.full(num_frames, -1, dtype=np.int64)
+    exclude[frames] = np.arange(frames.size)
+    return exclude
+
+
+def tfidf_matrix(counts: sp.csr_matrix, idf_source: sp.csr_matrix | None) -> np.ndarray:
+    """(N, N) tf-idf cosine similarity; idf from ``idf_source`` (training images) or the counts themselves."""
+    return np.asarray(tfidf_score_matrix(counts, idf_source), dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------------ methods
+
+
+@dataclass(frozen=True)
+class OnlineScores:
+    """The nodes' decision chain run on the test sequence (``evaluation.online_chain``), scored per revisit event."""
+
+    candidates: EventScores  # fabmap_node's loop_closure_candidates
+    published: EventScores  # /loop_closures: verified (with --verify), else the candidates
+    verified: bool
+    num_places: int
+    reliability: Reliability  # of each frame's best hypothesis, the posterior fabmap_node publishes
+    num_tracked: int = 0  # published closures that loop tracking added (frames without a candidate of their own)
+
+
+@dataclass
+class MethodResult:
+    """One method's score matrix and metrics."""
+
+    name: str
+    vocabulary_kind: str
+    vocabulary_size: int
+    model_id: str
+    scores: np.ndarray  # (N, N) float64, row i = query i
+    metrics: LoopMetrics
+    seconds: float
+    new_place: np.ndarray | None = None  # (N,) FAB-MAP only
+    model_path: str = ""
+    label: str = ""  # distinguishes several models of one kind (their directory names)
+    quantize_seconds: float = 0.0  # quantizing the test features (shared by the model's methods)
+    verified: bool = False  # scores after geometric verification of the candidates
+    # FAB-MAP with stamps only: the nodes' chain on the sequence, and the calibration of its posterior
+    reliability: Reliability | None = None
+    online: OnlineScores | None = None
+
+    @property
+    def title(self) -> str:
+        name = f"{self.name} + GV" if self.verified else self.name
+        return f"{name} ({self.label})" if self.label else name
+
+    @property
+    def false_positives_at_threshold(self) -> int:
+        metrics = self.metrics
+        if metrics.num_predictions_at_threshold == 0:
+            return 0
+        true = round(metrics.precision_at_threshold * metrics.num_predictions_at_threshold)
+        return metrics.num_predictions_at_threshold - int(true)
+
+
+def model_tree(model: Model) -> ChowLiuTree:
+    if model.tree_matrix is None:
+        raise ModelError(f"model {model.model_id} has no Chow-Liu tree: FAB-MAP needs one")
+    return ChowLiuTree.from_matrix(model.tree_matrix)
+
+
+def evaluate_model(
+    model: Model,
+    features: Sequence[Features],
+    gt: np.ndarray,
+    methods: Sequence[str],
+    config: EvaluationConfig,
+    fabmap_config: FabMapConfig,
+    exclude_samples: Sequence[int] | None = None,
+    on_frame: FrameCallback | None = None,
+    label: str = "",
+    model_path: str = "",
+    verification: tuple[VerificationConfig, PairVerifier] | None = None,
+    stamps_ns: np.ndarray | None = None,
+) -> list[MethodResult]:
+    """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
+
+    With ``verification`` (its config and a verifier of the test features' pairs), every method also
+    gets a "+ GV" result: its scores after geometric verification (see ``verification.geometric``). With
+    the frames' ``stamps_ns``, every FAB-MAP method also runs the nodes' decision chain with
+    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, verification when
+    given): its ``online`` scores.
+    """
+    kind = model.quantizer.kind
+    for name in methods:
+        if name not in METHODS:
+            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+        if METHODS[name][0] != kind:
+            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.model_id} is {kind}")
+    if len(features) != gt.shape[0]:
+        raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
+    started = time.monotonic()
+    counts = count_bow(model.quantizer, features)
+    quantize_seconds = time.monotonic() - started
+    results = []
+    for name in methods:
+        started = time.monotonic()
+        new_place = None
+        online = None
+        if METHODS[name][1] == "fabmap":
+            scores, new_place = fabmap_posterior_matrix(
+                counts, model_tree(model), model.new_place_samples, fabmap_config,
+                config.fabmap_exclusion_frames, exclude_samples, on_frame,
+            )
+            threshold = config.threshold
+            if stamps_ns is not None:
+                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config, verification)
+        else:
+            scores = tfidf_matrix(counts, model.new_place_samples)
+            threshold = config.bow_threshold
+        seconds = time.monotonic() - started
+        results.append(MethodResult(
+            name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, model_id=model.model_id,
+            scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
+            new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
+            reliability=None if online is None else online.reliability,
+            online=online,
+        ))
+        if verification is not None:
+            results.append(verified_result(results[-1], verification, gt, config.min_gap))
+    return results
+
+
+def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
+                  fabmap_config: FabMapConfig,
+                  verification: tuple[VerificationConfig, PairVerifier] | None) -> OnlineScores:
+    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event
+    (pairs verified through the evaluation's shared verifier: the "+ GV" rows verify many of them too)."""
+    chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
+                             verification)
+
+    def scored(closures: Sequence[Any]) -> EventScores:
+        return event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap)
+
+    truth = np.asarray(gt).astype(bool)
+    calibration = reliability(np.array([b.probability for b in chain.best]),
+                              np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
+    return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
+                        chain.num_places, calibration, sum(c.tracked for c in chain.published))
+
+
+def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],
+                    gt: np.ndarray, min_gap: int) -> MethodResult:
+    """``result`` after geometric verification of each query's best ``candidates`` candidates."""
+    verification_config, verify = verification
+    started = time.monotonic()
+    scores = verified_scores(result.scores, verify, verification_config.candidates, min_gap)
+    return replace(result, scores=scores, verified=True, seconds=result.seconds + time.monotonic() - started,
+                   reliability=None, online=None,
+                   metrics=evaluate_scores(scores, gt, min_gap, result.metrics.threshold))
+
+
+# ---------------------------------------------------------------------------------------- recordings
+
+
+@dataclass(frozen=True)
+class RecordedClosure:
+    query_frame: int
+    matched_frame: int
+    probability: float
+
+
+@dataclass
+class RecordingScores:
+    """Score matrix rebuilt from a recording, and the detector's own loop-closure decisions."""
+
+    scores: np.ndarray  # (N, N) float64, [i, j] = recorded posterior of frame j for query i, 0 if unreported
+    closures: list[RecordedClosure]
+    num_posteriors: int
+    num_loop_closures: int
+    stamp_aligned_candidates: int  # candidates mapped to a frame through their stamp
+
+
+def scores_from_recording(
+    posteriors: Sequence[Any], loop_closures: Sequence[Any], num_frames: int
+) -> RecordingScores:
+    """Score matrix of ``num_frames`` frames from ``PlacePosterior`` and ``LoopClosure`` messages.
+
+    Messages are rosbags/rclpy objects (attributes as in aefabmap_msgs). See the module doc for
+    how place ids become frame indices. Raises DataError for query or place frames outside
+    [0, num_frames) and for a place mapped to a frame not before its query.
+    """
+    stamp_to_frame: dict[int, int] = {}
+    for message in posteriors:
+        stamp_to_frame.setdefault(stamp_to_ns(message.header.stamp), int(message.query_id))
+    for message in loop_closures:
+        stamp_to_frame.setdefault(stamp_to_ns(message.header.stamp), int(message.query_id))
+
+    scores = np.zeros((num_frames, num_frames))
+    aligned = 0
+
+    def frame_of(place_id: int, stamp_ns: int) -> int:
+        nonlocal aligned
+        frame = stamp_to_frame.get(stamp_ns)
+        if frame is not None:
+            aligned += 1
+            return frame
+        return int(place_id)
+
+    def put(query: int, frame: int, probability: float, what: str) -> None:
+        if not 0 <= query < num_frames:
+            raise DataError(f"{what}: query id {query} outside the {num_frames} frames of the ground truth")
+        if not 0 <= frame < query:
+            raise DataError(f"{what}: query {query} maps to frame {frame}, which is not an earlier frame")
+        scores[query, frame] = max(scores[query, frame], probability)
+
+    for message in posteriors:
+        query = int(message.query_id)
+        place_ids = np.asarray(message.place_ids, dtype=np.int64)
+        probabilities = np.asarray(message.probabilities, dtype=np.float64)
+        stamps = [stamp_to_ns(s) for s in message.place_stamps]
+        if probabilities.shape != place_ids.shape:
+            raise DataError(f"place_posteriors query {query}: {place_ids.size} place ids but "
+                            f"{probabilities.size} probabilities")
+        if len(stamps) != place_ids.size:
+            stamps = [-1] * place_ids.size
+        for place_id, stamp_ns, probability in zip(place_ids.tolist(), stamps, probabilities.tolist(), strict=True):
+            put(query, frame_of(place_id, stamp_ns), probability, "place_posteriors")
+    closures = []
+    for message in loop_closures:
+        query = int(message.query_id)
+        frame = frame_of(int(message.matched_place_id), stamp_to_ns(message.matched_stamp))
+        put(query, frame, float(message.probability), "loop_closures")
+        closures.append(RecordedClosure(query, frame, float(message.probability)))
+    return RecordingScores(scores, closures, len(posteriors), len(loop_closures), aligned)
+
+
+def closure_precision_recall(closures: Sequence[RecordedClosure], gt: np.ndarray, min_gap: int) -> tuple[float, float]:
+    """Precision and recall of a detector's own decisions (one closure per query at most counts).
+
+    A closure is true when ``gt[query, matched] = 1``; recall = true queries / queries with an
+    eligible ground-truth loop (``j <= i - min_gap``), as in ``evaluation.metrics``.
+    """
+    truth = np.asarray(gt).astype(bool)
+    index = np.arange(truth.shape[0])
+    positive = int((truth & (index[None, :] <= index[:, None] - min_gap)).any(axis=1).sum())
+    true_queries = {c.query_frame for c in closures if truth[c.query_frame, c.matched_frame]}
+    precision = sum(bool(truth[c.query_frame, c.matched_frame]) for c in closures) / len(closures) if closures \
+        else float("nan")
+    recall = len(true_queries) / positive if positive else 0.0
+    return float(precision), float(recall)
+
+
+@dataclass(frozen=True)
+class TopicClosureScores:
+    """The loop closures recorded on one topic, scored against the ground truth."""
+
+    role: str  # what the topic carries: "FAB-MAP candidates", "published"
+    topic: str
+    num_verified: int  # closures with inliers > 0 (passed geometric verification)
+    precision: float  # true closures / closures (nan without closures)
+    events: EventScores
+
+
+def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any], posteriors: Sequence[Any],
+                            gt: np.ndarray, min_gap: int, event_gap: int = DEFAULT_EVENT_GAP) -> TopicClosureScores:
+    """Score the ``LoopClosure`` messages of one recorded topic (frames as in :func:`scores_from_recording`):
+    precision, and per revisit event and revisiting frame (:func:`evaluation.metrics.event_scores`)."""
+    closures = scores_from_recording(posteriors, loop_closures, gt.shape[0]).closures
+    precision, _ = closure_precision_recall(closures, gt, min_gap)
+    events = event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap, event_gap)
+    verified = sum(1 for message in loop_closures if int(message.inliers) > 0)
+    return TopicClosureScores(role, topic, verified, precision, events)
+
+
+def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
+    """A markdown table: one row per recorded closure topic."""
+    lines = [
+        "| closures | topic | closures | verified (inliers > 0) | false | precision | revisit events "
+        "| events closed | fraction of events closed | recall (revisiting frames) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        e = row.events
+        lines.append(
+            f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
+            f"| {_fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {_fmt(e.fraction_closed)} "
+            f"| {_recall_cell(e)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
+    return {"role": row.role, "topic": row.topic, "verified": row.num_verified,
+            "precision": _jsonable_float(row.precision), **events_to_dict(row.events)}
+
+
+def events_to_dict(events: EventScores) -> dict[str, Any]:
+    """One closure list's figures per closure, revisit event and revisiting frame (JSON-ready)."""
+    return {
+        "closures": events.num_closures, "false_closures": events.num_false_closures,
+        "revisit_events": events.num_events, "events_closed": events.num_events_closed,
+        "fraction_of_events_closed": _jsonable_float(events.fraction_closed),
+        "revisiting_frames": events.num_revisiting_frames,
+        "revisiting_frames_closed": events.num_revisiting_frames_closed,
+        "recall_revisiting_frames": _jsonable_float(events.frame_recall),
+    }
+
+
+# ------------------------------------------------------------------------------------------ reports
+
+
+def _fmt(value: float) -> str:
+    return "n/a" if np.isnan(value) else f"{value:.3f}"
+
+
+def _recall_cell(events: EventScores) -> str:
+    return f"{_fmt(events.frame_recall)} ({events.num_revisiting_frames_closed}/{events.num_revisiting_frames})"
+
+
+def results_markdown(results: Sequence[MethodResult]) -> str:
+    """A markdown table: one row per method."""
+    lines = [
+        "| method | vocabulary | AP | max F1 | recall @ 100% precision | accuracy @ t | recall @ t | t "
+        "| predictions @ t (false) | scoring s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for result in results:
+        m = result.metrics
+        lines.append(
+            f"| {result.title} | {result.vocabulary_kind} {result.vocabulary_size} | {_fmt(m.average_precision)} "
+            f"| {_fmt(m.max_f1)} | {_fmt(m.recall_at_100_precision)} | {_fmt(m.precision_at_threshold)} "
+            f"| {_fmt(m.recall_at_threshold)} | {m.threshold:g} | {m.num_predictions_at_threshold} "
+            f"({result.false_positives_at_threshold}) | {result.seconds:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def online_markdown(results: Sequence[MethodResult]) -> str:
+    """The nodes' decision chain per FAB-MAP method: what a backend receives, per closure and revisit event."""
+    if all(r.online is None for r in results):
+        return ""
+    lines = ["", "Online chain (the nodes' defaults on this sequence's stamps; candidates: fabmap_node, "
+             "published: /loop_closures):", "",
+             "| method | places | candidates (false) | published (false; by loop tracking) | events closed "
+             "| recall (revisiting frames) |",
+             "|---|---|---|---|---|---|"]
+    for result in results:
+        online = result.online
+        if online is None:
+            continue
+        c, p = online.candidates, online.published
+        lines.append(
+            f"| {result.title} | {online.num_places} | {c.num_closures} ({c.num_false_closures}) "
+            f"| {p.num_closures} ({p.num_false_closures}; {online.num_tracked})"
+            f"{'' if online.verified else ' unverified'} "
+            f"| {p.num_events_closed}/{p.num_events} | {_recall_cell(p)} |")
+    return "\n".join(lines) + "\n"
+
+
+def _jsonable_float(value: float) -> float | None:
+    return None if np.isnan(value) else float(value)
+
+
+def result_to_dict(result: MethodResult) -> dict[str, Any]:
+    m = result.metrics
+    return {
+        "method": result.name,
+        "label": result.label,
+        "geometric_verification": result.verified,
+        "vocabulary_kind": result.vocabulary_kind,
+        "vocabulary_size": result.vocabulary_size,
+        "model_id": result.model_id,
+        "model_path": result.model_path,
+        "average_precision": m.average_precision,
+        "max_f1": m.max_f1,
+        "recall_at_100_precision": m.recall_at_100_precision,
+        "accuracy_at_threshold": _jsonable_float(m.precision_at_threshold),
+        "recall_at_threshold": m.recall_at_threshold,
+        "threshold": m.threshold,
+        "num_queries": m.num_queries,
+        "num_positive_queries": m.num_positive_queries,
+        "num_predictions_at_threshold": m.num_predictions_at_threshold,
+        "false_positives_at_threshold": result.false_positives_at_threshold,
+        "seconds": result.seconds,
+        "quantize_seconds": result.quantize_seconds,
+        "pr_curve": {
+            "precision": m.pr_precision.tolist(),
+            "recall": m.pr_recall.tolist(),
+            "thresholds": m.pr_thresholds.tolist(),
+        },
+        "reliability": None if result.reliability is None else result.reliability.as_dict(),
+        "online_chain": None if result.online is None else {
+            "verified": result.online.verified, "places": result.online.num_places,
+            "tracked": result.online.num_tracked,
+            "candidates": events_to_dict(result.online.candidates),
+            "published": events_to_dict(result.online.published),
+        },
+    }
+
+
+def method_slug(result: MethodResult) -> str:
+    """File-name part of a method: lower case, [a-z0-9-_] only."""
+    text = "".join(c if c.isalnum() or c in "-_" else " " for c in result.title.lower())
+    return "_".join(text.split())
+
+
+def unique_slugs(results: Sequence[MethodResult]) -> list[str]:
+    slugs: list[str] = []
+    for result in results:
+        slug = base = method_slug(result)
+        suffix = 2
+        while slug in slugs:
+            slug, suffix = f"{base}_{suffix}", suffix + 1
+        slugs.append(slug)
+    return slugs
+
+
+def check_gt_matches(gt: np.ndarray, num_frames: int, source: str) -> None:
+    if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
+        raise DataError(f"ground truth must be a square (N, N) matrix, got shape {gt.shape}")
+    if gt.shape[0] != num_frames:
+        raise DataError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but {source} has {num_frames} frames")
+
+
+def load_gt_npz(path: Path) -> np.ndarray:
+    """The ``gt`` array of a loop-matrix .npz (square, 0/1)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "gt" not in data.files:
+                raise DataError(f"ground-truth file {path} has no array 'gt' (it has {sorted(data.files)})")
+            gt = np.asarray(data["gt"])
+    except FileNotFoundError as error:
+        raise DataError(f"ground-truth file not found: {path}") from error
+    except (OSError, ValueError) as error:
+        raise DataError(f"cannot read ground-truth file {path}: {error}") from error
+    if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
+        raise DataError(f"ground truth in {path} must be a square (N, N) matrix, got shape {gt.shape}")
+    if not np.isin(gt, (0, 1)).all():
+        raise DataError(f"ground truth in {path} must hold only 0 and 1")
+    return gt.astype(np.uint8)

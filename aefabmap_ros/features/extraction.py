@@ -1,0 +1,293 @@
+"""Local feature extraction: keypoints + descriptors from a grayscale image.
+
+SIFT (128-d float) is the default stand-in for the paper's 128-d SURF, which no
+PyPI OpenCV build ships; RootSIFT is SIFT with Hellinger normalisation; ORB is the
+binary option (32 bytes). SURF is used only where ``cv2.xfeatures2d`` really
+provides it (an OpenCV built with the non-free contrib modules).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import cv2
+import numpy as np
+
+from aefabmap_ros.errors import ConfigError, ImageError
+
+FEATURE_TYPES = ("sift", "rootsift", "orb", "surf")
+# Row length of each descriptor type (bytes for ORB, floats otherwise).
+_DESCRIPTOR_LENGTHS = {"sift": 128, "rootsift": 128, "orb": 32}
+KEYPOINT_COLUMNS = ("x", "y", "size", "angle", "response")
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Which local feature to extract and the detector's thresholds (flat: one ROS parameter each)."""
+
+    type: str = field(
+        default="sift",
+        metadata={"description": "Feature type: sift (default), rootsift, orb, or surf (needs OpenCV contrib "
+                  "with non-free modules)."},
+    )
+    max_features: int = field(
+        default=1000,
+        metadata={"description": "Keep at most this many keypoints per image, the strongest by response "
+                  "(0 = no limit)."},
+    )
+    sift_contrast_threshold: float = field(
+        default=0.04,
+        metadata={"description": "SIFT/RootSIFT contrast threshold: larger keeps fewer, stronger keypoints."},
+    )
+    sift_edge_threshold: float = field(
+        default=10.0,
+        metadata={"description": "SIFT/RootSIFT edge threshold: larger keeps more edge-like keypoints."},
+    )
+    sift_n_octave_layers: int = field(
+        default=3, metadata={"description": "SIFT/RootSIFT layers per octave (Lowe: 3)."}
+    )
+    sift_sigma: float = field(
+        default=1.6, metadata={"description": "SIFT/RootSIFT Gaussian sigma at octave 0."}
+    )
+    orb_scale_factor: float = field(
+        default=1.2, metadata={"description": "ORB pyramid decimation ratio (> 1)."}
+    )
+    orb_n_levels: int = field(default=8, metadata={"description": "ORB pyramid levels."})
+    orb_fast_threshold: int = field(
+        default=20, metadata={"description": "ORB FAST corner threshold (intensity difference, 0-255)."}
+    )
+    orb_edge_threshold: int = field(
+        default=31, metadata={"description": "ORB border in pixels where no keypoint is detected."}
+    )
+    surf_hessian_threshold: float = field(
+        default=400.0, metadata={"description": "SURF Hessian threshold: larger keeps fewer keypoints."}
+    )
+    surf_extended: bool = field(
+        default=True, metadata={"description": "SURF 128-d descriptors (true, as in the paper) or 64-d."}
+    )
+    surf_upright: bool = field(
+        default=False, metadata={"description": "SURF without orientation (U-SURF)."}
+    )
+
+    def __post_init__(self) -> None:
+        if self.type not in FEATURE_TYPES:
+            raise ConfigError(f"FeatureConfig.type={self.type!r} is not one of {', '.join(FEATURE_TYPES)}")
+        _require(self.max_features >= 0, "max_features", self.max_features, ">= 0")
+        _require(self.sift_contrast_threshold >= 0, "sift_contrast_threshold", self.sift_contrast_threshold,
+                 ">= 0")
+        _require(self.sift_edge_threshold > 0, "sift_edge_threshold", self.sift_edge_threshold, "> 0")
+        _require(self.sift_n_octave_layers >= 1, "sift_n_octave_layers", self.sift_n_octave_layers, ">= 1")
+        _require(self.sift_sigma > 0, "sift_sigma", self.sift_sigma, "> 0")
+        _require(self.orb_scale_factor > 1.0, "orb_scale_factor", self.orb_scale_factor, "> 1")
+        _require(self.orb_n_levels >= 1, "orb_n_levels", self.orb_n_levels, ">= 1")
+        _require(0 <= self.orb_fast_threshold <= 255, "orb_fast_threshold", self.orb_fast_threshold,
+                 "in [0, 255]")
+        _require(self.orb_edge_threshold >= 0, "orb_edge_threshold", self.orb_edge_threshold, ">= 0")
+        _require(self.surf_hessian_threshold >= 0, "surf_hessian_threshold", self.surf_hessian_threshold,
+                 ">= 0")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> FeatureConfig:
+        """Build from a dict (e.g. model metadata), naming unknown keys."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"FeatureConfig: unknown field(s) {unknown}")
+        return cls(**values)
+
+
+def _require(ok: bool, name: str, value: object, rule: str) -> None:
+    if not ok:
+        raise ConfigError(f"FeatureConfig.{name}={value!r} must be {rule}")
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints and descriptors of one image."""
+
+    keypoints: np.ndarray  # (N, 5) float32 [x, y, size, angle, response]
+    descriptors: np.ndarray  # (N, D) float32 (sift/rootsift/surf) or uint8 (orb)
+    descriptor_type: str
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+def descriptor_length(feature: str | FeatureConfig) -> int:
+    """Row length D of a descriptor type: 128 for sift/rootsift/surf (64 for non-extended SURF), 32 for orb."""
+    if isinstance(feature, FeatureConfig):
+        if feature.type == "surf":
+            return 128 if feature.surf_extended else 64
+        return _DESCRIPTOR_LENGTHS[feature.type]
+    if feature == "surf":
+        return 128
+    if feature not in _DESCRIPTOR_LENGTHS:
+        raise ConfigError(f"unknown feature type {feature!r}; known: {', '.join(FEATURE_TYPES)}")
+    return _DESCRIPTOR_LENGTHS[feature]
+
+
+def descriptor_dtype(feature: str | FeatureConfig) -> type[np.generic]:
+    """numpy dtype of a descriptor type's rows: uint8 for orb, float32 otherwise."""
+    name = feature.type if isinstance(feature, FeatureConfig) else feature
+    descriptor_length(name)  # validates the name
+    return np.uint8 if name == "orb" else np.float32
+
+
+def compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """The rows as uint8 when that is lossless, else unchanged: the smaller form to send or store.
+
+    OpenCV's SIFT values are integers 0-255 held in float32, so they fit a byte exactly (4x smaller);
+    RootSIFT and SURF values are fractions and stay float32. ``restore_descriptors`` undoes this.
+    """
+    values = np.asarray(descriptors)
+    if values.dtype == np.uint8:
+        return values
+    if values.size and (values.min() < 0 or values.max() > 255 or not np.array_equal(values, np.rint(values))):
+        return values
+    return values.astype(np.uint8)
+
+
+def restore_descriptors(values: np.ndarray, descriptor_type: str) -> np.ndarray:
+    """Descriptor rows in the dtype their type's consumers expect (``descriptor_dtype``), e.g. uint8
+    SIFT from ``compact_descriptors`` back to float32; exact, since the bytes were integers."""
+    if descriptor_type not in FEATURE_TYPES:  # not ours to judge here; consumers check the type
+        return np.asarray(values)
+    return np.asarray(values).astype(descriptor_dtype(descriptor_type), copy=False)
+
+
+def surf_available() -> bool:
+    """True when this OpenCV build really provides SURF (contrib + non-free)."""
+    xfeatures2d = getattr(cv2, "xfeatures2d", None)
+    if xfeatures2d is None or not hasattr(xfeatures2d, "SURF_create"):
+        return False
+    try:
+        xfeatures2d.SURF_create()
+    except cv2.error:  # built with contrib but without OPENCV_ENABLE_NONFREE
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=8)
+def _detector(config: FeatureConfig) -> Any:
+    """One OpenCV detector per config (creating one costs more than a small image's extraction)."""
+    if config.type in ("sift", "rootsift"):
+        return cv2.SIFT_create(  # type: ignore[attr-defined]
+            nfeatures=config.max_features,
+            nOctaveLayers=config.sift_n_octave_layers,
+            contrastThreshold=config.sift_contrast_threshold,
+            edgeThreshold=config.sift_edge_threshold,
+            sigma=config.sift_sigma,
+        )
+    if config.type == "orb":
+        return cv2.ORB_create(  # type: ignore[attr-defined]
+            nfeatures=config.max_features if config.max_features > 0 else 1_000_000,
+            scaleFactor=config.orb_scale_factor,
+            nlevels=config.orb_n_levels,
+            edgeThreshold=config.orb_edge_threshold,
+            patchSize=31,
+            fastThreshold=config.orb_fast_threshold,
+        )
+    if not surf_available():
+        raise ConfigError(
+            "FeatureConfig.type='surf' needs cv2.xfeatures2d.SURF_create (OpenCV contrib built with "
+            "OPENCV_ENABLE_NONFREE), which this OpenCV does not provide; use type 'sift' (the 128-d float "
+            "stand-in), 'rootsift', or 'orb'"
+        )
+    return cv2.xfeatures2d.SURF_create(  # type: ignore[attr-defined]
+        hessianThreshold=config.surf_hessian_threshold,
+        extended=config.surf_extended,
+        upright=config.surf_upright,
+    )
+
+
+def check_feature_config(config: FeatureConfig) -> None:
+    """Fail early (ConfigError) if the config's detector cannot be created here, e.g. SURF unavailable."""
+    _detector(config)
+
+
+def empty_features(config: FeatureConfig) -> Features:
+    """A Features with no keypoints and the config's descriptor shape."""
+    return Features(
+        keypoints=np.zeros((0, 5), np.float32),
+        descriptors=np.zeros((0, descriptor_length(config)), descriptor_dtype(config)),
+        descriptor_type=config.type,
+    )
+
+
+def extract_features(gray: np.ndarray, config: FeatureConfig) -> Features:
+    """Detect keypoints and compute descriptors on a 2-D uint8 image.
+
+    An image without features yields (0, 5) keypoints and (0, D) descriptors.
+    """
+    if not isinstance(gray, np.ndarray) or gray.ndim != 2 or gray.dtype != np.uint8:
+        shape = getattr(gray, "shape", None)
+        dtype = getattr(gray, "dtype", type(gray).__name__)
+        raise ImageError(f"extract_features needs a 2-D uint8 grayscale image, got shape {shape} dtype {dtype}")
+    if gray.size == 0:
+        raise ImageError(f"extract_features got an empty image of shape {gray.shape}")
+    detector = _detector(config)
+    cv_keypoints, descriptors = detector.detectAndCompute(np.ascontiguousarray(gray), None)
+    if descriptors is None or len(cv_keypoints) == 0:
+        return empty_features(config)
+    keypoints = np.array(
+        [(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in cv_keypoints], dtype=np.float32
+    ).reshape(-1, 5)
+    descriptors = np.asarray(descriptors, dtype=descriptor_dtype(config))
+    if config.type == "surf" and config.max_features > 0 and len(keypoints) > config.max_features:
+        # SURF has no nfeatures option: keep the strongest responses ourselves.
+        keep = np.argsort(-keypoints[:, 4], kind="stable")[: config.max_features]
+        keypoints, descriptors = keypoints[keep], descriptors[keep]
+    if config.type == "rootsift":
+        descriptors = rootsift(descriptors)
+    return Features(
+        keypoints=np.ascontiguousarray(keypoints),
+        descriptors=np.ascontiguousarray(descriptors),
+        descriptor_type=config.type,
+    )
+
+
+def rootsift(descriptors: np.ndarray) -> np.ndarray:
+    """RootSIFT (Arandjelovic & Zisserman 2012): L1-normalise, then element-wise square root.
+
+    Euclidean distance between RootSIFT vectors is the Hellinger kernel on the SIFT
+    histograms; rows have unit L2 norm.
+    """
+    values = np.maximum(np.asarray(descriptors, np.float32), 0.0)
+    l1 = values.sum(axis=1, keepdims=True)
+    return np.sqrt(values / np.maximum(l1, 1e-12)).astype(np.float32)
+
+
+def match_features(a: Features, b: Features, ratio: float = 0.8, ransac_px: float = 3.0) -> np.ndarray:
+    """Matches between two images' features: (M, 2) int64 row indices (into a, into b).
+
+    Mutual nearest neighbours passing Lowe's ratio test, then kept only if consistent with a
+    fundamental matrix (RANSAC, ``ransac_px`` pixels) when there are enough of them. Used as
+    the self-supervised signal of the autoencoder (same scene point, neighbouring frames).
+    """
+    if a.descriptor_type != b.descriptor_type:
+        raise ConfigError(f"cannot match {a.descriptor_type} with {b.descriptor_type} features")
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    norm = cv2.NORM_HAMMING if a.descriptors.dtype == np.uint8 else cv2.NORM_L2
+    matcher = cv2.BFMatcher(norm)
+    forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
+    backward = matcher.knnMatch(b.descriptors, a.descriptors, k=1)
+    best_back = {m[0].queryIdx: m[0].trainIdx for m in backward if m}
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in forward
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance and best_back.get(m[0].trainIdx) == m[0].queryIdx
+    ]
+    matches = np.array(pairs, np.int64).reshape(-1, 2)
+    if len(matches) >= 8:
+        _, inliers = cv2.findFundamentalMat(
+            a.keypoints[matches[:, 0], :2], b.keypoints[matches[:, 1], :2], cv2.FM_RANSAC, ransac_px, 0.99
+        )
+        if inliers is not None:
+            matches = matches[inliers.ravel().astype(bool)]
+    return matches

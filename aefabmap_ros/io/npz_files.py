@@ -1,0 +1,43 @@
+"""Versioned .npz state files (the FAB-MAP map, the verifier's feature store): atomic write, checked read."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from aefabmap_ros.errors import ModelError
+from aefabmap_ros.io.atomic import atomic_write_bytes
+
+
+def write_npz_atomically(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """All arrays into one .npz at ``path`` (folders created); readers never see half a file."""
+    path = Path(path)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def read_versioned_npz(path: Path, what: str, kind: str, required: Sequence[str],
+                       version: int) -> dict[str, np.ndarray]:
+    """The arrays of a ``what`` file (e.g. "map file"), checked for the ``required`` keys (else it is
+    "not a ``kind``") and ``format_version`` == ``version``; ModelError naming the file otherwise."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except FileNotFoundError as error:
+        raise ModelError(f"{what} not found: {path}") from error
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise ModelError(f"cannot read {what} {path}: {error}") from error
+    missing = [key for key in ("format_version", *required) if key not in arrays]
+    if missing:
+        raise ModelError(f"{what} {path} is not a {kind} (missing {missing})")
+    found = int(arrays["format_version"])
+    if found != version:
+        raise ModelError(f"{what} {path} has format version {found}, expected {version}")
+    return arrays

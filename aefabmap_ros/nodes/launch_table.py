@@ -1,0 +1,111 @@
+"""The suite's nodes with their parameters and remaps: one table for both ways of starting them.
+
+``aefabmap_launch`` (pip installs: OS processes) and ``launch/aefabmap.launch.py`` (``ros2 launch``)
+both call :func:`suite_nodes` and only render its answer, as command lines or as launch_ros
+``Node`` actions, so the two cannot drift apart. No ROS imports here.
+
+Verification is on by default: fabmap_node publishes FAB-MAP's raw closures on
+``loop_closure_candidates`` and verifier_node publishes the geometrically verified ones on
+``loop_closures``, the topic a SLAM backend subscribes to. With verification off there is no
+verifier and fabmap_node's ``loop_closure_candidates`` is remapped to ``loop_closures``, so the
+backend's subscription stays the same (``inliers`` -1 there says "not verified").
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from aefabmap_ros.errors import ConfigError
+
+PACKAGE = "aefabmap_ros"
+CANDIDATES_TOPIC = "loop_closure_candidates"  # fabmap_node's raw FAB-MAP closures
+CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
+POSTERIORS_TOPIC = "place_posteriors"
+DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
+VERIFIER_NODE = "verifier_node"
+BACKEND_NODE = "pose_graph_node"
+# Thread pools that OpenMP (torch), OpenBLAS/MKL (numpy, scipy) and numba each size to the machine's
+# cores by default: with several node processes that is cores x processes x pools threads fighting
+# for the same cores, so the launchers give each process its share unless the user chose a value.
+THREAD_LIMIT_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class SuiteOptions:
+    """What a user chooses when starting the suite (command-line options / launch arguments)."""
+
+    model_dir: str
+    map_file: str = ""  # '' = the map stays in memory
+    image_topic: str = "image"
+    image_qos: str = ""  # '' = the parameter file's value
+    verify: bool = True
+    backend: bool = False  # also start pose_graph_node, the example SLAM backend (odometry on ``odom``)
+
+
+@dataclass(frozen=True)
+class NodeLaunch:
+    """One node: its name (also its executable and ``aefabmap_ros.nodes.<name>`` module), the
+    parameters set after the parameter file, and its topic remaps."""
+
+    name: str
+    parameters: dict[str, str] = field(default_factory=dict)
+    remaps: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def module(self) -> str:
+        return f"{PACKAGE}.nodes.{self.name}"
+
+
+def verifier_store_path(map_path: Path) -> Path:
+    """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features/."""
+    return map_path.with_suffix(".features")
+
+
+def parse_bool(value: str, what: str) -> bool:
+    """A launch argument's truth value, as launch's IfCondition reads it (true/false/1/0, any case)."""
+    lowered = value.strip().lower()
+    if lowered in ("true", "1"):
+        return True
+    if lowered in ("false", "0"):
+        return False
+    raise ConfigError(f"{what}={value!r} must be true or false")
+
+
+def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
+    """The nodes to start, in start order, with what each gets beyond the parameter file."""
+    image: dict[str, str] = {"image_qos": options.image_qos} if options.image_qos else {}
+    fabmap: dict[str, str] = {"map_file": options.map_file} if options.map_file else {}
+    nodes = [
+        NodeLaunch("feature_node", {"model_dir": options.model_dir, **image}, {"image": options.image_topic}),
+        NodeLaunch("quantizer_node", {"model_dir": options.model_dir}),
+        NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap},
+                   {} if options.verify else {CANDIDATES_TOPIC: CLOSURES_TOPIC}),
+    ]
+    if options.verify:
+        store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
+        nodes.append(NodeLaunch(VERIFIER_NODE, store))
+    if options.backend:
+        nodes.append(NodeLaunch(BACKEND_NODE))
+    return nodes
+
+
+def compressed_topic(image_topic: str) -> str:
+    """image_transport's compressed topic of an image topic: ``/cam/image`` -> ``/cam/image/compressed``."""
+    return f"{image_topic.rstrip('/')}/compressed"
+
+
+def threads_per_process(processes: int, cores: int | None = None) -> int:
+    """Each process's share of the cores (at least 1): the node processes then start no more
+    pool threads together than the machine has cores (rounding down, but never to zero)."""
+    available = cores if cores is not None else (os.cpu_count() or 1)
+    return max(1, available // max(1, processes))
+
+
+def thread_limits(processes: int, environment: Mapping[str, str], cores: int | None = None) -> dict[str, str]:
+    """The thread-pool variables to add to each node process's environment: its share of the cores
+    for every variable of ``THREAD_LIMIT_VARIABLES`` the user has not set (theirs win)."""
+    share = str(threads_per_process(processes, cores))
+    return {name: share for name in THREAD_LIMIT_VARIABLES if not environment.get(name)}

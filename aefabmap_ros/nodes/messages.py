@@ -1,0 +1,196 @@
+"""Conversions between the pure core's arrays and the ROS messages of the suite.
+
+Sequence fields of rclpy messages are ``array.array``; filling them from raw bytes keeps the
+conversion O(bytes) instead of a Python loop per element. Incoming messages are validated here,
+so nodes get a ``DataError`` naming what is inconsistent rather than a crash deep in the core.
+"""
+
+from __future__ import annotations
+
+import array
+from typing import Any
+
+import numpy as np
+from aefabmap_msgs.msg import BagOfWords, Features, LoopClosure, PlacePosterior
+from builtin_interfaces.msg import Time
+from scipy.spatial.transform import Rotation
+from std_msgs.msg import Header
+
+from aefabmap_ros.errors import DataError, VocabularyMismatchError
+from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
+from aefabmap_ros.features import extraction as core_features
+from aefabmap_ros.verification.relative_pose import CameraModel, PoseOutcome
+
+KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
+
+
+# array.array typecodes of rclpy sequence fields -> the numpy dtype of the same item size.
+_TYPECODE_DTYPES = {"f": np.float32, "d": np.float64, "B": np.uint8, "I": np.uint32, "i": np.int32, "q": np.int64}
+
+
+def _typed_array(typecode: str, values: np.ndarray) -> array.array[Any]:
+    result = array.array(typecode)
+    result.frombytes(np.ascontiguousarray(values, dtype=_TYPECODE_DTYPES[typecode]).tobytes())
+    return result
+
+
+def time_from_ns(stamp_ns: int) -> Time:
+    return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
+
+
+def copy_header(header: Any) -> Header:
+    return Header(stamp=Time(sec=header.stamp.sec, nanosec=header.stamp.nanosec), frame_id=header.frame_id)
+
+
+# -------------------------------------------------------------------------------------- features
+
+
+def features_to_message(features: core_features.Features, header: Any, image_size: tuple[int, int]) -> Features:
+    """``image_size`` is (width, height) of the source image."""
+    keypoints = np.asarray(features.keypoints, dtype=np.float32).reshape(-1, 5)
+    descriptors = np.asarray(features.descriptors)
+    message = Features()
+    message.header = copy_header(header)
+    message.descriptor_type = features.descriptor_type
+    message.image_width, message.image_height = int(image_size[0]), int(image_size[1])
+    for column, name in enumerate(KEYPOINT_FIELDS):
+        setattr(message, name, _typed_array("f", keypoints[:, column]))
+    message.descriptor_length = core_features.descriptor_length(features.descriptor_type)
+    # ORB, and SIFT whose values are integers 0-255 (OpenCV's), cross as bytes: 4x less to send.
+    compact = core_features.compact_descriptors(descriptors)
+    if compact.dtype == np.uint8:
+        message.binary_descriptors = _typed_array("B", compact.reshape(-1))
+    else:
+        message.float_descriptors = _typed_array("f", compact.reshape(-1))
+    return message
+
+
+def message_to_features(message: Features) -> core_features.Features:
+    count = len(message.x)
+    if any(len(getattr(message, name)) != count for name in KEYPOINT_FIELDS):
+        lengths = {name: len(getattr(message, name)) for name in KEYPOINT_FIELDS}
+        raise DataError(f"Features keypoint arrays differ in length: {lengths}")
+    length = int(message.descriptor_length)
+    is_binary = len(message.binary_descriptors) > 0 or (count > 0 and len(message.float_descriptors) == 0)
+    raw = message.binary_descriptors if is_binary else message.float_descriptors
+    if length <= 0 or len(raw) != count * length:
+        raise DataError(
+            f"Features has {count} keypoints but {len(raw)} descriptor values for descriptor_length {length}"
+        )
+    dtype = np.uint8 if is_binary else np.float32
+    # Byte-carried SIFT goes back to float32 (the type's dtype); older float32 messages read as before.
+    descriptors = core_features.restore_descriptors(np.frombuffer(raw, dtype=dtype).reshape(count, length),
+                                                    str(message.descriptor_type))
+    if descriptors.dtype != np.uint8 and not np.all(np.isfinite(descriptors)):
+        # NaN would become some word (the autoencoder) or a confusing range error (k-means).
+        raise DataError(f"Features has {int(np.count_nonzero(~np.isfinite(descriptors)))} NaN/Inf descriptor values")
+    keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],
+                         axis=1) if count else np.zeros((0, 5), np.float32)
+    return core_features.Features(
+        keypoints=keypoints, descriptors=descriptors, descriptor_type=str(message.descriptor_type)
+    )
+
+
+# ---------------------------------------------------------------------------------- bag of words
+
+
+def bag_of_words_to_message(
+    header: Any,
+    vocabulary_id: str,
+    vocabulary_size: int,
+    word_ids: np.ndarray,
+    counts: np.ndarray,
+    keypoint_words: np.ndarray,
+) -> BagOfWords:
+    message = BagOfWords()
+    message.header = copy_header(header)
+    message.vocabulary_id = vocabulary_id
+    message.vocabulary_size = int(vocabulary_size)
+    message.num_features = len(keypoint_words)
+    message.word_ids = _typed_array("I", word_ids)
+    message.counts = _typed_array("I", counts)
+    message.keypoint_words = _typed_array("i", keypoint_words)
+    return message
+
+
+def message_to_word_ids(message: BagOfWords, vocabulary_id: str, vocabulary_size: int) -> np.ndarray:
+    """Validated, sorted unique word ids (int64) of a ``BagOfWords`` from our own vocabulary."""
+    if message.vocabulary_id != vocabulary_id:
+        raise VocabularyMismatchError(
+            f"BagOfWords from vocabulary {message.vocabulary_id!r}, but the loaded model is {vocabulary_id!r}"
+        )
+    if int(message.vocabulary_size) != vocabulary_size:
+        raise VocabularyMismatchError(
+            f"BagOfWords vocabulary_size {message.vocabulary_size} != model's {vocabulary_size}"
+        )
+    word_ids = np.frombuffer(message.word_ids, dtype=np.uint32).astype(np.int64)
+    if len(message.counts) != word_ids.size:
+        raise DataError(f"BagOfWords has {word_ids.size} word ids but {len(message.counts)} counts")
+    if word_ids.size and (word_ids.max() >= vocabulary_size):
+        raise DataError(f"BagOfWords word id {int(word_ids.max())} >= vocabulary_size {vocabulary_size}")
+    if word_ids.size > 1 and np.any(np.diff(word_ids) <= 0):
+        raise DataError("BagOfWords word_ids are not sorted and unique")
+    return word_ids
+
+
+# ------------------------------------------------------------------------------------- detection
+
+
+def _fill_candidates(message: PlacePosterior, candidates: tuple[Candidate, ...]) -> None:
+    message.place_ids = _typed_array("q", np.array([c.place_id for c in candidates], dtype=np.int64))
+    message.place_stamps = [time_from_ns(c.stamp_ns) for c in candidates]
+    message.probabilities = _typed_array("d", np.array([c.probability for c in candidates], dtype=np.float64))
+    message.log_likelihoods = _typed_array(
+        "d", np.array([c.log_likelihood for c in candidates], dtype=np.float64)
+    )
+
+
+def recognition_to_posterior(recognition: Recognition, header: Any) -> PlacePosterior:
+    message = PlacePosterior()
+    message.header = copy_header(header)
+    message.query_id = recognition.query_id
+    message.assigned_place_id = recognition.assigned_place_id
+    message.current_place_id = recognition.current_place_id
+    message.is_new_place = recognition.is_new_place
+    message.loop_closure_candidate = recognition.loop_closure is not None
+    message.new_place_probability = float(recognition.new_place_probability)
+    _fill_candidates(message, recognition.candidates)
+    return message
+
+
+def recognition_to_loop_closure(recognition: Recognition, header: Any) -> LoopClosure | None:
+    match = recognition.loop_closure
+    if match is None:
+        return None
+    message = LoopClosure()
+    message.header = copy_header(header)
+    message.query_id = recognition.query_id
+    message.query_place_id = recognition.assigned_place_id
+    message.matched_place_id = match.place_id
+    message.matched_stamp = time_from_ns(match.stamp_ns)
+    message.probability = float(match.probability)
+    message.log_likelihood = float(match.log_likelihood)
+    return message
+
+
+def camera_info_to_model(message: Any) -> CameraModel | None:
+    """``sensor_msgs/CameraInfo`` -> intrinsics; None for an uncalibrated camera (K all zero)."""
+    matrix = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    if matrix[0, 0] == 0.0:
+        return None
+    return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))
+
+
+def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
+    """Write a relative pose (or why there is none) into a LoopClosure's pose fields."""
+    message.pose_status = int(outcome.status)
+    message.pose_available = outcome.pose is not None
+    if outcome.pose is None:
+        return
+    x, y, z, w = Rotation.from_matrix(outcome.pose.rotation).as_quat()
+    message.pose.orientation.x, message.pose.orientation.y = float(x), float(y)
+    message.pose.orientation.z, message.pose.orientation.w = float(z), float(w)
+    tx, ty, tz = (float(value) for value in outcome.pose.translation)
+    message.pose.position.x, message.pose.position.y, message.pose.position.z = tx, ty, tz
+    message.pose_covariance = [float(value) for value in outcome.pose.covariance.reshape(36)]
+    message.translation_metric = outcome.pose.metric

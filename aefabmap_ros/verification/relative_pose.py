@@ -1,0 +1,373 @@
+"""Relative pose of a verified loop closure: the matched place's camera in the query camera's frame.
+
+``(R, t)`` maps a point from the place camera's frame into the query camera's:
+``X_query = R @ X_place + t``, so ``t`` is the place camera's centre and ``R`` its orientation, both
+in the query camera's frame (the ``geometry_msgs/Pose`` of the place camera there). Two ways to get
+it from the verified matches:
+
+* monocular (no depth): essential matrix (RANSAC) -> ``cv2.recoverPose`` -> rotation and the
+  direction of translation; its length is unknown (``metric`` False, ``t`` has unit norm);
+* with the depth of the place's keypoints: the place's 3-D points and the query's pixels ->
+  ``cv2.solvePnPRansac`` -> rotation and metric translation (``metric`` True).
+
+The covariance is the Gauss-Newton one, ``sigma^2 (J^T J)^-1``, with ``sigma`` estimated from the
+inlier residuals (reprojection error for PnP, Sampson error for the essential matrix), in ROS order
+(x, y, z, rot x, rot y, rot z) and for a small rotation vector applied to ``R``. For the monocular
+pose the variance along the translation direction is ``UNKNOWN_SCALE_VARIANCE``: the scale is
+unobserved, and a backend must not treat the unit length as a measurement.
+
+Degenerate geometry gives no pose, never a wrong one: too few matches (or too few with depth), too
+few RANSAC inliers, or too little parallax for the essential matrix (a pure rotation leaves the
+translation direction undefined). The reason is returned so that a node can count it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import cv2
+import numpy as np
+
+from aefabmap_ros.errors import ConfigError, DataError
+
+# Below this many correspondences RANSAC has no redundancy (5-point essential, 4-point PnP + checks).
+MIN_POSE_POINTS = 8
+# Variance (m^2, for a unit vector) given along the monocular translation direction: "not observed".
+UNKNOWN_SCALE_VARIANCE = 1.0e6
+
+
+class PoseStatus(IntEnum):
+    """Why a relative pose is or is not available; the values are LoopClosure.POSE_* constants."""
+
+    OK = 0
+    NO_CAMERA_INFO = 1  # no intrinsics yet: nothing to compute with
+    TOO_FEW_POINTS = 2  # fewer than MIN_POSE_POINTS matches (with depth, for PnP) or too few inliers
+    PURE_ROTATION = 3  # the essential matrix's parallax is too small to give a translation direction
+    ESTIMATION_FAILED = 4  # OpenCV found no model (degenerate configuration)
+
+
+@dataclass(frozen=True)
+class RelativePoseConfig:
+    """Thresholds of the relative pose (declared by verifier_node with the prefix ``pose_``)."""
+
+    ransac_threshold_px: float = field(default=1.0, metadata={
+        "description": "RANSAC inlier threshold of the essential matrix / PnP, pixels."})
+    confidence: float = field(default=0.999, metadata={"description": "RANSAC confidence of the relative pose."})
+    min_inliers: int = field(default=15, metadata={
+        "description": "Fewer RANSAC inliers than this: no relative pose (the closure is still published)."})
+    min_parallax_deg: float = field(default=1.0, metadata={
+        "description": "Median parallax below which a monocular pose is refused (pure rotation), degrees."})
+
+    def __post_init__(self) -> None:
+        if self.ransac_threshold_px <= 0 or not 0 < self.confidence < 1:
+            raise ConfigError(f"pose ransac_threshold_px ({self.ransac_threshold_px}) must be > 0 and "
+                              f"confidence ({self.confidence}) in (0, 1)")
+        if self.min_inliers < MIN_POSE_POINTS or self.min_parallax_deg < 0:
+            raise ConfigError(f"pose min_inliers ({self.min_inliers}) must be >= {MIN_POSE_POINTS} and "
+                              f"min_parallax_deg ({self.min_parallax_deg}) >= 0")
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole intrinsics (3x3 ``K``) and OpenCV distortion coefficients (plumb_bob / rational_polynomial)."""
+
+    matrix: np.ndarray
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        if self.matrix.shape != (3, 3) or not np.isfinite(self.matrix).all() or self.matrix[0, 0] <= 0 \
+                or self.matrix[1, 1] <= 0:
+            raise DataError(f"camera matrix must be a finite 3x3 with positive focal lengths, got {self.matrix}")
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """The matched place's camera in the query camera's frame."""
+
+    rotation: np.ndarray  # (3, 3) R: X_query = R X_place + t
+    translation: np.ndarray  # (3,) t; unit norm when not metric
+    covariance: np.ndarray  # (6, 6) over (x, y, z, rot x, rot y, rot z)
+    metric: bool  # translation in metres (PnP on depth) or a direction only (essential matrix)
+    inliers: int
+
+
+@dataclass(frozen=True)
+class PoseOutcome:
+    pose: RelativePose | None
+    status: PoseStatus
+
+
+def _no_pose(status: PoseStatus) -> PoseOutcome:
+    return PoseOutcome(None, status)
+
+
+def _check_points(query_points: np.ndarray, place_points: np.ndarray) -> None:
+    if query_points.shape != place_points.shape or query_points.ndim != 2 or query_points.shape[1] != 2:
+        raise DataError(f"point arrays must both be (M, 2), got {query_points.shape} and {place_points.shape}")
+
+
+def _undistorted_pixels(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Pixels as a distortion-free camera with the same ``K`` would see them, (M, 2) float64."""
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 2)
+    if camera.distortion.size == 0 or not np.any(camera.distortion):
+        return points.reshape(-1, 2)
+    return cv2.undistortPoints(points, camera.matrix, camera.distortion, P=camera.matrix).reshape(-1, 2)
+
+
+def _rotation_matrix(rotation_vector: np.ndarray) -> np.ndarray:
+    matrix, _ = cv2.Rodrigues(np.asarray(rotation_vector, dtype=np.float64).reshape(3, 1))
+    return matrix
+
+
+def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
+    vector, _ = cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))
+    return vector.reshape(3)
+
+
+def _gauss_newton_covariance(jacobian: np.ndarray, residuals: np.ndarray, parameters: int) -> np.ndarray:
+    """sigma^2 (J^T J)^+ with sigma^2 = |r|^2 / (n - p): the covariance of a least-squares estimate."""
+    dof = max(residuals.size - parameters, 1)
+    sigma2 = float(residuals @ residuals) / dof
+    return sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
+
+
+def _to_ros_order(covariance_rot_trans: np.ndarray) -> np.ndarray:
+    """(rot, trans) ordered 6x6 -> ROS (trans, rot) order."""
+    order = [3, 4, 5, 0, 1, 2]
+    return np.ascontiguousarray(covariance_rot_trans[np.ix_(order, order)])
+
+
+def _sampson_errors(rotation_vector: np.ndarray, translation: np.ndarray, query_normalized: np.ndarray,
+                    place_normalized: np.ndarray) -> np.ndarray:
+    """Sampson distances (normalised image units) of x_query^T E x_place = 0, E = [t]x R."""
+    t = translation / max(float(np.linalg.norm(translation)), 1e-12)
+    skew = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    essential = skew @ _rotation_matrix(rotation_vector)
+    place_h = np.column_stack([place_normalized, np.ones(len(place_normalized))])
+    query_h = np.column_stack([query_normalized, np.ones(len(query_normalized))])
+    e_place = place_h @ essential.T  # rows: E x_place
+    e_query = query_h @ essential  # rows: E^T x_query
+    algebraic = np.einsum("ij,ij->i", query_h, e_place)
+    scale = np.sqrt(e_place[:, 0] ** 2 + e_place[:, 1] ** 2 + e_query[:, 0] ** 2 + e_query[:, 1] ** 2)
+    return algebraic / np.maximum(scale, 1e-12)
+
+
+def _numeric_jacobian(residual_fn: object, parameters: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    assert callable(residual_fn)
+    base = residual_fn(parameters)
+    jacobian = np.empty((base.size, parameters.size))
+    for column in range(parameters.size):
+        shifted = parameters.copy()
+        shifted[column] += step
+        jacobian[:, column] = (residual_fn(shifted) - base) / step
+    return jacobian
+
+
+def _parallax_deg(rotation: np.ndarray, query_normalized: np.ndarray, place_normalized: np.ndarray) -> float:
+    """Median angle between each query ray and its place ray rotated into the query frame."""
+    query_rays = np.column_stack([query_normalized, np.ones(len(query_normalized))])
+    place_rays = np.column_stack([place_normalized, np.ones(len(place_normalized))]) @ rotation.T
+    cosines = np.einsum("ij,ij->i", query_rays, place_rays) / (
+        np.linalg.norm(query_rays, axis=1) * np.linalg.norm(place_rays, axis=1))
+    return float(np.degrees(np.median(np.arccos(np.clip(cosines, -1.0, 1.0)))))
+
+
+def _is_pure_rotation(query_px: np.ndarray, place_px: np.ndarray, camera: CameraModel, config: RelativePoseConfig,
+                      essential_inliers: int) -> bool:
+    """True when one homography of the form K R K^-1 explains (nearly) every match the essential matrix
+    does: the views differ by a rotation only, and any translation direction would be noise. An essential
+    matrix fitted to such data is arbitrary, so this is tested before trusting ``recoverPose``."""
+    try:
+        homography, mask = cv2.findHomography(place_px, query_px, cv2.USAC_MAGSAC, config.ransac_threshold_px,
+                                              confidence=config.confidence)
+    except cv2.error:
+        return False
+    if homography is None or mask is None or np.count_nonzero(mask) < 0.9 * essential_inliers:
+        return False
+    normalized = np.linalg.inv(camera.matrix) @ homography @ camera.matrix
+    singular = np.linalg.svd(normalized, compute_uv=False)
+    # A rotation's singular values are all equal; a plane seen with parallax stretches one of them.
+    return bool(singular[0] / singular[2] < 1.0 + np.radians(config.min_parallax_deg))
+
+
+def essential_pose(query_points: np.ndarray, place_points: np.ndarray, camera: CameraModel,
+                   config: RelativePoseConfig) -> PoseOutcome:
+    """Monocular relative pose: rotation and translation direction from the essential matrix."""
+    _check_points(query_points, place_points)
+    if query_points.shape[0] < MIN_POSE_POINTS:
+        return _no_pose(PoseStatus.TOO_FEW_POINTS)
+    query_px = _undistorted_pixels(query_points, camera)
+    place_px = _undistorted_pixels(place_points, camera)
+    try:
+        # points1 = place, points2 = query: recoverPose's (R, t) then map place-frame points to the query frame.
+        essential, mask = cv2.findEssentialMat(place_px, query_px, camera.matrix, cv2.USAC_MAGSAC,
+                                               config.confidence, config.ransac_threshold_px)
+        if essential is None or essential.shape != (3, 3) or mask is None:
+            return _no_pose(PoseStatus.ESTIMATION_FAILED)
+        inliers, rotation, translation, mask = cv2.recoverPose(essential, place_px, query_px, camera.matrix,
+                                                               mask=mask.copy())
+    except cv2.error:
+        return _no_pose(PoseStatus.ESTIMATION_FAILED)
+    if _is_pure_rotation(query_px, place_px, camera, config, essential_inliers=int(np.count_nonzero(mask))):
+        return _no_pose(PoseStatus.PURE_ROTATION)
+    keep = mask.reshape(-1).astype(bool)
+    if int(inliers) < config.min_inliers or np.count_nonzero(keep) < config.min_inliers:
+        return _no_pose(PoseStatus.TOO_FEW_POINTS)
+    inverse_k = np.linalg.inv(camera.matrix)
+    query_n = (np.column_stack([query_px[keep], np.ones(np.count_nonzero(keep))]) @ inverse_k.T)[:, :2]
+    place_n = (np.column_stack([place_px[keep], np.ones(np.count_nonzero(keep))]) @ inverse_k.T)[:, :2]
+    if _parallax_deg(rotation, query_n, place_n) < config.min_parallax_deg:
+        return _no_pose(PoseStatus.PURE_ROTATION)
+    translation = translation.reshape(3) / np.linalg.norm(translation)
+    parameters = np.concatenate([_rotation_vector(rotation), translation])
+    jacobian = _numeric_jacobian(lambda p: _sampson_errors(p[:3], p[3:], query_n, place_n), parameters)
+    residuals = _sampson_errors(parameters[:3], parameters[3:], query_n, place_n)
+    covariance = _to_ros_order(_gauss_newton_covariance(jacobian, residuals, 5))
+    # The Sampson error ignores the length of t: put "unobserved" along its direction.
+    direction = np.outer(translation, translation)
+    covariance[:3, :3] += UNKNOWN_SCALE_VARIANCE * direction
+    return PoseOutcome(RelativePose(rotation, translation, covariance, metric=False, inliers=int(inliers)),
+                       PoseStatus.OK)
+
+
+def back_project(points: np.ndarray, depths_m: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(M, 3) camera-frame points of pixels with depth (z along the optical axis, metres)."""
+    pixels = _undistorted_pixels(points, camera)
+    rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(camera.matrix).T
+    return rays * np.asarray(depths_m, dtype=np.float64).reshape(-1, 1)
+
+
+def pnp_pose(query_points: np.ndarray, place_points: np.ndarray, place_depths_m: np.ndarray, camera: CameraModel,
+             config: RelativePoseConfig) -> PoseOutcome:
+    """Metric relative pose: PnP (RANSAC) of the place's 3-D points (its pixels and depth) on the query's pixels.
+
+    ``place_depths_m`` holds each place point's depth; NaN, 0 or negative means none (that match is
+    not used).
+    """
+    _check_points(query_points, place_points)
+    depths = np.asarray(place_depths_m, dtype=np.float64).reshape(-1)
+    if depths.size != query_points.shape[0]:
+        raise DataError(f"{depths.size} depths for {query_points.shape[0]} matches")
+    valid = np.isfinite(depths) & (depths > 0)
+    if np.count_nonzero(valid) < MIN_POSE_POINTS:
+        return _no_pose(PoseStatus.TOO_FEW_POINTS)
+    objects = back_project(place_points[valid], depths[valid], camera)
+    images = np.ascontiguousarray(query_points[valid], dtype=np.float64)
+    distortion = camera.distortion if camera.distortion.size else None
+    try:
+        found, rvec, tvec, inlier_index = cv2.solvePnPRansac(
+            objects, images, camera.matrix, distortion, reprojectionError=config.ransac_threshold_px,
+            confidence=config.confidence, iterationsCount=1000, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return _no_pose(PoseStatus.ESTIMATION_FAILED)
+    if not found or inlier_index is None:
+        return _no_pose(PoseStatus.ESTIMATION_FAILED)
+    inlier_index = inlier_index.reshape(-1)
+    if inlier_index.size < config.min_inliers:
+        return _no_pose(PoseStatus.TOO_FEW_POINTS)
+    objects, images = objects[inlier_index], images[inlier_index]
+    rvec, tvec = cv2.solvePnPRefineLM(objects, images, camera.matrix, distortion, rvec, tvec)
+    projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera.matrix, distortion)
+    residuals = (projected.reshape(-1, 2) - images).reshape(-1)
+    covariance = _to_ros_order(_gauss_newton_covariance(jacobian[:, :6], residuals, 6))
+    return PoseOutcome(RelativePose(_rotation_matrix(rvec), tvec.reshape(3), covariance, metric=True,
+                                    inliers=int(inlier_index.size)), PoseStatus.OK)
+
+
+def relative_pose(query_points: np.ndarray, place_points: np.ndarray, camera: CameraModel | None,
+                  config: RelativePoseConfig, place_depths_m: np.ndarray | None = None) -> PoseOutcome:
+    """PnP when the place's depths are known (metric), else -- or when PnP finds no pose, e.g. too few
+    points with depth -- the essential matrix (direction only)."""
+    if camera is None:
+        return _no_pose(PoseStatus.NO_CAMERA_INFO)
+    if place_depths_m is not None:
+        metric = pnp_pose(query_points, place_points, place_depths_m, camera, config)
+        if metric.pose is not None:
+            return metric
+    return essential_pose(query_points, place_points, camera, config)
+
+
+def depth_image_to_metres(image: np.ndarray, encoding: str) -> np.ndarray:
+    """A depth image as float32 metres with NaN where there is none: 16UC1 in millimetres (0 = none) or
+    32FC1 in metres (NaN, inf or <= 0 = none), the two ROS depth conventions (REP 118)."""
+    if image.ndim != 2:
+        raise DataError(f"depth image must be single-channel, got shape {image.shape}")
+    if encoding in ("16UC1", "mono16"):
+        metres = image.astype(np.float32) / 1000.0
+    elif encoding == "32FC1":
+        metres = image.astype(np.float32, copy=True)
+    else:
+        raise DataError(f"depth encoding {encoding!r} is not 16UC1 (mm) or 32FC1 (m)")
+    metres[~np.isfinite(metres) | (metres <= 0)] = np.nan
+    return metres
+
+
+def depth_at_pixels(depth_m: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) float32 depth at each (x, y) pixel (nearest pixel); NaN outside the image or where none."""
+    columns = np.rint(points[:, 0]).astype(np.int64)
+    rows = np.rint(points[:, 1]).astype(np.int64)
+    inside = (columns >= 0) & (rows >= 0) & (columns < depth_m.shape[1]) & (rows < depth_m.shape[0])
+    out = np.full(points.shape[0], np.nan, dtype=np.float32)
+    out[inside] = depth_m[rows[inside], columns[inside]]
+    return out
+
+
+def depths_of_matches(matched_points: np.ndarray, keypoints: np.ndarray, keypoint_depths: np.ndarray) -> np.ndarray:
+    """Depth of each matched place point, looked up by its exact coordinates among the place's keypoints
+    (matching copies the keypoints' coordinates); NaN where the keypoint has none."""
+    by_position = {(float(x), float(y)): float(d) for (x, y), d in zip(keypoints[:, :2], keypoint_depths, strict=True)}
+    return np.array([by_position.get((float(x), float(y)), np.nan) for x, y in matched_points[:, :2]],
+                    dtype=np.float64)
+
+
+class KeypointDepthStore:
+    """Depth (metres, float32, NaN = none) at each stored keypoint of recent frames, by image stamp.
+
+    Bounded like the feature store it complements (``max_frames``, oldest first; ~2 KiB per frame of
+    500 keypoints). Depth images and features arrive on separate topics: the last ``max_images``
+    depth images wait for their frame's features, and features whose depth image has not come yet are
+    sampled when it comes (``add_features`` / ``add_depth`` in any order).
+    """
+
+    def __init__(self, max_frames: int, max_images: int = 30) -> None:
+        if max_frames < 1 or max_images < 1:
+            raise ConfigError(f"KeypointDepthStore needs max_frames ({max_frames}) and max_images ({max_images}) >= 1")
+        self.max_frames = max_frames
+        self.max_images = max_images
+        self._depths: dict[int, np.ndarray] = {}
+        self._images: dict[int, np.ndarray] = {}
+        self._waiting_keypoints: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self._depths)
+
+    def get(self, stamp_ns: int) -> np.ndarray | None:
+        return self._depths.get(stamp_ns)
+
+    def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
+        keypoints = self._waiting_keypoints.pop(stamp_ns, None)
+        if keypoints is not None:
+            self._keep(stamp_ns, depth_at_pixels(depth_m, keypoints))
+            return
+        self._images[stamp_ns] = depth_m
+        _trim(self._images, self.max_images)
+
+    def add_features(self, stamp_ns: int, keypoints: np.ndarray) -> None:
+        """The keypoints as stored for this frame (the feature store's, so the depths align with them)."""
+        image = self._images.pop(stamp_ns, None)
+        if image is not None:
+            self._keep(stamp_ns, depth_at_pixels(image, keypoints))
+            return
+        self._waiting_keypoints[stamp_ns] = keypoints
+        _trim(self._waiting_keypoints, self.max_images)
+
+    def _keep(self, stamp_ns: int, depths: np.ndarray) -> None:
+        self._depths.pop(stamp_ns, None)
+        self._depths[stamp_ns] = depths
+        _trim(self._depths, self.max_frames)
+
+
+def _trim(frames: dict[int, np.ndarray], limit: int) -> None:
+    while len(frames) > limit:
+        del frames[next(iter(frames))]

@@ -1,0 +1,174 @@
+"""The example backend on a hand-made square loop with drifting odometry."""
+
+from __future__ import annotations
+
+import itertools
+
+import gtsam
+import numpy as np
+import pytest
+
+from aefabmap_ros.backend.pose_graph import (
+    Closure,
+    ClosureResult,
+    OdometryBuffer,
+    PoseGraph,
+    PoseGraphConfig,
+    trajectory_arrays,
+)
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.evaluation.trajectory_error import tum_text
+
+SECOND = 1_000_000_000
+STEP_M = 0.5
+SIDE_STEPS = 20  # a 10 m square
+
+
+def square_truth() -> list[gtsam.Pose3]:
+    """Ground truth: 4 sides of 10 m, turning left 90 degrees at each corner, back at the start."""
+    poses, pose = [], gtsam.Pose3()
+    for _side in range(4):
+        for _ in range(SIDE_STEPS):
+            poses.append(pose)
+            pose = pose.compose(gtsam.Pose3(gtsam.Rot3(), np.array([STEP_M, 0.0, 0.0])))
+        pose = pose.compose(gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.zeros(3)))
+    poses.append(pose)
+    return poses
+
+
+def drifting_odometry(truth: list[gtsam.Pose3]) -> list[gtsam.Pose3]:
+    """Each step's motion 2 % too long and turned 0.15 degrees further left: the loop does not close."""
+    odometry = [truth[0]]
+    for before, after in itertools.pairwise(truth):
+        step = before.between(after)
+        drifted = gtsam.Pose3(step.rotation().compose(gtsam.Rot3.Yaw(np.radians(0.15))), 1.02 * step.translation())
+        odometry.append(odometry[-1].compose(drifted))
+    return odometry
+
+
+def stamp(index: int) -> int:
+    return (index + 1) * SECOND
+
+
+def closure(truth: list[gtsam.Pose3], query: int, place: int, wrong_place: int | None = None) -> Closure:
+    """The true T_query_place of two frames (with wrong_place: the pose of that other place instead)."""
+    relative = truth[query].between(truth[place if wrong_place is None else wrong_place])
+    return Closure(stamp(query), stamp(place), relative, np.diag([0.02**2] * 3 + [0.005**2] * 3))
+
+
+def graph_with_odometry(odometry: list[gtsam.Pose3]) -> PoseGraph:
+    graph = PoseGraph(PoseGraphConfig())
+    for index, pose in enumerate(odometry):
+        graph.add_odometry(stamp(index), pose)
+    return graph
+
+
+def position_error(graph: PoseGraph, truth: list[gtsam.Pose3], index: int) -> float:
+    poses = dict(graph.trajectory())
+    return float(np.linalg.norm(poses[stamp(index)].translation() - truth[index].translation()))
+
+
+def test_a_closure_pulls_the_end_of_the_loop_back() -> None:
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    end = len(truth) - 1
+    odometry_error = float(np.linalg.norm(odometry[end].translation() - truth[end].translation()))
+    assert odometry_error > 1.0  # the drift this test corrects
+    graph = graph_with_odometry(odometry)
+    assert graph.add_closure(closure(truth, end, 0)) is ClosureResult.ADDED
+    assert position_error(graph, truth, end) < 0.1 * odometry_error
+    # A second closure at a corner inserts keyframes between the first two (splitting their odometry factor).
+    assert graph.add_closure(closure(truth, 2 * SIDE_STEPS, SIDE_STEPS)) is ClosureResult.ADDED
+    assert [stamp_ns for stamp_ns, _ in graph.trajectory()] == [stamp(0), stamp(SIDE_STEPS), stamp(2 * SIDE_STEPS),
+                                                               stamp(end)]
+    assert position_error(graph, truth, end) < 0.1 * odometry_error
+    # map -> odom moves the drifted odometry of the newest keyframe onto its optimised pose.
+    newest_stamp, newest = graph.trajectory()[-1]
+    assert newest_stamp == stamp(end)
+    corrected = graph.map_to_odom().compose(odometry[end])
+    np.testing.assert_allclose(corrected.translation(), newest.translation(), atol=1e-6)
+
+
+def test_a_wrong_closure_far_from_odometry_is_refused() -> None:
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    end = len(truth) - 1
+    graph = graph_with_odometry(odometry)
+    graph.add_closure(closure(truth, end, 0))
+    right = position_error(graph, truth, end)
+    # The end claims to see the far corner as if it were at its start: 14 m off, drift explains < 2 m.
+    wrong = closure(truth, end - 1, 2 * SIDE_STEPS, wrong_place=0)
+    assert graph.add_closure(wrong) is ClosureResult.INCONSISTENT
+    assert graph.counts["inconsistent_with_odometry"] == 1
+    assert position_error(graph, truth, end) == pytest.approx(right)
+
+
+def end_error_after_wrong_then_true_closures(config: PoseGraphConfig) -> float:
+    """A closure 2 m wrong (within what 80 m of drift explains, so accepted), then five true ones that contradict it."""
+    truth = square_truth()
+    end = len(truth) - 1
+    graph = PoseGraph(config)
+    for index, pose in enumerate(drifting_odometry(truth)):
+        graph.add_odometry(stamp(index), pose)
+    start_shifted = [truth[0].compose(gtsam.Pose3(gtsam.Rot3(), np.array([2.0, 0.0, 0.0]))), *truth[1:]]
+    assert graph.add_closure(closure(start_shifted, end, 0)) is ClosureResult.ADDED
+    for step in range(1, 6):
+        assert graph.add_closure(closure(truth, end - step, step)) is ClosureResult.ADDED
+    return position_error(graph, truth, end)
+
+
+def test_a_wrong_closure_within_drift_is_down_weighted() -> None:
+    robust = end_error_after_wrong_then_true_closures(PoseGraphConfig())
+    plain = end_error_after_wrong_then_true_closures(PoseGraphConfig(cauchy_scale=1e6))  # ~ no kernel
+    assert robust < 0.15
+    assert plain > 2 * robust  # what the kernel saves: the wrong closure keeps pulling a Gaussian graph
+
+
+def test_bad_input_is_counted_and_dropped() -> None:
+    truth = square_truth()
+    graph = graph_with_odometry(drifting_odometry(truth))
+    graph.add_odometry(stamp(3), gtsam.Pose3())  # out of order
+    assert graph.counts["odometry_out_of_order"] == 1
+    unknown = Closure(stamp(10), 0, gtsam.Pose3(), np.eye(6))  # a place before the first odometry
+    assert graph.add_closure(unknown) is ClosureResult.UNKNOWN_STAMP
+    bad = Closure(stamp(10), stamp(0), gtsam.Pose3(), np.full((6, 6), np.nan))
+    assert graph.add_closure(bad) is ClosureResult.BAD_COVARIANCE
+    assert graph.counts["unknown_stamp"] == 1 and graph.counts["bad_covariance"] == 1
+    assert graph.trajectory() == []
+
+
+def test_a_closure_waits_for_odometry_to_reach_its_query() -> None:
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    graph = PoseGraph(PoseGraphConfig())
+    for index in range(30):
+        graph.add_odometry(stamp(index), odometry[index])
+    assert graph.add_closure(closure(truth, 40, 0)) is ClosureResult.WAITING
+    results = []
+    for index in range(30, 41):
+        results += graph.add_odometry(stamp(index), odometry[index])
+    assert results == [ClosureResult.ADDED]
+    assert len(graph.trajectory()) == 2  # the anchor at the first odometry is also the place
+
+
+def test_odometry_is_interpolated_between_samples() -> None:
+    buffer = OdometryBuffer(max_samples=10)
+    buffer.add(SECOND, gtsam.Pose3())
+    buffer.add(3 * SECOND, gtsam.Pose3(gtsam.Rot3.Yaw(0.4), np.array([2.0, 0.0, 0.0])))
+    middle = buffer.pose_at(2 * SECOND)
+    assert middle is not None
+    assert middle[0].rotation().yaw() == pytest.approx(0.2)
+    assert middle[1] == pytest.approx(1.0)  # half of the 2 m travelled
+    assert buffer.pose_at(4 * SECOND) is None and buffer.pose_at(0) is None
+
+
+def test_tum_lines() -> None:
+    trajectory = [(1_500_000_000, gtsam.Pose3(gtsam.Rot3(), np.array([1.0, 2.0, 3.0])))]
+    (line,) = tum_text(*trajectory_arrays(trajectory)).splitlines()
+    assert line.split() == ["1.500000000", "1.000000", "2.000000", "3.000000",
+                            "0.000000000", "0.000000000", "0.000000000", "1.000000000"]
+
+
+def test_config_is_checked() -> None:
+    with pytest.raises(ConfigError):
+        PoseGraphConfig(cauchy_scale=0.0)

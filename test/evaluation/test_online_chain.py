@@ -1,0 +1,102 @@
+"""The nodes' decision chain offline: consistency holds back single matches, verification gates what is published."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from aefabmap_ros.errors import DataError
+from aefabmap_ros.evaluation.online_chain import ChainClosure, run_online_chain
+from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.verification.geometric import VerificationConfig, cached_pair_verifier
+from test.fabmap.test_recognizer import SAMPLES, V, _tree
+from test.verification.test_geometric import HEIGHT, WIDTH, _two_views
+
+SECOND = 10**9
+
+
+def _scene_words(scene: int) -> np.ndarray:
+    return np.arange(5 * scene, 5 * scene + 5)
+
+
+def _sequence() -> tuple[sp.csr_matrix, list[Features]]:
+    """Scenes 0..6 at 1 Hz, then scenes 1 and 2 seen again from another pose (true revisits), then
+    scene 3's words on keypoints scattered at random (an aliased look-alike that geometry rejects)."""
+    views = [_two_views(seed=scene) for scene in range(7)]
+    words = [_scene_words(s) for s in range(7)] + [_scene_words(1), _scene_words(2), _scene_words(3)]
+    features = [view[0] for view in views] + [views[1][1], views[2][1]]
+    aliased = views[3][1]
+    scattered = aliased.keypoints.copy()
+    scattered[:, :2] = np.random.default_rng(3).uniform([0, 0], [WIDTH, HEIGHT], (scattered.shape[0], 2))
+    features.append(Features(keypoints=scattered, descriptors=aliased.descriptors, descriptor_type="sift"))
+    rows = np.zeros((len(words), V))
+    for row, ids in enumerate(words):
+        rows[row, ids] = 1
+    return sp.csr_matrix(rows), features
+
+
+CONFIG = FabMapConfig(exclude_recent_seconds=3.0, consistency_matches=2, island_seconds=1.5, match_threshold=0.5)
+
+
+def test_consistent_candidates_and_verified_closures():
+    observations, features = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    config = VerificationConfig()
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              (config, cached_pair_verifier(features, config)))
+    # Frame 7 matches place 1 but is the first of its run: no candidate. Frames 8 and 9 continue it.
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
+    assert all(c.probability > 0.5 and c.inliers == -1 for c in result.candidates)
+    # The aliased frame 9 fails geometry: only the true revisit reaches /loop_closures.
+    assert [(c.query_frame, c.matched_frame) for c in result.published] == [(8, 2)]
+    assert result.published[0].inliers >= 100
+    assert result.num_places == 10
+    # Each frame's best hypothesis, for the calibration: from frame 3 on (the first place is 3 s old).
+    assert [b.query_frame for b in result.best] == list(range(3, 10))
+    assert (result.best[5].matched_frame, result.candidates[0].probability) == (2, result.best[5].probability)
+
+
+def test_without_verification_the_candidates_are_published():
+    observations, _ = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG)
+    assert result.published == result.candidates and len(result.published) == 2
+    assert isinstance(result.published[0], ChainClosure)
+
+
+def test_bad_input():
+    observations, _ = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    with pytest.raises(DataError, match="9 stamps for 10 frames"):
+        run_online_chain(observations, stamps[:9], _tree(), SAMPLES, CONFIG)
+    with pytest.raises(DataError, match="increase strictly"):
+        run_online_chain(observations, stamps[::-1].copy(), _tree(), SAMPLES, CONFIG)
+
+
+def _weak_revisit(gap_s: float) -> tuple[sp.csr_matrix, list[Features], np.ndarray]:
+    """The sequence's revisit of scenes 1 and 2, then ``gap_s`` later a frame that sees scene 3 from the
+    other pose (its features) but shares only two of its words (blur, a changed scene: FAB-MAP is unsure)."""
+    observations, features = _sequence()
+    words = sp.vstack([observations[:9], sp.csr_matrix(np.isin(np.arange(V), [15, 16, 35, 36, 37]).astype(float))])
+    revisit = _two_views(seed=3)[1]
+    stamps = np.append(np.arange(9) * SECOND, 8 * SECOND + int(gap_s * SECOND)).astype(np.int64)
+    return sp.csr_matrix(words), [*features[:9], revisit], stamps
+
+
+@pytest.mark.parametrize(("track_seconds", "gap_s", "tracked"), [(1.0, 0.5, True), (0.0, 0.5, False),
+                                                                   (1.0, 1.5, False)])
+def test_loop_tracking_closes_a_weak_frame_of_a_verified_revisit(track_seconds, gap_s, tracked):
+    observations, features, stamps = _weak_revisit(gap_s)
+    config = VerificationConfig(track_seconds=track_seconds)
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              (config, cached_pair_verifier(features, config)))
+    # Frame 9 is no candidate: its best place is 3, but below the match threshold ...
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2)]
+    weak = result.best[-1]
+    assert weak.query_frame == 9 and weak.matched_frame == 3 and weak.probability < CONFIG.match_threshold
+    # ... but place 3 is among its candidates and 1 s (map time) from the verified place 2: while the track
+    # lasts, geometry confirms it and it is published as a tracked closure.
+    published = [(c.query_frame, c.matched_frame, c.tracked) for c in result.published]
+    assert published == [(8, 2, False), (9, 3, True)] if tracked else published == [(8, 2, False)]
+    if tracked:
+        assert result.published[1].inliers >= VerificationConfig().min_inliers

@@ -1,0 +1,331 @@
+"""evaluation.protocol: FAB-MAP posterior matrices against openFABMAP and an independent renormalisation,
+tf-idf scores, recordings, reports and every error path."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.special import logsumexp
+
+from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.evaluation.metrics import evaluate_scores
+from aefabmap_ros.evaluation.protocol import (
+    METHODS,
+    EvaluationConfig,
+    MethodResult,
+    RecordedClosure,
+    closure_precision_recall,
+    evaluate_model,
+    fabmap_evaluation_config,
+    fabmap_posterior_matrix,
+    leave_one_out_samples,
+    load_gt_npz,
+    methods_of_kind,
+    model_tree,
+    parse_methods,
+    result_to_dict,
+    results_markdown,
+    scores_from_recording,
+    tfidf_matrix,
+    unique_slugs,
+)
+from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import FabMapConfig, fabmap_score_matrices
+from aefabmap_ros.features.extraction import FeatureConfig, Features
+from aefabmap_ros.model.directory import Model
+from aefabmap_ros.vocabulary.base import VocabularyConfig
+from aefabmap_ros.vocabulary.kmeans import train_kmeans_quantizer
+from test.conftest import require_shared
+
+openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
+
+
+
+@pytest.fixture(scope="module")
+def golden():
+    directory = require_shared("golden", "openfabmap_rtab")
+    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+
+    return SimpleNamespace(
+        tree=read_chow_liu_tree(directory / "tree.yml"),
+        train=sp.csr_matrix(read_bow(directory / "bowtrain.yml") > 0),
+        test=sp.csr_matrix(read_bow(directory / "bowtest.yml") > 0),
+        probabilities=np.loadtxt(directory / "fabmap2_sampled.probabilities.txt"),
+        loglik=np.loadtxt(directory / "fabmap2_sampled.loglik.txt"),
+    )
+
+
+def random_tree_and_bow(seed=0, frames=30, words=40):
+    rng = np.random.default_rng(seed)
+    bow = (rng.random((frames, words)) < 0.2).astype(np.float64)
+    parent = np.arange(words)
+    parent[1:] = rng.integers(0, np.arange(1, words))  # parents precede children: a tree
+    marginal = np.clip(bow.mean(axis=0), 0.05, 0.95)
+    matrix = np.vstack([parent, marginal, np.full(words, 0.6), np.full(words, 0.1)])
+    return ChowLiuTree.from_matrix(matrix), sp.csr_matrix(bow)
+
+
+# ------------------------------------------------------------------------------------------ FAB-MAP
+
+
+def test_posterior_without_exclusion_reproduces_openfabmap(golden):
+    # openFABMAP recognises every frame, also its two blank ones (min_words=0).
+    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, openfabmap(min_words=0), 0)
+    lower = np.tril(np.ones(scores.shape, dtype=bool), -1)
+    np.testing.assert_allclose(scores[lower], golden.probabilities[lower], atol=1e-5)  # file: 6 digits
+    np.testing.assert_allclose(new_place, np.diag(golden.probabilities), atol=1e-5)
+    assert np.all(scores[~lower] == 0)
+    # The golden README's figures: recall 0.57 at 100 % precision, AP 0.87 (min gap 10).
+    gt = np.load(require_shared("datasets", "rtabmap_samples", "loop_gt.npz"))["gt"]
+    metrics = evaluate_scores(scores, gt, 10, 0.99)
+    assert metrics.recall_at_100_precision == pytest.approx(25 / 44)
+    assert metrics.average_precision == pytest.approx(0.85, abs=0.03)
+
+
+def test_blank_frames_are_neither_queries_nor_places(golden):
+    """Independent reference: openFABMAP's log-likelihoods, softmax over {new} + the non-blank earlier frames."""
+    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, openfabmap(), 0)
+    blank = np.flatnonzero(np.asarray(golden.test.sum(axis=1)).ravel() == 0)
+    assert blank.tolist() == [18, 45]  # the golden README's two frames without keypoints
+    assert np.all(scores[blank] == 0) and np.all(scores[:, blank] == 0) and np.all(np.isnan(new_place[blank]))
+    for i in (1, 19, 20, 46, 60, 83):
+        kept = np.setdiff1d(np.arange(i), blank)
+        hypotheses = np.r_[golden.loglik[i, i], golden.loglik[i, kept]]
+        p = np.exp(hypotheses - logsumexp(hypotheses))
+        p = 0.99 * p + 0.01 / p.size
+        assert new_place[i] == pytest.approx(p[0], rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(scores[i, kept], p[1:], rtol=1e-9, atol=1e-12)
+    # openFABMAP's most confident false loop is blank frame 45 -> blank frame 18; without the blank
+    # frames, recall at 100 % precision rises from 25/44 to 33/44.
+    gt = np.load(require_shared("datasets", "rtabmap_samples", "loop_gt.npz"))["gt"]
+    assert evaluate_scores(scores, gt, 10, 0.99).recall_at_100_precision == pytest.approx(33 / 44)
+
+
+@pytest.mark.parametrize("exclude", [1, 9])
+def test_posterior_with_exclusion_renormalises_over_older_places(golden, exclude):
+    """Independent reference: openFABMAP's log-likelihoods, softmax over {new} + {j < i - N}, smoothing."""
+    config = openfabmap(min_words=0)
+    scores, new_place = fabmap_posterior_matrix(golden.test, golden.tree, golden.train, config, exclude)
+    for i in (0, 5, exclude, exclude + 1, 40, 83):
+        kept = np.arange(max(i - exclude, 0))
+        hypotheses = np.r_[golden.loglik[i, i], golden.loglik[i, kept]]
+        p = np.exp(hypotheses - logsumexp(hypotheses))
+        p = 0.99 * p + 0.01 / p.size
+        assert new_place[i] == pytest.approx(p[0], rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(scores[i, kept], p[1:], rtol=1e-9, atol=1e-12)
+        assert np.all(scores[i, max(i - exclude, 0):] == 0)
+        assert scores[i].sum() + new_place[i] == pytest.approx(1.0)
+
+
+def test_leave_one_out_matches_fabmap_score_matrices():
+    tree, bow = random_tree_and_bow()
+    exclude = leave_one_out_samples(bow.shape[0], np.arange(bow.shape[0]))
+    assert exclude.tolist() == list(range(bow.shape[0]))
+    scores, new_place = fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0, exclude.tolist())
+    reference = fabmap_score_matrices(bow, tree, bow, openfabmap(), exclude_samples=exclude.tolist())
+    lower = np.tril(np.ones(scores.shape, dtype=bool), -1)
+    np.testing.assert_allclose(scores[lower], reference.probabilities[lower], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(new_place, np.diag(reference.probabilities), rtol=1e-10)
+    # Without leaving out, the query's own sample raises its new-place probability.
+    _, with_self = fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0)
+    assert np.all(with_self[1:] >= new_place[1:] - 1e-12) and np.any(with_self > new_place + 1e-6)
+
+
+def test_leave_one_out_with_a_subsample_of_frames():
+    assert leave_one_out_samples(5, np.array([0, 2, 4])).tolist() == [0, -1, 1, -1, 2]
+    with pytest.raises(DataError, match=r"sample frames must lie in \[0, 5\)"):
+        leave_one_out_samples(5, np.array([0, 5]))
+
+
+def test_evaluation_config_fixes_what_the_protocol_needs():
+    config = fabmap_evaluation_config(
+        openfabmap(add_policy="new_only", keyframe_min_frames=3, exclude_recent_seconds=2.0, top_k=5,
+                     p_z_given_e=0.3, keyframe_max_seconds=1.0, exclude_linked_overlap=0.2, consistency_matches=3,
+                     likelihood_temperature=3.0), 4)
+    assert (config.add_policy, config.keyframe_min_frames, config.exclude_recent_seconds) == ("all", 1, 0.0)
+    assert (config.keyframe_max_seconds, config.exclude_linked_overlap, config.consistency_matches) == (0.0, 0.0, 1)
+    assert config.exclude_recent_frames == 4 and config.p_z_given_e == 0.3
+    assert config.likelihood_temperature == 3.0  # the posterior is the node's, only the protocol's policies change
+    with pytest.raises(ConfigError, match="exclude_recent_frames=-1"):
+        fabmap_evaluation_config(openfabmap(), -1)
+
+
+def test_fabmap_matrix_errors():
+    tree, bow = random_tree_and_bow()
+    with pytest.raises(DataError, match="observations have 39 words"):
+        fabmap_posterior_matrix(bow[:, :39], tree, bow, openfabmap(), 0)
+    with pytest.raises(DataError, match="exclude_samples has 2 entries for 30 frames"):
+        fabmap_posterior_matrix(bow, tree, bow, openfabmap(), 0, [0, 1])
+
+
+# ------------------------------------------------------------------------------------ methods, models
+
+
+def test_tfidf_matrix_is_core_tfidf():
+    rng = np.random.default_rng(1)
+    counts = sp.csr_matrix(rng.poisson(0.5, (12, 20)).astype(float))
+    source = sp.csr_matrix(rng.random((7, 20)) < 0.3)
+    np.testing.assert_array_equal(tfidf_matrix(counts, source), tfidf_score_matrix(counts, source))
+
+
+def test_parse_methods():
+    assert parse_methods(["ae-fabmap", "BOW", " fabmap2"]) == ("FABMAP2", "AE-FABMAP", "BoW")
+    assert parse_methods(METHODS) == tuple(METHODS)
+    assert methods_of_kind("autoencoder", tuple(METHODS)) == ("AE-FABMAP", "AE-BoW")
+    with pytest.raises(ConfigError, match="unknown method 'SeqSLAM'"):
+        parse_methods(["FABMAP2", "SeqSLAM"])
+    with pytest.raises(ConfigError, match="no method selected"):
+        parse_methods([])
+
+
+@pytest.mark.parametrize(("values", "message"), [
+    ({"min_gap": 0}, "min_gap=0"),
+    ({"threshold": 1.5}, "threshold=1.5"),
+    ({"bow_threshold": -0.1}, "bow_threshold=-0.1"),
+    ({"fabmap_exclude_recent": -2}, "fabmap_exclude_recent=-2"),
+])
+def test_evaluation_config_errors(values, message):
+    with pytest.raises(ConfigError, match=message):
+        EvaluationConfig(**values)
+
+
+def test_evaluation_config_exclusion_window():
+    assert EvaluationConfig(min_gap=7).fabmap_exclusion_frames == 0
+    assert EvaluationConfig(min_gap=7, fabmap_exclude_recent=-1).fabmap_exclusion_frames == 6
+    assert EvaluationConfig(fabmap_exclude_recent=3).fabmap_exclusion_frames == 3
+
+
+def small_model_and_features(seed=0, frames=24):
+    """A k-means model whose words are the descriptors' clusters; frames revisit after `frames // 2`."""
+    rng = np.random.default_rng(seed)
+    centres = rng.random((30, 8)).astype(np.float32) * 10
+    half = frames // 2
+    place_words = [rng.choice(30, size=6, replace=False) for _ in range(half)]
+    features = []
+    for i in range(frames):
+        words = place_words[i % half]
+        descriptors = centres[words] + rng.normal(0, 0.05, (6, 8)).astype(np.float32)
+        features.append(Features(np.zeros((6, 5), np.float32), descriptors.astype(np.float32), "sift"))
+    training = np.concatenate([centres + rng.normal(0, 0.05, (30, 8)).astype(np.float32) for _ in range(20)])
+    quantizer = train_kmeans_quantizer(training, 30, 0, 10, 256)
+    bow = sp.csr_matrix(rng.random((40, 30)) < 0.2, dtype=np.float64)
+    tree = np.vstack([np.arange(30), np.full(30, 0.2), np.full(30, 0.2), np.full(30, 0.2)])
+    model = Model.create(FeatureConfig(), VocabularyConfig(kind="kmeans", size=30), quantizer, tree, bow)
+    gt = np.zeros((frames, frames), np.uint8)
+    gt[np.arange(half, frames), np.arange(half)] = 1
+    return model, features, gt
+
+
+def test_evaluate_model_finds_exact_revisits():
+    model, features, gt = small_model_and_features()
+    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), openfabmap())
+    assert [r.name for r in results] == ["FABMAP2", "BoW"]
+    for result in results:
+        assert result.scores.shape == (24, 24) and np.all((result.scores >= 0) & (result.scores <= 1 + 1e-12))
+        assert result.metrics.num_positive_queries == 12
+        assert result.metrics.recall_at_100_precision == 1.0  # every revisit has identical words
+        assert result.vocabulary_kind == "kmeans" and result.model_id == model.model_id
+    assert results[0].new_place is not None and results[1].new_place is None
+    assert results[0].metrics.threshold == 0.99 and results[1].metrics.threshold == EvaluationConfig().bow_threshold
+
+
+def test_evaluate_model_errors():
+    model, features, gt = small_model_and_features()
+    with pytest.raises(ConfigError, match="AE-FABMAP needs a autoencoder vocabulary"):
+        evaluate_model(model, features, gt, ("AE-FABMAP",), EvaluationConfig(), openfabmap())
+    with pytest.raises(ConfigError, match="unknown method 'X'"):
+        evaluate_model(model, features, gt, ("X",), EvaluationConfig(), openfabmap())
+    with pytest.raises(DataError, match="23 test frames but the ground truth is 24x24"):
+        evaluate_model(model, features[:-1], gt, ("BoW",), EvaluationConfig(), openfabmap())
+    model.tree_matrix = None
+    with pytest.raises(ModelError, match="has no Chow-Liu tree"):
+        model_tree(model)
+
+
+# ----------------------------------------------------------------------------------------- recordings
+
+
+def stamp(ns):
+    return SimpleNamespace(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def posterior(query, places, probabilities, stamps_ns=None):
+    return SimpleNamespace(
+        header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query, place_ids=np.array(places),
+        probabilities=np.array(probabilities, dtype=float),
+        place_stamps=[stamp(s) for s in (stamps_ns if stamps_ns is not None else [1000 + p for p in places])],
+    )
+
+
+def closure(query, place, probability, place_stamp_ns):
+    return SimpleNamespace(header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query,
+                           matched_place_id=place, matched_stamp=stamp(place_stamp_ns), probability=probability)
+
+
+def test_scores_from_recording_maps_places_by_stamp_then_id():
+    posteriors = [posterior(0, [], []), posterior(1, [0], [0.2]), posterior(2, [1, 0], [0.7, 0.1]),
+                  # place id 5 with the stamp of frame 1 (keyframing renumbered places): frame 1
+                  posterior(3, [5, 0], [0.6, 0.3], stamps_ns=[1001, 9999])]
+    closures = [closure(3, 5, 0.995, 1001)]
+    recorded = scores_from_recording(posteriors, closures, 5)
+    expected = np.zeros((5, 5))
+    expected[1, 0], expected[2, 1], expected[2, 0] = 0.2, 0.7, 0.1
+    expected[3, 1], expected[3, 0] = 0.995, 0.3  # the loop closure's probability is the larger
+    np.testing.assert_allclose(recorded.scores, expected)
+    assert recorded.closures == [RecordedClosure(3, 1, 0.995)]
+    assert (recorded.num_posteriors, recorded.num_loop_closures) == (4, 1)
+    assert recorded.stamp_aligned_candidates == 5  # all but the unknown stamp 9999 (place id 0 = frame 0)
+
+
+@pytest.mark.parametrize(("posteriors", "message"), [
+    ([posterior(7, [0], [0.5])], "query id 7 outside the 5 frames"),
+    ([posterior(2, [2], [0.5])], "query 2 maps to frame 2, which is not an earlier frame"),
+    ([posterior(2, [0, 1], [0.5])], "2 place ids but 1 probabilities"),
+])
+def test_scores_from_recording_errors(posteriors, message):
+    with pytest.raises(DataError, match=message):
+        scores_from_recording(posteriors, [], 5)
+
+
+def test_closure_precision_recall():
+    gt = np.zeros((30, 30), np.uint8)
+    gt[20, 2] = gt[21, 3] = gt[22, 4] = gt[23, 20] = 1  # the last is within min gap: not a positive query
+    closures = [RecordedClosure(20, 2, 1.0), RecordedClosure(21, 9, 1.0)]
+    assert closure_precision_recall(closures, gt, 10) == (0.5, pytest.approx(1 / 3))
+    precision, recall = closure_precision_recall([], gt, 10)
+    assert np.isnan(precision) and recall == 0.0
+
+
+# -------------------------------------------------------------------------------------------- reports
+
+
+def test_reports():
+    model, features, gt = small_model_and_features()
+    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), openfabmap())
+    results[1].label = "office/v2"
+    table = results_markdown(results).splitlines()
+    assert len(table) == 4 and table[2].startswith("| FABMAP2 | kmeans 30 | 1.000 |")
+    assert table[3].startswith("| BoW (office/v2) | kmeans 30 |")
+    entry = result_to_dict(results[0])
+    assert entry["recall_at_100_precision"] == 1.0 and entry["method"] == "FABMAP2"
+    assert len(entry["pr_curve"]["precision"]) == len(entry["pr_curve"]["recall"]) >= 1
+    assert unique_slugs(results) == ["fabmap2", "bow_office_v2"]
+    twin = MethodResult(**{**results[0].__dict__})
+    assert unique_slugs([results[0], twin]) == ["fabmap2", "fabmap2_2"]
+
+
+def test_load_gt_npz(tmp_path):
+    good = tmp_path / "gt.npz"
+    np.savez(good, gt=np.eye(3, k=-1, dtype=np.uint8))
+    assert load_gt_npz(good).shape == (3, 3)
+    np.savez(tmp_path / "key.npz", loops=np.zeros((3, 3)))
+    np.savez(tmp_path / "shape.npz", gt=np.zeros((3, 4)))
+    np.savez(tmp_path / "values.npz", gt=np.full((3, 3), 2))
+    (tmp_path / "junk.npz").write_text("not a zip")
+    for name, message in (("missing.npz", "ground-truth file not found"), ("key.npz", "has no array 'gt'"),
+                          ("shape.npz", r"square \(N, N\) matrix, got shape \(3, 4\)"),
+                          ("values.npz", "only 0 and 1"), ("junk.npz", "cannot read ground-truth file")):
+        with pytest.raises(DataError, match=message):
+            load_gt_npz(tmp_path / name)

@@ -1,0 +1,289 @@
+"""FAB-MAP 1/2: openFABMAP golden outputs, FAB-MAP 2 == FAB-MAP 1 up to a constant, posteriors, errors."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.engines import (
+    FabMap1,
+    FabMap2,
+    FabMapConfig,
+    FabMapModel,
+    InvertedIndex,
+    fabmap_score_matrices,
+    motion_log_prior,
+    posterior,
+    top_k_indices,
+)
+
+openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
+
+GOLDEN_RUNS = [
+    ("fabmap2_sampled", openfabmap(), "fabmap2"),
+    ("fabmap2_sampled_motion", openfabmap(motion_model=True), "fabmap2"),
+    ("fabmap1_meanfield", openfabmap(new_place_model="meanfield"), "fabmap1"),
+    ("fabmaplut_meanfield", openfabmap(new_place_model="meanfield"), "fabmaplut"),
+]
+
+
+@pytest.mark.parametrize(("prefix", "config", "method"), GOLDEN_RUNS)
+def test_reproduces_openfabmap_golden_outputs(golden_dir, prefix, config, method):
+    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+
+    tree = read_chow_liu_tree(golden_dir / "tree.yml")
+    train = read_bow(golden_dir / "bowtrain.yml")
+    test = read_bow(golden_dir / "bowtest.yml")
+    result = fabmap_score_matrices(sp.csr_matrix(test), tree, sp.csr_matrix(train), config, method)
+    golden_ll = np.loadtxt(golden_dir / f"{prefix}.loglik.txt")
+    golden_p = np.loadtxt(golden_dir / f"{prefix}.probabilities.txt")
+    assert result.log_likelihoods.shape == golden_ll.shape == (84, 84)
+    np.testing.assert_array_equal(np.isnan(result.log_likelihoods), np.isnan(golden_ll))
+    known = ~np.isnan(golden_ll)
+    np.testing.assert_allclose(result.log_likelihoods[known], golden_ll[known], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(result.probabilities, golden_p, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(result.probabilities.sum(axis=1), 1.0, atol=1e-12)
+
+
+def _random_tree(rng: np.random.Generator, v: int) -> ChowLiuTree:
+    order = rng.permutation(v)
+    parent = np.empty(v, dtype=np.int64)
+    parent[order[0]] = order[0]
+    for k in range(1, v):
+        parent[order[k]] = order[rng.integers(0, k)]
+    probs = rng.uniform(0.02, 0.98, size=(3, v))
+    probs[1:, order[0]] = probs[0, order[0]]
+    return ChowLiuTree(parent, probs[0], probs[1], probs[2])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), v=st.integers(2, 30), dense=st.floats(0.05, 0.9))
+def test_fabmap2_differences_equal_fabmap1(seed, v, dense):
+    rng = np.random.default_rng(seed)
+    tree = _random_tree(rng, v)
+    model = FabMapModel(tree, p_z_given_e=rng.uniform(0.1, 0.9), p_z_given_not_e=rng.uniform(0, 0.05))
+    fm1 = FabMap1(model, None, "meanfield")
+    fm2 = FabMap2(model, None, "meanfield")
+    places = [np.flatnonzero(rng.random(v) < dense) for _ in range(6)] + [np.zeros(0, dtype=np.int64)]
+    for words in places:
+        fm1.add(words)
+        fm2.add(words)
+    for _ in range(3):
+        query = np.flatnonzero(rng.random(v) < dense)  # words whose parent is observed or not
+        new1, exact = fm1.log_likelihoods(query)
+        new2, relative = fm2.log_likelihoods(query)
+        empty_place = exact[-1]
+        np.testing.assert_allclose(relative, exact - empty_place, rtol=0, atol=1e-9)
+        assert new2 == pytest.approx(new1 - empty_place, abs=1e-9)
+
+
+def test_sampled_new_place_is_mean_sample_likelihood_and_can_exclude_the_query():
+    rng = np.random.default_rng(5)
+    tree = _random_tree(rng, 12)
+    samples = [np.flatnonzero(rng.random(12) < 0.4) for _ in range(5)]
+    model = FabMapModel(tree)
+    fm2 = FabMap2(model, samples, "sampled")
+    query = samples[2]
+    state = model.query_state(query)
+    ll = fm2.sample_log_likelihoods(state)
+    assert fm2.new_place_log_likelihood(state) == pytest.approx(np.log(np.mean(np.exp(ll))))
+    kept = np.delete(ll, 2)
+    assert fm2.new_place_log_likelihood(state, exclude_sample=2) == pytest.approx(np.log(np.mean(np.exp(kept))))
+    with pytest.raises(DataError, match="exclude_sample 9 out of range"):
+        fm2.new_place_log_likelihood(state, exclude_sample=9)
+    with pytest.raises(DataError, match="at least one new-place sample"):
+        FabMap2(model, None, "sampled")
+
+
+def test_exact_revisit_gets_highest_posterior_and_posteriors_sum_to_one():
+    rng = np.random.default_rng(11)
+    v = 50
+    tree = _random_tree(rng, v)
+    sequence = [np.flatnonzero(rng.random(v) < 0.2) for _ in range(15)]
+    sequence.append(sequence[4].copy())  # revisit of frame 4
+    samples = sp.csr_matrix(rng.random((20, v)) < 0.2)
+    for config in (openfabmap(), openfabmap(motion_model=True), openfabmap(new_place_model="meanfield")):
+        result = fabmap_score_matrices(sequence, tree, samples, config)
+        np.testing.assert_allclose(result.probabilities.sum(axis=1), 1.0, atol=1e-12)
+        assert np.all(np.triu(result.probabilities, 1) == 0)
+        last = result.probabilities[-1, :-1]
+        assert int(np.argmax(last)) == 4
+        assert int(np.nanargmax(result.log_likelihoods[-1, :-1])) == 4
+
+
+def test_empty_observations_keep_their_index():
+    rng = np.random.default_rng(2)
+    tree = _random_tree(rng, 10)
+    rows = [np.array([1, 2, 3]), np.zeros(0, dtype=np.int64), np.array([1, 2, 3])]
+    result = fabmap_score_matrices(rows, tree, [np.array([0, 4])], openfabmap())
+    assert result.probabilities.shape == (3, 3)
+    np.testing.assert_allclose(result.probabilities.sum(axis=1), 1.0)
+    # An empty query scores every place by its default; an empty place scores 0 (relative scale).
+    assert result.log_likelihoods[2, 1] == 0.0
+    assert np.argmax(result.probabilities[2, :2]) == 0
+
+
+def test_input_errors_are_clear():
+    rng = np.random.default_rng(0)
+    tree = _random_tree(rng, 8)
+    config = openfabmap()
+    samples = [np.array([1])]
+    with pytest.raises(DataError, match="word id 8 out of range for a vocabulary of 8"):
+        fabmap_score_matrices([np.array([1, 8])], tree, samples, config)
+    with pytest.raises(DataError, match="word id -1 out of range"):
+        fabmap_score_matrices([np.array([-1, 2])], tree, samples, config)
+    with pytest.raises(DataError, match="9 words per row but the vocabulary has 8"):
+        fabmap_score_matrices(sp.csr_matrix((2, 9)), tree, samples, config)
+    with pytest.raises(DataError, match="9 words per row but the vocabulary has 8"):
+        fabmap_score_matrices([np.array([1])], tree, sp.csr_matrix((2, 9)), config)
+    with pytest.raises(DataError, match="integers"):
+        fabmap_score_matrices([np.array([1.5])], tree, samples, config)
+    with pytest.raises(ConfigError, match="method = 'fabmap3'"):
+        fabmap_score_matrices([np.array([1])], tree, samples, config, method="fabmap3")
+    with pytest.raises(DataError, match="exclude_samples has 2 entries for 1"):
+        fabmap_score_matrices([np.array([1])], tree, samples, config, exclude_samples=[0, 0])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"p_z_given_e": 1.0}, r"p_z_given_e = 1.0: must be in \(0, 1\)"),
+        ({"p_z_given_not_e": 0.5}, "p_z_given_not_e = 0.5"),
+        ({"new_place_model": "magic"}, "new_place_model = 'magic'"),
+        ({"p_new": 0.0}, "p_new = 0.0"),
+        ({"motion_bias": 1.5}, "motion_bias = 1.5"),
+        ({"smoothing": 0.0}, "smoothing = 0.0"),
+        ({"match_threshold": 2.0}, "match_threshold = 2.0"),
+        ({"add_policy": "some"}, "add_policy = 'some'"),
+        ({"exclude_recent_frames": -1}, "exclude_recent_frames = -1"),
+        ({"exclude_recent_seconds": -0.5}, "exclude_recent_seconds = -0.5"),
+        ({"keyframe_min_frames": 0}, "keyframe_min_frames = 0"),
+        ({"keyframe_max_overlap": 1.1}, "keyframe_max_overlap = 1.1"),
+        ({"keyframe_max_frames": -2}, "keyframe_max_frames = -2"),
+        ({"top_k": -1}, "top_k = -1"),
+        ({"top_k": 2.5}, "top_k = 2.5: must be of type int"),
+        ({"motion_model": 1}, "motion_model = 1: must be of type bool"),
+    ],
+)
+def test_config_validation(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        openfabmap(**kwargs)
+
+
+def test_motion_prior_follows_openfabmap_formula():
+    previous = np.array([0.1, 0.2, 0.3, 0.4])  # [new, place 0, 1, 2]
+    prior = np.exp(motion_log_prior(previous, 4, p_new=0.9, motion_bias=0.7))
+    b = 0.7
+    expected = [
+        0.9,
+        (2 * (1 - b) * 0.2 + 0.2 + 2 * b * 0.3) / 3,
+        (2 * (1 - b) * 0.2 + 0.3 + 2 * b * 0.4) / 3,
+        (2 * (1 - b) * 0.3 + 0.4 + 2 * b * 0.4) / 3,
+        1.0,  # a place created since the previous posterior
+    ]
+    np.testing.assert_allclose(prior, expected)
+    np.testing.assert_allclose(np.exp(motion_log_prior(previous[:2], 2, 0.9, 0.5)), [0.9, 1.0, 1.0])
+    p = posterior(np.array([0.0, 1.0, 2.0]), None, 0.9)
+    np.testing.assert_allclose(p, 0.9 * np.exp([0, 1, 2]) / np.exp([0, 1, 2]).sum() + 0.1 / 3)
+
+
+def _csr(rows):
+    indptr = np.concatenate([[0], np.cumsum([r.size for r in rows])]).astype(np.int64)
+    return indptr, np.concatenate(rows).astype(np.int64)
+
+
+# 0.0: every word a bit (10 groups: 4 + 4 + 2 per pass); 0.4: bits and postings; 1.1: postings only.
+@pytest.mark.parametrize("dense_min_marginal", [0.0, 0.4, 1.1])
+def test_inverted_index_scores_match_a_dense_reference_while_growing(dense_min_marginal):
+    rng = np.random.default_rng(3)
+    v = 80
+    model = FabMapModel(_random_tree(rng, v))
+    index = InvertedIndex(model, dense_min_marginal=dense_min_marginal)
+    places: list[np.ndarray] = []
+
+    def check():
+        for _ in range(3):
+            state = model.query_state(np.flatnonzero(rng.random(v) < 0.3))
+            correction = np.zeros(v)
+            correction[state.touched] = state.corrections
+            # score = sum over the place's words of d1 + the query's correction of that word
+            expected = np.array([model.d1[w].sum() + correction[w].sum() for w in places])
+            np.testing.assert_allclose(index.scores(state), expected, rtol=0, atol=1e-9)
+
+    for phase in ("bulk", "single", "bulk", "single"):
+        # A bulk load, then single places (postings relocate and repack), then both again.
+        new = [np.flatnonzero(rng.random(v) < rng.uniform(0.05, 0.6)) for _ in range(70)]
+        if phase == "bulk":
+            index.add_many(*_csr(new))
+        else:
+            for words in new:
+                index.add(words)
+        places.extend(new)
+        check()
+    assert index.num_places == len(places)
+    for i in (0, 69, 100, 279):
+        np.testing.assert_array_equal(index.place_words(i), places[i])
+
+
+@pytest.mark.parametrize("dense_min_marginal", [0.0, 0.4, 1.1])
+def test_postings_stay_in_place_order_with_bounded_memory(dense_min_marginal):
+    rng = np.random.default_rng(8)
+    v = 60
+    model = FabMapModel(_random_tree(rng, v))
+    index = InvertedIndex(model, dense_min_marginal=dense_min_marginal)
+    bulk = [np.flatnonzero(rng.random(v) < 0.15) for _ in range(40)]
+    index.add_many(*_csr(bulk))
+    pool = index.postings
+    counts = np.bincount(np.concatenate(bulk), minlength=v)[pool.lengths > 0]
+    # A bulk load: each posting gets 1.5x + 4 slots, the pool a quarter more as free end.
+    assert pool.pool.size == int(np.sum(counts + counts // 2 + 4)) * 5 // 4
+    online = [np.flatnonzero(rng.random(v) < rng.uniform(0.01, 0.5)) for _ in range(600)]
+    for words in online:  # one place at a time: postings move, the pool is repacked
+        index.add(words)
+    places = bulk + online
+    for w in range(v):
+        expected = [i for i, words in enumerate(places) if w in set(words.tolist())]
+        np.testing.assert_array_equal(index.posting(w), expected)
+    stored = int(pool.lengths.sum())
+    assert stored == sum(int(np.sum(index._dense_slot[words] < 0)) for words in places)
+    assert pool.pool.size <= 4 * stored + 12 * v
+
+
+def test_warm_up_covers_the_kernel_signatures_of_adds_and_queries():
+    from aefabmap_ros.fabmap import engines as fabmap
+
+    assert fabmap.warm_up_kernels() >= 0.0
+    kernels = (
+        fabmap._add_byte_tables, fabmap._scatter_postings, fabmap._move_blocks, fabmap._count_words,
+        fabmap._append_places,
+    )
+    warmed = [list(kernel.signatures) for kernel in kernels]
+    rng = np.random.default_rng(4)
+    model = FabMapModel(_random_tree(rng, 40))
+    index = InvertedIndex(model, dense_min_marginal=0.5)
+    rows = [np.flatnonzero(rng.random(40) < 0.4) for _ in range(30)]
+    index.add_many(*_csr(rows))
+    for words in rows:
+        index.add(words)
+    index.scores(model.query_state(rows[0]))
+    # No new specialisation: the first real query after warm-up compiles nothing.
+    assert [list(kernel.signatures) for kernel in kernels] == warmed
+    assert all(len(signatures) == 1 for signatures in warmed)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 300), k=st.integers(0, 8), scale=st.sampled_from([0.5, 500]))
+def test_top_k_indices_equals_a_full_stable_sort(seed, n, k, scale):
+    rng = np.random.default_rng(seed)
+    log_likelihoods = rng.normal(0, scale, n)
+    log_likelihoods[rng.random(n) < 0.2] = 0.0  # exact ties
+    p = posterior(log_likelihoods, None, 0.99) if n else np.zeros(0)  # underflow: many equal floor values
+    np.testing.assert_array_equal(top_k_indices(p, k), np.lexsort((np.arange(n), -p))[:k])
+
+
+def test_top_k_indices_rejects_negative_k():
+    with pytest.raises(DataError, match="k = -1 must be >= 0"):
+        top_k_indices(np.zeros(3), -1)

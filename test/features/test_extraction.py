@@ -1,0 +1,151 @@
+"""Tests for feature extraction (aefabmap_ros/features/extraction.py)."""
+
+import cv2
+import numpy as np
+import pytest
+
+import aefabmap_ros.features.extraction as features_module
+from aefabmap_ros.errors import ConfigError, ImageError
+from aefabmap_ros.features.extraction import (
+    FeatureConfig,
+    Features,
+    check_feature_config,
+    descriptor_length,
+    extract_features,
+    match_features,
+    rootsift,
+    surf_available,
+)
+
+
+def _textured(seed: int = 0, shape: tuple[int, int] = (240, 320)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    image = np.zeros(shape, np.uint8)
+    for _ in range(60):
+        x, y = int(rng.integers(0, shape[1])), int(rng.integers(0, shape[0]))
+        cv2.circle(image, (x, y), int(rng.integers(3, 20)), int(rng.integers(60, 255)), -1)
+        cv2.rectangle(image, (x, y), (x + int(rng.integers(5, 30)), y + int(rng.integers(5, 30))),
+                      int(rng.integers(0, 200)), 2)
+    return cv2.GaussianBlur(image, (3, 3), 0)
+
+
+@pytest.mark.parametrize(("kind", "dim", "dtype"), [("sift", 128, np.float32), ("rootsift", 128, np.float32),
+                                                    ("orb", 32, np.uint8)])
+def test_extract_shapes_types_and_limit(kind: str, dim: int, dtype: type) -> None:
+    config = FeatureConfig(type=kind, max_features=50)
+    features = extract_features(_textured(), config)
+    n = len(features)
+    assert 10 < n <= 50 + 5  # SIFT may keep ties at the cut
+    assert features.keypoints.shape == (n, 5) and features.keypoints.dtype == np.float32
+    assert features.descriptors.shape == (n, dim) and features.descriptors.dtype == dtype
+    assert features.descriptor_type == kind
+    assert np.all(np.isfinite(features.keypoints))
+    assert descriptor_length(kind) == dim == descriptor_length(config)
+    xy = features.keypoints[:, :2]
+    assert np.all((xy >= 0) & (xy < [320, 240]))
+
+
+def test_keypoints_match_opencv_directly() -> None:
+    image = _textured(1)
+    features = extract_features(image, FeatureConfig(max_features=0))
+    sift = cv2.SIFT_create()  # type: ignore[attr-defined]
+    cv_keypoints, cv_descriptors = sift.detectAndCompute(image, None)
+    assert len(features) == len(cv_keypoints)
+    np.testing.assert_allclose(features.keypoints[:, :2], [k.pt for k in cv_keypoints], atol=1e-4)
+    np.testing.assert_allclose(features.descriptors, cv_descriptors)
+
+
+def test_rootsift_is_hellinger_normalised_sift() -> None:
+    image = _textured(2)
+    sift = extract_features(image, FeatureConfig(type="sift"))
+    root = extract_features(image, FeatureConfig(type="rootsift"))
+    expected = np.sqrt(sift.descriptors / sift.descriptors.sum(axis=1, keepdims=True))
+    np.testing.assert_allclose(root.descriptors, expected, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(rootsift(np.zeros((1, 4), np.float32)), 0.0)
+
+
+@pytest.mark.parametrize("kind", ["sift", "rootsift", "orb"])
+def test_blank_image_yields_empty_arrays(kind: str) -> None:
+    features = extract_features(np.full((100, 100), 128, np.uint8), FeatureConfig(type=kind))
+    assert features.keypoints.shape == (0, 5)
+    assert features.descriptors.shape == (0, descriptor_length(kind))
+    assert features.descriptors.dtype == (np.uint8 if kind == "orb" else np.float32)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10), np.float32),
+                                 np.zeros((0, 10), np.uint8), "image"])
+def test_bad_images_are_refused(bad: object) -> None:
+    with pytest.raises(ImageError, match=r"2-D uint8|empty image"):
+        extract_features(bad, FeatureConfig())  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("field", "value", "match"), [
+    ("type", "akaze", "type='akaze' is not one of sift, rootsift, orb, surf"),
+    ("max_features", -1, "max_features=-1"),
+    ("orb_scale_factor", 1.0, "orb_scale_factor=1.0"),
+    ("orb_fast_threshold", 300, "orb_fast_threshold=300"),
+    ("sift_sigma", 0.0, "sift_sigma=0.0"),
+])
+def test_config_validation_names_field(field: str, value: object, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        FeatureConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_config_round_trip_and_unknown_fields() -> None:
+    config = FeatureConfig(type="orb", max_features=123)
+    assert FeatureConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ConfigError, match="unknown field"):
+        FeatureConfig.from_dict({"typ": "sift"})
+    with pytest.raises(ConfigError, match="unknown feature type 'akaze'"):
+        descriptor_length("akaze")
+
+
+def test_surf_unavailable_raises_config_error_naming_alternatives(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(features_module, "surf_available", lambda: False)
+    features_module._detector.cache_clear()
+    config = FeatureConfig(type="surf", surf_extended=False)
+    assert descriptor_length(config) == 64 and descriptor_length("surf") == 128
+    with pytest.raises(ConfigError, match=r"xfeatures2d.*use type 'sift'.*'orb'"):
+        check_feature_config(config)
+    with pytest.raises(ConfigError, match="xfeatures2d"):
+        extract_features(_textured(), config)
+    features_module._detector.cache_clear()
+
+
+def test_surf_where_available() -> None:
+    if not surf_available():
+        pytest.skip("this OpenCV has no non-free SURF")
+    features = extract_features(_textured(), FeatureConfig(type="surf", max_features=20))
+    assert features.descriptors.shape[1] == 128 and len(features) <= 20
+
+
+def test_match_features_finds_a_known_shift() -> None:
+    image = _textured(3, (260, 340))
+    a = extract_features(image[10:250, 10:330], FeatureConfig())
+    b = extract_features(image[15:255, 3:323], FeatureConfig())  # scene shifted by (+7, -5) pixels
+    matches = match_features(a, b)
+    assert len(matches) > 20
+    shift = b.keypoints[matches[:, 1], :2] - a.keypoints[matches[:, 0], :2]
+    np.testing.assert_allclose(np.median(shift, axis=0), [7, -5], atol=0.5)
+    empty = Features(np.zeros((0, 5), np.float32), np.zeros((0, 128), np.float32), "sift")
+    assert match_features(a, empty).shape == (0, 2)
+    orb = extract_features(image, FeatureConfig(type="orb"))
+    with pytest.raises(ConfigError, match="cannot match sift with orb"):
+        match_features(a, orb)
+
+
+def test_compact_descriptors_is_lossless_and_only_bytes_when_exact() -> None:
+    from aefabmap_ros.features.extraction import compact_descriptors, restore_descriptors
+
+    integers = np.array([[0.0, 17.0, 255.0]], np.float32)
+    compact = compact_descriptors(integers)
+    assert compact.dtype == np.uint8
+    restored = restore_descriptors(compact, "sift")
+    assert restored.dtype == np.float32
+    np.testing.assert_array_equal(restored, integers)
+    for not_a_byte in ([[0.25, 1.0, 2.0]], [[-1.0, 0.0, 0.0]], [[256.0, 0.0, 0.0]]):
+        values = np.array(not_a_byte, np.float32)
+        assert compact_descriptors(values).dtype == np.float32
+    orb = np.array([[1, 2, 3]], np.uint8)
+    assert restore_descriptors(compact_descriptors(orb), "orb").dtype == np.uint8

@@ -1,0 +1,15 @@
+from pathlib import Path
+
+from aefabmap_ros.io.atomic import atomic_write_bytes, remove_stale_temporaries
+
+
+def test_temporaries_of_killed_writes_are_removed_and_nothing_else(tmp_path: Path) -> None:
+    atomic_write_bytes(tmp_path / "map.npz", b"the map")
+    killed = [tmp_path / ".map.npz.a1b2c3.tmp", tmp_path / ".chunk-000000003.npz.zz.tmp"]
+    kept = [tmp_path / ".other.npz.a1.tmp", tmp_path / "map.npz", tmp_path / ".map.npz.notes"]
+    for path in killed + kept[:1] + kept[2:]:
+        path.write_bytes(b"x")
+    assert remove_stale_temporaries(tmp_path, "map.npz") == [killed[0]]
+    assert remove_stale_temporaries(tmp_path, "chunk-*.npz") == [killed[1]]
+    assert all(path.exists() for path in kept) and not any(path.exists() for path in killed)
+    assert remove_stale_temporaries(tmp_path / "missing", "map.npz") == []

@@ -1,0 +1,263 @@
+"""Tests for the model directory (aefabmap_ros/model/directory.py)."""
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+
+from aefabmap_ros.errors import ModelError
+from aefabmap_ros.features.extraction import FeatureConfig
+from aefabmap_ros.model.directory import (
+    AUTOENCODER,
+    METADATA,
+    PCA_FILE,
+    TREE,
+    VOCABULARY,
+    Model,
+    compute_model_id,
+    load_model,
+    save_model,
+)
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary
+
+V = 6
+
+
+def _descriptors(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0, 100, (V, 128))
+    return np.maximum(centres[rng.integers(0, V, 600)] + rng.normal(0, 4, (600, 128)), 0).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def ae_quantizer() -> Quantizer:
+    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1)
+    return train_vocabulary(_descriptors(), config, progress=False)
+
+
+@pytest.fixture(scope="module")
+def km_quantizer() -> Quantizer:
+    return train_vocabulary(_descriptors(), VocabularyConfig(kind="kmeans", size=V))
+
+
+def _model(quantizer: Quantizer, **extra: object) -> Model:
+    config = VocabularyConfig(kind=quantizer.kind, size=V, pca_dim=8, ae_embedding_dim=4)
+    tree = np.vstack([np.arange(V) - 1.0, np.full((3, V), 0.2)])
+    tree[0, 0] = 0
+    samples = scipy.sparse.csr_matrix(np.random.default_rng(0).integers(0, 2, (5, V)))
+    values: dict[str, object] = dict(tree_matrix=tree, new_place_samples=samples,
+                                     provenance={"bags": [{"path": "a.mcap", "sha256": "00ff"}]})
+    values.update(extra)
+    return Model.create(FeatureConfig(), config, quantizer, **values)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("which", ["ae", "km"])
+def test_round_trip_quantizes_identically(which: str, ae_quantizer: Quantizer, km_quantizer: Quantizer,
+                                          tmp_path: Path) -> None:
+    quantizer = ae_quantizer if which == "ae" else km_quantizer
+    model = _model(quantizer)
+    save_model(tmp_path / "model", model)
+    loaded = load_model(tmp_path / "model")
+    assert loaded.model_id == model.model_id and len(loaded.model_id) == 16
+    assert loaded.feature_config == model.feature_config and loaded.vocabulary_config == model.vocabulary_config
+    x = _descriptors(1)
+    np.testing.assert_array_equal(loaded.quantizer.quantize(x), quantizer.quantize(x))
+    np.testing.assert_array_equal(loaded.quantizer.centroids, quantizer.centroids)
+    assert model.tree_matrix is not None and loaded.tree_matrix is not None
+    np.testing.assert_array_equal(loaded.tree_matrix, model.tree_matrix)
+    assert loaded.new_place_samples is not None and model.new_place_samples is not None
+    assert (loaded.new_place_samples != model.new_place_samples).nnz == 0
+    assert loaded.provenance == {"bags": [{"path": "a.mcap", "sha256": "00ff"}]}
+    metadata = json.loads((tmp_path / "model" / METADATA).read_text())
+    assert metadata["format_version"] == 1 and metadata["vocabulary"]["size"] == V
+    assert metadata["created_utc"].endswith("Z")
+
+
+def test_optional_parts_may_be_absent(km_quantizer: Quantizer, tmp_path: Path) -> None:
+    save_model(tmp_path / "m", _model(km_quantizer, tree_matrix=None, new_place_samples=None))
+    loaded = load_model(tmp_path / "m")
+    assert loaded.tree_matrix is None and loaded.new_place_samples is None
+    assert not (tmp_path / "m" / TREE).exists()
+
+
+def test_model_id_depends_on_vocabulary_only(ae_quantizer: Quantizer, km_quantizer: Quantizer) -> None:
+    assert compute_model_id(ae_quantizer) == compute_model_id(ae_quantizer)
+    assert compute_model_id(ae_quantizer) != compute_model_id(km_quantizer)
+    assert _model(km_quantizer).model_id == _model(km_quantizer, tree_matrix=None).model_id
+    other = train_vocabulary(_descriptors(), VocabularyConfig(kind="kmeans", size=V, seed=9))
+    assert compute_model_id(other) != compute_model_id(km_quantizer)
+
+
+def test_save_replaces_existing_model_atomically(ae_quantizer: Quantizer, km_quantizer: Quantizer,
+                                                 tmp_path: Path) -> None:
+    target = tmp_path / "model"
+    save_model(target, _model(ae_quantizer))
+    save_model(target, _model(km_quantizer))
+    assert load_model(target).quantizer.kind == "kmeans"
+    assert not (target / AUTOENCODER).exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]  # no temp dirs left
+
+
+def test_failed_save_leaves_previous_model(km_quantizer: Quantizer, tmp_path: Path) -> None:
+    target = tmp_path / "model"
+    save_model(target, _model(km_quantizer))
+    wrong = _model(km_quantizer)
+    wrong.model_id = "0123456789abcdef"
+    with pytest.raises(ModelError, match="does not match its contents"):
+        save_model(target, wrong)
+    assert load_model(target).model_id == _model(km_quantizer).model_id
+    with pytest.raises(ModelError, match="not a model directory"):
+        (tmp_path / "other").mkdir()
+        (tmp_path / "other" / "precious.txt").write_text("x")
+        save_model(tmp_path / "other", _model(km_quantizer))
+    assert (tmp_path / "other" / "precious.txt").exists()
+
+
+def test_save_refuses_inconsistent_models(km_quantizer: Quantizer, tmp_path: Path) -> None:
+    with pytest.raises(ModelError, match=r"tree_matrix has shape \(4, 3\), expected \(4, 6\)"):
+        save_model(tmp_path / "m", _model(km_quantizer, tree_matrix=np.zeros((4, 3))))
+    with pytest.raises(ModelError, match=r"new_place_samples has shape \(2, 4\)"):
+        save_model(tmp_path / "m", _model(km_quantizer, new_place_samples=scipy.sparse.csr_matrix((2, 4))))
+    orb_model = _model(km_quantizer)
+    orb_model.feature_config = FeatureConfig(type="orb")
+    with pytest.raises(ModelError, match="128-d descriptors but feature type 'orb' gives 32-d"):
+        save_model(tmp_path / "m", orb_model)
+
+
+@pytest.fixture
+def saved_ae(ae_quantizer: Quantizer, tmp_path: Path) -> Path:
+    save_model(tmp_path / "model", _model(ae_quantizer))
+    return tmp_path / "model"
+
+
+def _rewrite_metadata(directory: Path, **changes: object) -> None:
+    metadata = json.loads((directory / METADATA).read_text())
+    metadata.update(changes)
+    (directory / METADATA).write_text(json.dumps(metadata))
+
+
+def _refresh_checksum(directory: Path, name: str) -> None:
+    import hashlib
+
+    metadata = json.loads((directory / METADATA).read_text())
+    metadata["files"][name] = hashlib.sha256((directory / name).read_bytes()).hexdigest()
+    (directory / METADATA).write_text(json.dumps(metadata))
+
+
+def test_missing_directory_and_files(saved_ae: Path, tmp_path: Path) -> None:
+    with pytest.raises(ModelError, match="does not exist"):
+        load_model(tmp_path / "nowhere")
+    (saved_ae / AUTOENCODER).unlink()
+    with pytest.raises(ModelError, match=f"{AUTOENCODER} is missing"):
+        load_model(saved_ae)
+    (saved_ae / METADATA).unlink()
+    with pytest.raises(ModelError, match=f"{METADATA} is missing"):
+        load_model(saved_ae)
+
+
+def test_wrong_format_version(saved_ae: Path) -> None:
+    _rewrite_metadata(saved_ae, format_version=99)
+    with pytest.raises(ModelError, match="format_version 99 is not supported"):
+        load_model(saved_ae)
+
+
+def test_unreadable_metadata(saved_ae: Path) -> None:
+    (saved_ae / METADATA).write_text("{not json")
+    with pytest.raises(ModelError, match="cannot read"):
+        load_model(saved_ae)
+    (saved_ae / METADATA).write_text('{"format_version": 1}')
+    with pytest.raises(ModelError, match="lacks the key"):
+        load_model(saved_ae)
+
+
+def test_checksum_mismatch(saved_ae: Path) -> None:
+    with open(saved_ae / VOCABULARY, "ab") as handle:
+        handle.write(b"tampered")
+    with pytest.raises(ModelError, match=rf"checksum mismatch for .*{VOCABULARY}"):
+        load_model(saved_ae)
+
+
+def test_model_id_mismatch(saved_ae: Path) -> None:
+    _rewrite_metadata(saved_ae, model_id="ffffffffffffffff")
+    with pytest.raises(ModelError, match=r"checksum mismatch .* metadata says ffffffffffffffff"):
+        load_model(saved_ae)
+
+
+def test_corrupt_weights(saved_ae: Path) -> None:
+    (saved_ae / AUTOENCODER).write_bytes(b"\x80\x02 definitely not torch")
+    _refresh_checksum(saved_ae, AUTOENCODER)
+    with pytest.raises(ModelError, match=r"cannot load autoencoder weights .* corrupt"):
+        load_model(saved_ae)
+
+
+def test_non_finite_weights(saved_ae: Path) -> None:
+    state = torch.load(saved_ae / AUTOENCODER, weights_only=True)
+    first = next(iter(state))
+    state[first] = torch.full_like(state[first], float("nan"))
+    torch.save(state, saved_ae / AUTOENCODER)
+    _refresh_checksum(saved_ae, AUTOENCODER)
+    with pytest.raises(ModelError, match="NaN"):
+        load_model(saved_ae)
+
+
+def test_weights_of_other_dimensions(saved_ae: Path) -> None:
+    other = train_vocabulary(_descriptors(), VocabularyConfig(size=V, pca_dim=12, ae_embedding_dim=4, ae_epochs=1),
+                             progress=False)
+    assert isinstance(other, AutoencoderQuantizer)
+    buffer = io.BytesIO()
+    torch.save(other.model.state_dict(), buffer)
+    (saved_ae / AUTOENCODER).write_bytes(buffer.getvalue())
+    _refresh_checksum(saved_ae, AUTOENCODER)
+    with pytest.raises(ModelError, match="dimension mismatch: autoencoder weights"):
+        load_model(saved_ae)
+
+
+def test_dimension_mismatch_in_metadata(saved_ae: Path) -> None:
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    metadata["vocabulary"]["size"] = V + 1
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    with pytest.raises(ModelError, match=f"metadata says vocabulary size {V + 1}"):
+        load_model(saved_ae)
+
+
+def test_dimension_mismatch_pca(saved_ae: Path) -> None:
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    metadata["pca"]["dim"] = 16
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    with pytest.raises(ModelError, match="dimension mismatch: metadata says PCA dim 16"):
+        load_model(saved_ae)
+
+
+def test_feature_type_mismatch(saved_ae: Path) -> None:
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    metadata["feature_config"]["type"] = "orb"
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    with pytest.raises(ModelError, match=r"dimension mismatch: .*feature type 'orb' gives 32-d"):
+        load_model(saved_ae)
+
+
+def test_bad_tree_file(saved_ae: Path) -> None:
+    np.save(saved_ae / TREE, np.zeros((4, V + 2)))
+    _refresh_checksum(saved_ae, TREE)
+    with pytest.raises(ModelError, match=r"dimension mismatch: .*shape \(4, 8\), expected \(4, 6\)"):
+        load_model(saved_ae)
+
+
+def test_corrupt_npz(saved_ae: Path) -> None:
+    (saved_ae / PCA_FILE).write_bytes(b"PK\x03\x04 broken zip")
+    _refresh_checksum(saved_ae, PCA_FILE)
+    with pytest.raises(ModelError, match=rf"cannot read .*{PCA_FILE}"):
+        load_model(saved_ae)
+
+
+def test_invalid_config_in_metadata(saved_ae: Path) -> None:
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    metadata["vocabulary_config"]["size"] = -3
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    with pytest.raises(ModelError, match=r"invalid configuration: .*size=-3"):
+        load_model(saved_ae)
