@@ -5,8 +5,8 @@ node's own config (places from dense video, recent places excluded by time, the 
 posterior, temporal consistency) and publishes each consistent match as a candidate; verifier_node
 verifies the candidate's matched place and, once accepted, re-ranks the query's top candidates by
 inliers (``rerank_by_inliers(..., require_best=True)``); for a while after a verified closure it
-tracks the loop through frames without a candidate (verification/loop_tracking.py). This module does exactly that on recorded
-features and words, with the sequence's own stamps, so the online figures (closures published,
+tracks the loop through frames without a candidate (verification/loop_tracking.py). This module does exactly
+that on recorded features and words, with the sequence's own stamps, so the online figures (closures published,
 false ones, revisits closed) can be measured and tuned in seconds instead of a replay through ROS.
 """
 

@@ -89,8 +89,8 @@ class VerificationConfig:
 
     track_seconds: float = field(
         default=1.0,
-        metadata={"description": "Loop tracking (verification/loop_tracking.py): for this long after a verified closure, a "
-                  "frame without one is verified against its top candidates that lie within "
+        metadata={"description": "Loop tracking (verification/loop_tracking.py): for this long after a verified "
+                  "closure, a frame without one is verified against its top candidates that lie within "
                   "track_island_seconds of the last verified place (seconds; 0 = off). Measured on the dense "
                   "synthetic video: recall 0.41 -> 0.51 of the revisiting frames, no false closure added."},
     )

@@ -70,7 +70,7 @@ def check_outputs(out: Path, methods: list[str]) -> dict:
         assert (entry["reliability"] is not None) == fabmap and (entry["online_chain"] is not None) == fabmap
         if fabmap:
             # The nodes' posterior has no hypothesis within 5 s: the 3-s fixture bins none of its frames
-            # (core/test_online_chain.py checks what is binned on a longer sequence).
+            # (test/evaluation/test_online_chain.py checks what is binned on a longer sequence).
             assert sum(entry["reliability"]["counts"]) == 0
             online = entry["online_chain"]
             assert online["published"]["closures"] <= online["candidates"]["closures"]
