@@ -53,7 +53,6 @@ ADD_POLICIES = ("all", "new_only")
 # of words are the same case, weaker: raise min_words for imagery with many near-blank frames (the
 # right value depends on the vocabulary size and the features per image).
 DEFAULT_MIN_WORDS = 1
-METHODS = ("fabmap2", "fabmap1", "fabmaplut")
 
 
 @dataclass(frozen=True)
@@ -842,39 +841,6 @@ class FabMap1(FabMap2):
         return new, places
 
 
-class FabMapLUT(FabMap1):
-    """openFABMAP's FabMapLUT: FAB-MAP 1 with each log term truncated to ``precision`` decimals.
-
-    openFABMAP stores ``-(int)(log p * 10^precision)`` per (word, z_q, z_p, L_q) and sums those
-    integers, so every term is truncated toward zero; its mean-field new place stays exact.
-    """
-
-    method = "fabmaplut"
-
-    def __init__(
-        self,
-        model: FabMapModel,
-        new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
-        new_place_model: str = "meanfield",
-        precision: int = 6,
-    ) -> None:
-        super().__init__(model, new_place_samples, new_place_model)
-        scale = 10.0**precision
-        self._lut = np.trunc(model.log_table[:, :, :, :2] * scale) / scale  # (V, 2, 2, 2)
-
-    def _exact(self, index: InvertedIndex, word_ids: np.ndarray) -> np.ndarray:
-        zq = np.zeros(self.model.vocabulary_size, dtype=np.int64)
-        zq[word_ids] = 1
-        words = np.arange(self.model.vocabulary_size)
-        terms = self._lut[words, zq, zq[self.model.parent]]  # (V, 2): place lacks / has the word
-        out = np.empty(index.num_places)
-        for i in range(index.num_places):
-            has = np.zeros(self.model.vocabulary_size, dtype=np.int64)
-            has[index.place_words(i)] = 1
-            out[i] = float(terms[words, has].sum())
-        return out
-
-
 def _log_mean_exp(log_values: np.ndarray, exclude: int | None) -> float:
     if exclude is not None:
         if not 0 <= exclude < log_values.size:
@@ -941,68 +907,22 @@ def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# Offline score matrices (openFABMAP "All" policy)
+# Engine by name
 
 
-@dataclass(frozen=True)
-class ScoreMatrices:
-    """openFABMAP golden layout: row i = query i; [i, j < i] place j; [i, i] new place; above: 0 / NaN."""
-
-    probabilities: np.ndarray  # (N, N)
-    log_likelihoods: np.ndarray  # (N, N)
+ENGINES: dict[str, type[FabMap2]] = {"fabmap2": FabMap2, "fabmap1": FabMap1}
 
 
 def make_engine(
     tree: ChowLiuTree,
     new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
     config: FabMapConfig,
-    method: str = "fabmap2",
+    engine: str = "fabmap2",
 ) -> FabMap2:
-    if method not in METHODS:
-        raise ConfigError(f"method = {method!r}: must be one of {METHODS}")
+    """The engine ``engine`` (a key of ENGINES) on ``tree`` with ``config``'s detector and new-place model."""
+    if engine not in ENGINES:
+        raise ConfigError(f"engine = {engine!r}: must be one of {tuple(ENGINES)}")
     model = FabMapModel(tree, config.p_z_given_e, config.p_z_given_not_e)
-    engine_class = {"fabmap2": FabMap2, "fabmap1": FabMap1, "fabmaplut": FabMapLUT}[method]
+    engine_class = ENGINES[engine]
     samples = new_place_samples if config.new_place_model == "sampled" else None
     return engine_class(model, samples, config.new_place_model)
-
-
-def fabmap_score_matrices(
-    observations: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray],
-    tree: ChowLiuTree,
-    new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
-    config: FabMapConfig,
-    method: str = "fabmap2",
-    exclude_samples: Sequence[int] | None = None,
-) -> ScoreMatrices:
-    """Run FAB-MAP over a sequence like openFABMAP's golden run: query i vs places 0..i-1, then add it.
-
-    ``method``: "fabmap2" (inverted index, log-likelihoods relative to an empty place), "fabmap1"
-    (exact O(V) per place, absolute) or "fabmaplut" (openFABMAP's 6-decimal look-up-table FAB-MAP 1).
-
-    ``exclude_samples[i]`` (optional, -1 = none) is the index of a new-place sample that *is*
-    query i, left out of query i's sample mean (samples are identified by index, not by content).
-    Only the likelihood and posterior parts of ``config`` apply (no exclusion window, keyframes, ...).
-    """
-    engine = make_engine(tree, new_place_samples, config, method)
-    rows = rows_to_word_ids(observations, tree.vocabulary_size)
-    n = len(rows)
-    if exclude_samples is not None and len(exclude_samples) != n:
-        raise DataError(f"exclude_samples has {len(exclude_samples)} entries for {n} observations")
-    probabilities = np.zeros((n, n))
-    log_likelihoods = np.full((n, n), np.nan)
-    previous: np.ndarray | None = None
-    for i, words in enumerate(rows):
-        exclude = None if exclude_samples is None or exclude_samples[i] < 0 else int(exclude_samples[i])
-        new_ll, place_ll = engine.log_likelihoods(words, exclude)
-        hypotheses = np.concatenate([[new_ll], place_ll])
-        log_prior = (
-            motion_log_prior(previous, i, config.p_new, config.motion_bias) if config.motion_model else None
-        )
-        p = posterior(hypotheses / config.likelihood_temperature, log_prior, config.smoothing)
-        previous = p
-        probabilities[i, :i] = p[1:]
-        probabilities[i, i] = p[0]
-        log_likelihoods[i, :i] = place_ll
-        log_likelihoods[i, i] = new_ll
-        engine.add(words)
-    return ScoreMatrices(probabilities=probabilities, log_likelihoods=log_likelihoods)

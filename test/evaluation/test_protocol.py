@@ -32,12 +32,13 @@ from aefabmap_ros.evaluation.protocol import (
 )
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig, fabmap_score_matrices
+from aefabmap_ros.fabmap.engines import FabMapConfig
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.vocabulary.base import VocabularyConfig
 from aefabmap_ros.vocabulary.kmeans import train_kmeans_quantizer
 from test.conftest import require_shared
+from test.fabmap.oracles import fabmap_score_matrices
 
 openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
 

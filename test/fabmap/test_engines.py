@@ -14,11 +14,11 @@ from aefabmap_ros.fabmap.engines import (
     FabMapConfig,
     FabMapModel,
     InvertedIndex,
-    fabmap_score_matrices,
     motion_log_prior,
     posterior,
     top_k_indices,
 )
+from test.fabmap.oracles import fabmap_score_matrices
 
 openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config
 
