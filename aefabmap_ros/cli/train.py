@@ -11,29 +11,15 @@ images -> Chow-Liu tree -> new-place samples. The model appears at --out only wh
 from __future__ import annotations
 
 import argparse
-import hashlib
-import os
-import sys
-import time
 from pathlib import Path
-from typing import Any
 
-from tqdm import tqdm
-
-from aefabmap_ros.cli.common import RESUME_HINT, no_empty_folders_left_on_error, report_errors
-from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.features.extraction import FeatureConfig, Features
-from aefabmap_ros.io.config_files import build_config, read_sections
-from aefabmap_ros.io.sources import ImageSource
-from aefabmap_ros.model.directory import save_model
-from aefabmap_ros.model.training import TrainingConfig, config_digest, extract_sequence_features, train_model
-from aefabmap_ros.vocabulary.base import VocabularyConfig
-
-SECTIONS = {"feature": FeatureConfig, "vocabulary": VocabularyConfig, "training": TrainingConfig}
+from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, run_cli
+from aefabmap_ros.features.kinds import FEATURE_TYPES
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_train", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     source = parser.add_argument_group("training images (one or more bags, or folders)")
     source.add_argument("--bag", type=Path, action="append", default=[], help="rosbag2 bag (mcap or sqlite3)")
@@ -41,9 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--images", type=Path, action="append", default=[], help="folder of image files")
     parser.add_argument("--out", type=Path, required=True, help="model directory to write")
     parser.add_argument("--config", type=Path, help="YAML with sections feature:, vocabulary:, training:")
-    parser.add_argument("--vocabulary", choices=("autoencoder", "kmeans"), help="vocabulary kind")
+    parser.add_argument("--vocabulary", choices=VOCABULARY_KINDS, help="vocabulary kind")
     parser.add_argument("--size", type=int, help="number of visual words")
-    parser.add_argument("--feature", choices=("sift", "rootsift", "orb", "surf"), help="feature type")
+    parser.add_argument("--feature", choices=FEATURE_TYPES, help="feature type")
     parser.add_argument("--max-features", type=int, help="keypoints per image at most")
     parser.add_argument("--seed", type=int, help="random seed")
     parser.add_argument("--work-dir", type=Path, help="cache of resumable stages (default: beside --out)")
@@ -52,109 +38,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def load_configs(args: argparse.Namespace) -> tuple[FeatureConfig, VocabularyConfig, TrainingConfig]:
-    sections = read_sections(args.config, set(SECTIONS))
-    overrides: dict[str, dict[str, Any]] = {
-        "feature": {"type": args.feature, "max_features": args.max_features},
-        "vocabulary": {"kind": args.vocabulary, "size": args.size, "seed": args.seed},
-        "training": {},
-    }
-    built: list[Any] = []
-    for name, config_type in SECTIONS.items():
-        values = {**sections.get(name, {}), **{k: v for k, v in overrides[name].items() if v is not None}}
-        built.append(build_config(config_type, values, f"{args.config or 'command line'} [{name}]"))
-    feature, vocabulary, training = built
-    assert isinstance(feature, FeatureConfig) and isinstance(vocabulary, VocabularyConfig)
-    assert isinstance(training, TrainingConfig)
-    return feature, vocabulary, training
-
-
-def gather_sources(args: argparse.Namespace) -> list[ImageSource]:
-    sources = [ImageSource(bag=bag, topic=args.topic) for bag in args.bag]
-    sources += [ImageSource(folder=folder) for folder in args.images]
-    if not sources:
-        raise ConfigError("no training images: give --bag (with --topic) or --images")
-    for source in sources:
-        source.check()  # a missing topic or folder fails now, not after an hour of work
-    return sources
-
-
-def check_output(out: Path, overwrite: bool) -> None:
-    if out.exists() and not overwrite:
-        raise ConfigError(f"--out {out} already exists (pass --overwrite to replace it)")
-    parent = out.resolve().parent
-    if not parent.is_dir():
-        raise ConfigError(f"--out {out}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise ConfigError(f"--out {out}: folder {parent} is not writable")
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for chunk in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def source_provenance(source: ImageSource) -> dict[str, Any]:
-    entry: dict[str, Any] = {"source": source.name, "fingerprint": source.fingerprint()}
-    if source.bag is not None:
-        entry["files"] = {p.name: file_sha256(p) for p in sorted(source.bag.iterdir()) if p.is_file()}
-    return entry
-
-
-def extract_all(sources: list[ImageSource], feature_config: FeatureConfig, work_dir: Path,
-                quiet: bool) -> list[list[Features]]:
-    sequences = []
-    for source in sources:
-        cache = work_dir / f"features-{source.fingerprint()}-{config_digest(feature_config)}.npz"
-        with tqdm(total=len(source), desc=f"features {source.name}", unit="img", disable=quiet,
-                  file=sys.stderr) as bar:
-            frames = (gray for _, gray in source.frames())
-            sequence = extract_sequence_features(frames, feature_config, cache, on_frame=lambda _: bar.update())
-            bar.update(bar.total - bar.n)
-        sequences.append(sequence)
-    return sequences
-
-
 def run(args: argparse.Namespace) -> int:
-    feature_config, vocabulary_config, training_config = load_configs(args)
-    check_output(args.out, args.overwrite)
-    sources = gather_sources(args)
-    work_dir = args.work_dir or args.out.resolve().parent / f".{args.out.name}.work"
-    with no_empty_folders_left_on_error(work_dir):  # a failure before any cached stage leaves nothing behind
-        work_dir.mkdir(parents=True, exist_ok=True)
-        return train_in(work_dir, args, sources, feature_config, vocabulary_config, training_config)
+    from aefabmap_ros.cli.train_run import run_training  # the heavy part, after --help and usage errors
 
-
-def train_in(work_dir: Path, args: argparse.Namespace, sources: list[ImageSource], feature_config: FeatureConfig,
-             vocabulary_config: VocabularyConfig, training_config: TrainingConfig) -> int:
-    started = time.monotonic()
-    sequences = extract_all(sources, feature_config, work_dir, args.quiet)
-    feature_seconds = time.monotonic() - started
-
-    def log(message: str) -> None:
-        if not args.quiet:
-            print(f"[train] {message}", file=sys.stderr)
-
-    provenance = {"sources": [source_provenance(s) for s in sources]}
-    model, report = train_model(sequences, feature_config, vocabulary_config, training_config, provenance,
-                                work_dir=work_dir, progress=not args.quiet, log=log)
-    save_model(args.out, model)
-    seconds = {"features": feature_seconds, **report.seconds}
-    print(f"model {model.model_id} written to {args.out}")
-    print(f"  images: {report.num_images} ({report.images_without_features} without features), "
-          f"descriptors: {report.num_descriptors}, self-supervision pairs: {report.num_pairs}")
-    print(f"  vocabulary: {vocabulary_config.kind}, {model.quantizer.size} words, {report.words_used} used "
-          f"by the training images; Chow-Liu tree: {report.tree_edges} edges")
-    print("  time: " + ", ".join(f"{stage} {value:.1f} s" for stage, value in seconds.items()))
-    return 0
+    return run_training(args)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return report_errors(lambda: run(args), RESUME_HINT)
+    return run_cli(build_parser(), argv, run, RESUME_HINT)
 
 
 if __name__ == "__main__":

@@ -51,7 +51,7 @@ event and revisiting frame (``evaluation.metrics.event_scores``).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -61,6 +61,7 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.calibration import Reliability, reliability
+from aefabmap_ros.evaluation.methods import METHODS
 from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, LoopMetrics, evaluate_scores, event_scores
 from aefabmap_ros.evaluation.online_chain import run_online_chain
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
@@ -73,13 +74,6 @@ from aefabmap_ros.model.training import count_bow
 from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, verified_scores
 
-# Method name -> (vocabulary kind, scorer).
-METHODS: dict[str, tuple[str, str]] = {
-    "FABMAP2": ("kmeans", "fabmap"),
-    "AE-FABMAP": ("autoencoder", "fabmap"),
-    "BoW": ("kmeans", "tfidf"),
-    "AE-BoW": ("autoencoder", "tfidf"),
-}
 # tf-idf cosine is not a calibrated probability: this default is near the best-F1 threshold (0.63) of
 # k-means BoW on the synthetic *training* sequence (vocabulary from kitti00_first300). Compare methods by
 # AP and recall at 100 % precision, which need no threshold.
@@ -128,25 +122,6 @@ class EvaluationConfig:
     def fabmap_exclusion_frames(self) -> int:
         """The FAB-MAP posterior's exclusion window in frames (``fabmap_exclude_recent`` resolved)."""
         return self.min_gap - 1 if self.fabmap_exclude_recent < 0 else self.fabmap_exclude_recent
-
-
-def parse_methods(names: Iterable[str]) -> tuple[str, ...]:
-    """Canonical method names (case-insensitive, order of ``METHODS``); ConfigError naming an unknown one."""
-    by_lower = {name.lower(): name for name in METHODS}
-    chosen = set()
-    for name in names:
-        canonical = by_lower.get(name.strip().lower())
-        if canonical is None:
-            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
-        chosen.add(canonical)
-    if not chosen:
-        raise ConfigError(f"no method selected; known: {', '.join(METHODS)}")
-    return tuple(name for name in METHODS if name in chosen)
-
-
-def methods_of_kind(kind: str, selected: Sequence[str]) -> tuple[str, ...]:
-    """The selected methods that use a vocabulary of ``kind``."""
-    return tuple(name for name in selected if METHODS[name][0] == kind)
 
 
 def fabmap_evaluation_config(base: FabMapConfig, exclude_recent_frames: int) -> FabMapConfig:

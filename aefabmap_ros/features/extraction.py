@@ -16,11 +16,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, ImageError
-
-FEATURE_TYPES = ("sift", "rootsift", "orb", "surf")
-# Row length of each descriptor type (bytes for ORB, floats otherwise).
-_DESCRIPTOR_LENGTHS = {"sift": 128, "rootsift": 128, "orb": 32}
-KEYPOINT_COLUMNS = ("x", "y", "size", "angle", "response")
+from aefabmap_ros.features.kinds import BINARY_FEATURE_TYPES, DESCRIPTOR_LENGTHS, FEATURE_TYPES
 
 
 @dataclass(frozen=True)
@@ -123,19 +119,19 @@ def descriptor_length(feature: str | FeatureConfig) -> int:
     if isinstance(feature, FeatureConfig):
         if feature.type == "surf":
             return 128 if feature.surf_extended else 64
-        return _DESCRIPTOR_LENGTHS[feature.type]
+        return DESCRIPTOR_LENGTHS[feature.type]
     if feature == "surf":
         return 128
-    if feature not in _DESCRIPTOR_LENGTHS:
+    if feature not in DESCRIPTOR_LENGTHS:
         raise ConfigError(f"unknown feature type {feature!r}; known: {', '.join(FEATURE_TYPES)}")
-    return _DESCRIPTOR_LENGTHS[feature]
+    return DESCRIPTOR_LENGTHS[feature]
 
 
 def descriptor_dtype(feature: str | FeatureConfig) -> type[np.generic]:
     """numpy dtype of a descriptor type's rows: uint8 for orb, float32 otherwise."""
     name = feature.type if isinstance(feature, FeatureConfig) else feature
     descriptor_length(name)  # validates the name
-    return np.uint8 if name == "orb" else np.float32
+    return np.uint8 if name in BINARY_FEATURE_TYPES else np.float32
 
 
 def compact_descriptors(descriptors: np.ndarray) -> np.ndarray:

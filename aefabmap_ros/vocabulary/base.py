@@ -17,9 +17,8 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features, match_features
 from aefabmap_ros.vocabulary.autoencoder import AETrainingOptions, train_autoencoder_quantizer
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, train_kmeans_quantizer
-
-VOCABULARY_KINDS = ("autoencoder", "kmeans")
 
 
 @runtime_checkable

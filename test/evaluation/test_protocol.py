@@ -11,7 +11,6 @@ from scipy.special import logsumexp
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.metrics import evaluate_scores
 from aefabmap_ros.evaluation.protocol import (
-    METHODS,
     EvaluationConfig,
     MethodResult,
     RecordedClosure,
@@ -21,9 +20,7 @@ from aefabmap_ros.evaluation.protocol import (
     fabmap_posterior_matrix,
     leave_one_out_samples,
     load_gt_npz,
-    methods_of_kind,
     model_tree,
-    parse_methods,
     result_to_dict,
     results_markdown,
     scores_from_recording,
@@ -169,16 +166,6 @@ def test_tfidf_matrix_is_core_tfidf():
     counts = sp.csr_matrix(rng.poisson(0.5, (12, 20)).astype(float))
     source = sp.csr_matrix(rng.random((7, 20)) < 0.3)
     np.testing.assert_array_equal(tfidf_matrix(counts, source), tfidf_score_matrix(counts, source))
-
-
-def test_parse_methods():
-    assert parse_methods(["ae-fabmap", "BOW", " fabmap2"]) == ("FABMAP2", "AE-FABMAP", "BoW")
-    assert parse_methods(METHODS) == tuple(METHODS)
-    assert methods_of_kind("autoencoder", tuple(METHODS)) == ("AE-FABMAP", "AE-BoW")
-    with pytest.raises(ConfigError, match="unknown method 'SeqSLAM'"):
-        parse_methods(["FABMAP2", "SeqSLAM"])
-    with pytest.raises(ConfigError, match="no method selected"):
-        parse_methods([])
 
 
 @pytest.mark.parametrize(("values", "message"), [
