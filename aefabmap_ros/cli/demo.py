@@ -34,6 +34,7 @@ from aefabmap_ros.cli.common import report_errors
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.metrics import event_scores
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -90,7 +91,7 @@ def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
             command: list[str | Path] = ["aefabmap_ros.cli.train", "--bag", train / "bag", "--topic", "/image",
                                          "--vocabulary", kind, "--size", str(args.size), "--out", out,
                                          "--overwrite", "--work-dir", args.out / "models" / ".work",
-                                         "--config", REPO_ROOT / "config" / "demo_train.yaml"]
+                                         "--config", shipped_config("demo_train.yaml")]
             _run(command, f"training the {kind} vocabulary and Chow-Liu tree")
         models[kind] = out
     return models
@@ -205,7 +206,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     logs = args.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     params = args.out / "demo_params.yaml"
-    params.write_text((REPO_ROOT / "config" / "demo.yaml").read_text())
+    params.write_text(shipped_config("demo.yaml").read_text())
     python = sys.executable
     processes: list[subprocess.Popen[bytes]] = []
     printer = None

@@ -30,22 +30,23 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
 NODES = DETECTION_NODES
 
 
 def default_params_file() -> Path:
-    candidates = [Path(__file__).resolve().parents[2] / "config" / "aefabmap.yaml",
-                  Path(sys.prefix) / "share" / "aefabmap_ros" / "config" / "aefabmap.yaml"]
-    return next((path for path in candidates if path.exists()), candidates[0])
+    return shipped_config("aefabmap.yaml")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="aefabmap_launch", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, required=True, help="model directory (from aefabmap_train)")
-    parser.add_argument("--params", type=Path, default=None, help="parameter YAML (default: config/aefabmap.yaml)")
+    parser.add_argument("--params", type=Path, default=None,
+                        help="parameter YAML (default: the package's config/aefabmap.yaml)")
     parser.add_argument("--map", type=Path, default=None, help="map file to save to / reload from")
     parser.add_argument("--image-topic", default="image", help="camera image topic (default: image)")
     parser.add_argument("--image-qos", choices=("sensor_data", "reliable"), default=None,
@@ -180,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.model.is_dir():
         print(f"ERROR: --model {args.model} is not a directory (train one with aefabmap_train)", file=sys.stderr)
         return 1
-    params = args.params or default_params_file()
+    try:
+        params = args.params or default_params_file()
+    except ConfigError as error:  # the package's own file is missing: a broken install
+        print(f"ERROR: {error}", file=sys.stderr)
+        return 1
     if not params.is_file():
         print(f"ERROR: --params {params} does not exist", file=sys.stderr)
         return 1

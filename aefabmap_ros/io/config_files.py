@@ -7,6 +7,7 @@ that no dataclass has is an error naming it (a typo must not silently fall back 
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -15,6 +16,25 @@ import yaml
 from aefabmap_ros.errors import ConfigError
 
 ConfigT = TypeVar("ConfigT")
+
+
+def coerce_like(value: Any, default: Any) -> Any:
+    """``value`` made the type of ``default`` where that is lossless: an int where a float is expected
+    becomes a float (YAML, ROS parameters and the command line write 1 for 1.0). Everything else,
+    bool included, is returned unchanged for the caller's type check. The one coercion of the package:
+    config files, node parameters and the synthetic town's config all use it."""
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def shipped_config(name: str) -> Path:
+    """A YAML file shipped in the package (``aefabmap_ros/config/``): found the same way from a source
+    checkout, a pip install or a colcon install, never by counting parent folders."""
+    path = Path(str(importlib.resources.files("aefabmap_ros") / "config" / name))
+    if not path.is_file():
+        raise ConfigError(f"no shipped config {name!r} in {path.parent}")
+    return path
 
 
 def read_sections(path: Path | None, allowed: set[str]) -> dict[str, dict[str, Any]]:
@@ -47,8 +67,7 @@ def build_config(config_type: type[ConfigT], values: dict[str, Any], origin: str
     coerced = {}
     for key, value in values.items():
         default = getattr(defaults, key)
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
+        value = coerce_like(value, default)
         if type(value) is not type(default):
             raise ConfigError(f"{origin}: {key}={value!r} must be a {type(default).__name__}")
         coerced[key] = value

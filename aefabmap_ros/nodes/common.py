@@ -27,6 +27,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 
 from aefabmap_ros.errors import AefabmapError, ConfigError
+from aefabmap_ros.io.config_files import coerce_like
 
 ConfigT = TypeVar("ConfigT")
 LOG_THROTTLE_S = 5.0
@@ -60,11 +61,8 @@ def declare_parameter(node: Node, name: str, default: Any, description: str) -> 
         node.declare_parameter(name, default, ParameterDescriptor(description=description))
     except Exception as exc:  # rclpy's InvalidParameterTypeException and friends
         raise ConfigError(f"parameter {name!r}: {exc}") from exc
-    value = node.get_parameter(name).value
     # YAML writes 1 for 1.0; accept an int where a float is declared rather than fail start-up.
-    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    return value
+    return coerce_like(node.get_parameter(name).value, default)
 
 
 def declare_config(node: Node, config_type: type[ConfigT], prefix: str = "") -> ConfigT:
@@ -176,19 +174,12 @@ class RuntimeParameters:
                 f"{', '.join(fixed)}: read at start-up only; restart {self._node.get_name()} with the new value "
                 f"(settable while running: {settable})"))
         try:
-            self._apply({p.name: _coerced(p.value, self._node.get_parameter(p.name).value) for p in parameters})
+            self._apply({p.name: coerce_like(p.value, self._node.get_parameter(p.name).value) for p in parameters})
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self._node.get_logger().info(
             "parameters changed: " + ", ".join(f"{p.name}={p.value!r}" for p in parameters))
         return SetParametersResult(successful=True)
-
-
-def _coerced(value: Any, current: Any) -> Any:
-    """An int where a float parameter is expected becomes a float (YAML and the CLI write 1 for 1.0)."""
-    if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
 
 
 class DropCounter:

@@ -265,12 +265,12 @@ def test_fabmap_node_start_up_errors(revisit_data: RevisitData, tmp_path: Path) 
 
 
 def test_shipped_parameter_file_matches_declared_parameters(revisit_data: RevisitData) -> None:
-    """config/aefabmap.yaml names exactly the parameters each node declares, with valid values."""
+    """aefabmap_ros/config/aefabmap.yaml names exactly the parameters each node declares, with valid values."""
     import yaml
 
     from test.conftest import REPO_ROOT
 
-    shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
+    shipped = yaml.safe_load((REPO_ROOT / "aefabmap_ros" / "config" / "aefabmap.yaml").read_text())
     for node_class in (FeatureNode, QuantizerNode, FabMapNode, VerifierNode):
         values = dict(shipped[node_class.__name__.replace("Node", "").lower() + "_node"]["ros__parameters"])
         if "model_dir" in values:
@@ -284,7 +284,7 @@ def test_shipped_parameter_file_matches_declared_parameters(revisit_data: Revisi
 
 
 def test_shipped_parameter_values_are_the_configs_defaults() -> None:
-    """One source of truth: config/aefabmap.yaml gives fabmap_node and verifier_node the dataclass defaults
+    """One source of truth: aefabmap_ros/config/aefabmap.yaml gives fabmap_node and verifier_node the dataclass defaults
     (the values measured and documented there), so a node started without the file behaves the same."""
     from dataclasses import fields
 
@@ -294,7 +294,7 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
     from aefabmap_ros.verification.geometric import VerificationConfig
     from test.conftest import REPO_ROOT
 
-    shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
+    shipped = yaml.safe_load((REPO_ROOT / "aefabmap_ros" / "config" / "aefabmap.yaml").read_text())
     for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig)):
         values = shipped[node]["ros__parameters"]
         assert {f.name: values[f.name] for f in fields(config)} == {f.name: f.default for f in fields(config)}

@@ -51,6 +51,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, loop_matrix_from_poses
+from aefabmap_ros.io.config_files import coerce_like
 
 NUM_LEVELS = 5  # mip levels per texture: 1, 1/2, ..., 1/16
 _ALIGN_PX = 1 << (NUM_LEVELS - 1)  # texture sizes are multiples of this, so every level halves exactly
@@ -134,11 +135,9 @@ class SynthConfig:
 
     def _check_types(self) -> None:
         for item in fields(self):
-            value = getattr(self, item.name)
+            value = coerce_like(getattr(self, item.name), item.default)
+            object.__setattr__(self, item.name, value)
             expected = type(item.default)
-            if expected is float and isinstance(value, int) and not isinstance(value, bool):
-                object.__setattr__(self, item.name, float(value))
-                continue
             if type(value) is not expected:
                 raise ConfigError(f"{item.name} must be {expected.__name__}, got {value!r}")
 
