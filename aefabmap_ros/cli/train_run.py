@@ -6,7 +6,6 @@ Imported only after parsing, so ``aefabmap_train --help`` does not pay for torch
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import sys
 import time
@@ -19,6 +18,7 @@ from aefabmap_ros.cli.common import no_empty_folders_left_on_error
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.io.config_files import build_config, read_sections
+from aefabmap_ros.io.digests import file_sha256
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.model.directory import save_model
 from aefabmap_ros.model.training import TrainingConfig, config_digest, extract_sequence_features, train_model
@@ -62,14 +62,6 @@ def check_output(out: Path, overwrite: bool) -> None:
         raise ConfigError(f"--out {out}: folder {parent} does not exist")
     if not os.access(parent, os.W_OK):
         raise ConfigError(f"--out {out}: folder {parent} is not writable")
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for chunk in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def source_provenance(source: ImageSource) -> dict[str, Any]:

@@ -8,8 +8,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +22,7 @@ from matplotlib.figure import Figure
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.calibration import Reliability
+from aefabmap_ros.io.atomic import atomic_open
 
 
 @dataclass(frozen=True)
@@ -36,15 +35,9 @@ class Curve:
 
 
 def _save(figure: Figure, path: Path) -> None:
-    path = Path(path)
-    handle, temp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp.png")
-    os.close(handle)
     try:
-        figure.savefig(temp_name, dpi=110, format="png")
-        os.replace(temp_name, path)
-    except BaseException:
-        Path(temp_name).unlink(missing_ok=True)
-        raise
+        with atomic_open(path) as file:
+            figure.savefig(file, dpi=110, format="png")
     finally:
         plt.close(figure)
 

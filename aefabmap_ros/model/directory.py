@@ -40,6 +40,7 @@ import torch
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.extraction import FeatureConfig, descriptor_length
+from aefabmap_ros.io.digests import file_sha256
 from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer, ConvAutoencoder
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer
@@ -172,7 +173,7 @@ def _write_contents(tmp: Path, model: Model) -> dict[str, str]:
         buffer = io.BytesIO()
         scipy.sparse.save_npz(buffer, scipy.sparse.csr_matrix(model.new_place_samples, dtype=np.uint8))
         _write_file(tmp / NEW_PLACE_SAMPLES, buffer.getvalue())
-    return {path.name: _sha256(path) for path in sorted(tmp.iterdir())}
+    return {path.name: file_sha256(path) for path in sorted(tmp.iterdir())}
 
 
 def _metadata(model: Model, files: dict[str, str]) -> dict[str, Any]:
@@ -246,14 +247,6 @@ def _replace_dir(tmp: Path, directory: Path) -> None:
             os.close(fd)
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 # ---------------------------------------------------------------------------------------------- load
 
 
@@ -268,7 +261,7 @@ def load_model(directory: Path) -> Model:
         path = directory / name
         if not path.is_file():
             raise ModelError(f"model file {path} is missing")
-        if _sha256(path) != expected:
+        if file_sha256(path) != expected:
             raise ModelError(f"checksum mismatch for {path}: the file is corrupt or was changed after saving")
     try:
         feature_config = FeatureConfig.from_dict(metadata["feature_config"])

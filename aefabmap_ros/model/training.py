@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
-import os
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -24,6 +23,7 @@ import scipy.sparse as sp
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.io.atomic import atomic_open
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, sequence_pairs, train_vocabulary
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, as_float_rows
@@ -76,10 +76,9 @@ def _save_features(path: Path, features: Sequence[Features]) -> None:
     counts = np.array([len(f.descriptors) for f in features], dtype=np.int64)
     keypoints = np.concatenate([f.keypoints for f in features]) if features else np.zeros((0, 5), np.float32)
     descriptors = np.concatenate([f.descriptors for f in features])
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.npz")
-    np.savez(tmp, counts=counts, keypoints=keypoints, descriptors=descriptors,
-             descriptor_type=np.array(features[0].descriptor_type))
-    os.replace(tmp, path)
+    with atomic_open(path) as file:
+        np.savez(file, counts=counts, keypoints=keypoints, descriptors=descriptors,
+                 descriptor_type=np.array(features[0].descriptor_type))
 
 
 def _load_features(path: Path) -> list[Features]:

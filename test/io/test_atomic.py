@@ -1,6 +1,8 @@
 from pathlib import Path
 
-from aefabmap_ros.io.atomic import atomic_write_bytes, remove_stale_temporaries
+import pytest
+
+from aefabmap_ros.io.atomic import atomic_open, atomic_write_bytes, remove_stale_temporaries
 
 
 def test_temporaries_of_killed_writes_are_removed_and_nothing_else(tmp_path: Path) -> None:
@@ -13,3 +15,17 @@ def test_temporaries_of_killed_writes_are_removed_and_nothing_else(tmp_path: Pat
     assert remove_stale_temporaries(tmp_path, "chunk-*.npz") == [killed[1]]
     assert all(path.exists() for path in kept) and not any(path.exists() for path in killed)
     assert remove_stale_temporaries(tmp_path / "missing", "map.npz") == []
+
+
+def test_atomic_open_replaces_on_success_and_keeps_the_old_file_on_error(tmp_path):
+    target = tmp_path / "features.npz"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic_open(target) as file:
+        file.write(b"half of the new")
+        raise RuntimeError("writer failed")
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["features.npz"]  # no temporary left behind
+    with atomic_open(target) as file:
+        file.write(b"new")
+    assert target.read_bytes() == b"new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["features.npz"]
