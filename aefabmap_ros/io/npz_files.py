@@ -13,13 +13,27 @@ from aefabmap_ros.errors import ModelError
 from aefabmap_ros.io.atomic import atomic_write_bytes
 
 
+def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """The content of an uncompressed .npz holding ``arrays``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]
+    return buffer.getvalue()
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an .npz (no pickles); ModelError naming the file when it cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return {key: archive[key] for key in archive.files}
+    except Exception as error:  # numpy raises several types for corrupt archives
+        raise ModelError(f"cannot read {path}: {error}") from error
+
+
 def write_npz_atomically(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
     """All arrays into one .npz at ``path`` (folders created); readers never see half a file."""
     path = Path(path)
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)  # type: ignore[arg-type]
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, buffer.getvalue())
+    atomic_write_bytes(path, npz_bytes(arrays))
 
 
 def read_versioned_npz(path: Path, what: str, kind: str, required: Sequence[str],

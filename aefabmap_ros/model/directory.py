@@ -36,21 +36,17 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse
-import torch
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.extraction import FeatureConfig, descriptor_length
 from aefabmap_ros.io.digests import file_sha256
-from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer, ConvAutoencoder
-from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig
-from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer
-from aefabmap_ros.vocabulary.pca import PCA
+from aefabmap_ros.io.npz_files import npz_bytes, read_npz
+from aefabmap_ros.vocabulary.base import Quantizer, StoredVocabulary, VocabularyConfig
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
 
 FORMAT_VERSION = 1
 METADATA = "metadata.json"
 VOCABULARY = "vocabulary.npz"
-PCA_FILE = "pca.npz"
-AUTOENCODER = "autoencoder.pt"
 TREE = "chow_liu_tree.npy"
 NEW_PLACE_SAMPLES = "new_place_samples.npz"
 MODEL_ID_LENGTH = 16
@@ -97,13 +93,10 @@ class Model:
 def compute_model_id(quantizer: Quantizer) -> str:
     """Short sha256 over the values that define how descriptors map to words."""
     digest = hashlib.sha256(quantizer.kind.encode())
-    for name, array in sorted(_vocabulary_arrays(quantizer).items()):
+    for name, array in sorted(quantizer.to_arrays().items()):
         _hash_array(digest, name, array)
-    if isinstance(quantizer, AutoencoderQuantizer):
-        for name, array in sorted(quantizer.pca.to_arrays().items()):
-            _hash_array(digest, "pca." + name, array)
-        for name, tensor in sorted(quantizer.model.state_dict().items()):
-            _hash_array(digest, "ae." + name, tensor.detach().cpu().numpy())
+    for name, array in quantizer.identity_arrays().items():  # in the quantizer's order
+        _hash_array(digest, name, array)
     return digest.hexdigest()[:MODEL_ID_LENGTH]
 
 
@@ -111,12 +104,6 @@ def _hash_array(digest: Any, name: str, array: np.ndarray) -> None:
     array = np.ascontiguousarray(array)
     digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
     digest.update(array.tobytes())
-
-
-def _vocabulary_arrays(quantizer: Quantizer) -> dict[str, np.ndarray]:
-    if isinstance(quantizer, KMeansQuantizer | AutoencoderQuantizer):
-        return quantizer.to_arrays()
-    raise ModelError(f"cannot save a quantizer of type {type(quantizer).__name__} (kind {quantizer.kind!r})")
 
 
 # ---------------------------------------------------------------------------------------------- save
@@ -146,25 +133,16 @@ def _check_consistent(model: Model) -> None:
     if model.quantizer.kind != model.vocabulary_config.kind:
         raise ModelError(f"quantizer kind {model.quantizer.kind!r} != vocabulary_config.kind "
                          f"{model.vocabulary_config.kind!r}")
-    _check_descriptor_dim(model.feature_config, _descriptor_dim(model.quantizer), "quantizer")
+    _check_descriptor_dim(model.feature_config, model.quantizer.descriptor_dim, "quantizer")
     _check_tree(model.tree_matrix, model.quantizer.size, "tree_matrix")
     _check_samples(model.new_place_samples, model.quantizer.size, "new_place_samples")
 
 
-def _descriptor_dim(quantizer: Quantizer) -> int:
-    if isinstance(quantizer, KMeansQuantizer | AutoencoderQuantizer):
-        return quantizer.descriptor_dim
-    return int(quantizer.centroids.shape[1])
-
-
 def _write_contents(tmp: Path, model: Model) -> dict[str, str]:
     quantizer = model.quantizer
-    _write_file(tmp / VOCABULARY, _npz_bytes(_vocabulary_arrays(quantizer)))
-    if isinstance(quantizer, AutoencoderQuantizer):
-        _write_file(tmp / PCA_FILE, _npz_bytes(quantizer.pca.to_arrays()))
-        buffer = io.BytesIO()
-        torch.save(quantizer.model.state_dict(), buffer)
-        _write_file(tmp / AUTOENCODER, buffer.getvalue())
+    _write_file(tmp / VOCABULARY, npz_bytes(quantizer.to_arrays()))
+    for name, content in quantizer.other_files().items():
+        _write_file(tmp / name, content)
     if model.tree_matrix is not None:
         buffer = io.BytesIO()
         np.save(buffer, np.asarray(model.tree_matrix, np.float64))
@@ -178,20 +156,20 @@ def _write_contents(tmp: Path, model: Model) -> dict[str, str]:
 
 def _metadata(model: Model, files: dict[str, str]) -> dict[str, Any]:
     quantizer = model.quantizer
-    pca = quantizer.pca if isinstance(quantizer, AutoencoderQuantizer) else None
+    described = quantizer.metadata()
     return {
         "format_version": FORMAT_VERSION,
         "model_id": model.model_id,
         "created_utc": model.created_utc or datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "feature_config": model.feature_config.to_dict(),
         "vocabulary_config": model.vocabulary_config.to_dict(),
-        "pca": None if pca is None else {"input_dim": pca.input_dim, "dim": pca.dim},
+        "pca": described["pca"],
         "vocabulary": {
             "kind": quantizer.kind,
             "size": quantizer.size,
-            "descriptor_dim": _descriptor_dim(quantizer),
-            "binary": bool(getattr(quantizer, "binary", False)),
-            "embedding_dim": quantizer.model.embedding_dim if isinstance(quantizer, AutoencoderQuantizer) else None,
+            "descriptor_dim": quantizer.descriptor_dim,
+            "binary": bool(quantizer.binary),
+            "embedding_dim": described["embedding_dim"],
         },
         "has_chow_liu_tree": model.tree_matrix is not None,
         "has_new_place_samples": model.new_place_samples is not None,
@@ -206,12 +184,6 @@ def _jsonable(provenance: dict[str, object]) -> dict[str, Any]:
     except (TypeError, ValueError) as error:
         raise ModelError(f"provenance cannot be written as JSON: {error}") from error
     return result
-
-
-def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)  # type: ignore[arg-type]
-    return buffer.getvalue()
 
 
 def _write_file(path: Path, data: bytes) -> None:
@@ -274,7 +246,7 @@ def load_model(directory: Path) -> Model:
         raise ModelError(f"dimension mismatch in {directory}: metadata says vocabulary size {vocab['size']}, "
                          f"{VOCABULARY} has {quantizer.size} words")
     try:
-        _check_descriptor_dim(feature_config, _descriptor_dim(quantizer), f"{directory / VOCABULARY}")
+        _check_descriptor_dim(feature_config, quantizer.descriptor_dim, f"{directory / VOCABULARY}")
     except ModelError as error:
         raise ModelError(f"dimension mismatch: {error}") from error
     tree = _load_tree(directory / TREE, quantizer.size) if TREE in files else None
@@ -316,62 +288,25 @@ def _read_metadata(directory: Path) -> dict[str, Any]:
     return metadata
 
 
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            return {key: archive[key] for key in archive.files}
-    except Exception as error:  # numpy raises several types for corrupt archives
-        raise ModelError(f"cannot read {path}: {error}") from error
-
-
 def _load_quantizer(directory: Path, metadata: dict[str, Any], files: dict[str, str]) -> Quantizer:
-    vocab = metadata["vocabulary"]
-    arrays = _load_npz(directory / VOCABULARY)
-    kind = vocab["kind"]
+    """The vocabulary, loaded by its kind's own loader (``vocabulary/kinds.py``)."""
+    arrays = read_npz(directory / VOCABULARY)
+    kind = metadata["vocabulary"]["kind"]
+    if kind not in VOCABULARY_KINDS:
+        raise ModelError(f"{directory / METADATA}: unknown vocabulary kind {kind!r}")
+
+    def listed_file(name: str) -> Path:
+        if name not in files:
+            raise ModelError(f"model file {directory / name} is missing (needed by a vocabulary of kind {kind!r})")
+        return directory / name
+
     try:
-        if kind == "kmeans":
-            return KMeansQuantizer.from_arrays(arrays)
-        if kind != "autoencoder":
-            raise ModelError(f"{directory / METADATA}: unknown vocabulary kind {kind!r}")
-        for name in (PCA_FILE, AUTOENCODER):
-            if name not in files:
-                raise ModelError(f"model file {directory / name} is missing (needed by an autoencoder vocabulary)")
-        pca = PCA.from_arrays(_load_npz(directory / PCA_FILE))
-        meta_pca = metadata.get("pca") or {}
-        if meta_pca.get("dim") != pca.dim:
-            raise ModelError(
-                f"dimension mismatch: metadata says PCA dim {meta_pca.get('dim')}, {PCA_FILE} has {pca.dim}"
-            )
-        embedding_dim = int(arrays["embedding_dim"])
-        network = ConvAutoencoder(pca.dim, embedding_dim)
-        _load_weights(directory / AUTOENCODER, network)
-        return AutoencoderQuantizer(
-            pca, network, arrays["embedding_centres"], arrays["centroids"], bool(arrays["binary"]),
-            int(arrays["descriptor_dim"]), float(arrays["alpha"]),
-        )
+        quantizer: Quantizer = kind_module(kind).load_quantizer(StoredVocabulary(arrays, metadata, listed_file))
     except KeyError as error:
         raise ModelError(f"{directory / VOCABULARY} lacks the array {error}") from error
     except (DataError, ConfigError) as error:
         raise ModelError(f"dimension mismatch in {directory}: {error}") from error
-
-
-def _load_weights(path: Path, network: ConvAutoencoder) -> None:
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a corrupt file
-        raise ModelError(f"cannot load autoencoder weights {path}: corrupt file ({error})") from error
-    if not isinstance(state, dict):
-        raise ModelError(f"{path} does not hold a state_dict")
-    try:
-        network.load_state_dict(state)
-    except RuntimeError as error:
-        first = str(error).strip().splitlines()
-        raise ModelError(f"dimension mismatch: autoencoder weights {path} do not fit the network "
-                         f"(pca/embedding dims): {' '.join(first[:3])}") from error
-    for name, tensor in state.items():
-        if not torch.isfinite(tensor).all():
-            raise ModelError(f"autoencoder weights {path}: {name} contains NaN or infinity")
-    network.eval()
+    return quantizer
 
 
 def _check_descriptor_dim(feature_config: FeatureConfig, descriptor_dim: int, where: str) -> None:

@@ -53,7 +53,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -62,6 +62,7 @@ from tqdm import tqdm
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.io.atomic import atomic_write_bytes
+from aefabmap_ros.io.npz_files import npz_bytes, read_npz
 from aefabmap_ros.vocabulary.kmeans import (
     as_float_rows,
     check_descriptors,
@@ -72,7 +73,13 @@ from aefabmap_ros.vocabulary.kmeans import (
 )
 from aefabmap_ros.vocabulary.pca import PCA, fit_pca
 
+if TYPE_CHECKING:
+    from aefabmap_ros.vocabulary.base import StoredVocabulary, VocabularyConfig
+
 CHECKPOINT_NAME = "ae_checkpoint.pt"
+# The model directory's files of an autoencoder vocabulary, beside vocabulary.npz:
+PCA_FILE = "pca.npz"  # PCA + [0, 1] scaling
+AUTOENCODER = "autoencoder.pt"  # the network's state_dict
 QUANTIZE_BATCH = 8192
 # Batches are padded to a multiple of this many rows. oneDNN (torch's CPU convolutions) caches a
 # compiled primitive per input shape: images give a different number of features each, and a node
@@ -258,6 +265,21 @@ class AutoencoderQuantizer:
             "alpha": np.array(self.alpha),
         }
 
+    def identity_arrays(self) -> dict[str, np.ndarray]:
+        arrays = {"pca." + name: array for name, array in sorted(self.pca.to_arrays().items())}
+        for name, tensor in sorted(self.model.state_dict().items()):
+            arrays["ae." + name] = tensor.detach().cpu().numpy()
+        return arrays
+
+    def other_files(self) -> dict[str, bytes]:
+        weights = io.BytesIO()
+        torch.save(self.model.state_dict(), weights)
+        return {PCA_FILE: npz_bytes(self.pca.to_arrays()), AUTOENCODER: weights.getvalue()}
+
+    def metadata(self) -> dict[str, Any]:
+        return {"pca": {"input_dim": self.pca.input_dim, "dim": self.pca.dim},
+                "embedding_dim": self.model.embedding_dim}
+
 
 def _pad_rows(x: np.ndarray, step: int) -> np.ndarray:
     """``x`` (N, D) with zero rows appended up to a multiple of ``step`` (rows are encoded independently)."""
@@ -295,6 +317,47 @@ def _torch_settings(num_threads: int) -> Iterator[None]:
     finally:
         torch.set_num_threads(previous_threads)
         torch.use_deterministic_algorithms(previous_deterministic)
+
+
+def train_quantizer(descriptors: np.ndarray, config: VocabularyConfig, *, pairs: np.ndarray | None = None,
+                    progress: bool = True, work_dir: Path | None = None) -> AutoencoderQuantizer:
+    """The kind's trainer for ``train_vocabulary`` (registered in ``kinds.py``)."""
+    return train_autoencoder_quantizer(descriptors, config.ae_options(), pairs, progress, work_dir)
+
+
+def load_quantizer(stored: StoredVocabulary) -> AutoencoderQuantizer:
+    """The kind's loader for the model directory: vocabulary.npz, ``PCA_FILE`` and ``AUTOENCODER``."""
+    pca_path, weights_path = stored.file(PCA_FILE), stored.file(AUTOENCODER)
+    pca = PCA.from_arrays(read_npz(pca_path))
+    stored_pca = stored.metadata.get("pca") or {}
+    if stored_pca.get("dim") != pca.dim:
+        raise ModelError(f"dimension mismatch: metadata says PCA dim {stored_pca.get('dim')}, {PCA_FILE} has {pca.dim}")
+    arrays = stored.arrays
+    network = ConvAutoencoder(pca.dim, int(arrays["embedding_dim"]))
+    _load_weights(weights_path, network)
+    return AutoencoderQuantizer(
+        pca, network, arrays["embedding_centres"], arrays["centroids"], bool(arrays["binary"]),
+        int(arrays["descriptor_dim"]), float(arrays["alpha"]),
+    )
+
+
+def _load_weights(path: Path, network: ConvAutoencoder) -> None:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a corrupt file
+        raise ModelError(f"cannot load autoencoder weights {path}: corrupt file ({error})") from error
+    if not isinstance(state, dict):
+        raise ModelError(f"{path} does not hold a state_dict")
+    try:
+        network.load_state_dict(state)
+    except RuntimeError as error:
+        first = str(error).strip().splitlines()
+        raise ModelError(f"dimension mismatch: autoencoder weights {path} do not fit the network "
+                         f"(pca/embedding dims): {' '.join(first[:3])}") from error
+    for name, tensor in state.items():
+        if not torch.isfinite(tensor).all():
+            raise ModelError(f"autoencoder weights {path}: {name} contains NaN or infinity")
+    network.eval()
 
 
 def train_autoencoder_quantizer(

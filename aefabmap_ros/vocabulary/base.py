@@ -1,31 +1,34 @@
 """Vocabulary training and use: the common ``Quantizer`` protocol, ``train_vocabulary``, bag-of-words.
 
-Two kinds (``VocabularyConfig.kind``):
+Two kinds (``VocabularyConfig.kind``, registered in ``kinds.py``):
 - ``"autoencoder"``: the paper's self-supervised quantizer (``autoencoder.py``).
-- ``"kmeans"``: the classic FAB-MAP 2 / BoW baseline (``kmeans_vocab.py``).
+- ``"kmeans"``: the classic FAB-MAP 2 / BoW baseline (``kmeans.py``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features, match_features
-from aefabmap_ros.vocabulary.autoencoder import AETrainingOptions, train_autoencoder_quantizer
-from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
-from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, train_kmeans_quantizer
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
+
+if TYPE_CHECKING:
+    from aefabmap_ros.vocabulary.autoencoder import AETrainingOptions
 
 
 @runtime_checkable
 class Quantizer(Protocol):
     """Maps raw descriptors to visual words."""
 
-    kind: str  # "autoencoder" | "kmeans"
+    kind: str  # a key of VOCABULARY_KINDS
+    binary: bool  # for uint8 (bit-packed, e.g. ORB) descriptors, else float ones
+    descriptor_dim: int  # D: row length of the descriptors it quantizes (bytes when binary)
 
     @property
     def size(self) -> int:
@@ -40,6 +43,33 @@ class Quantizer(Protocol):
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) raw descriptors -> (N,) int64 word ids; (0, D) -> (0,)."""
         ...
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays the model directory stores in its vocabulary.npz."""
+        ...
+
+    def identity_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays beyond ``to_arrays`` that decide how descriptors map to words, hashed into the model
+        id in this order (e.g. the autoencoder's PCA and weights); empty when ``to_arrays`` says it all."""
+        ...
+
+    def other_files(self) -> dict[str, bytes]:
+        """Further files of the model directory, name -> content (e.g. the autoencoder's weights)."""
+        ...
+
+    def metadata(self) -> dict[str, Any]:
+        """What metadata.json says of it besides kind, size and dims: ``pca`` ({input_dim, dim} or None)
+        and ``embedding_dim`` (int or None)."""
+        ...
+
+
+@dataclass(frozen=True)
+class StoredVocabulary:
+    """A vocabulary as a model directory holds it, for its kind's ``load_quantizer``."""
+
+    arrays: dict[str, np.ndarray]  # vocabulary.npz
+    metadata: dict[str, Any]  # metadata.json
+    file: Callable[[str], Path]  # the path of another of its files by name; ModelError if it is missing
 
 
 @dataclass(frozen=True)
@@ -147,6 +177,8 @@ class VocabularyConfig:
         return cls(**values)
 
     def ae_options(self) -> AETrainingOptions:
+        from aefabmap_ros.vocabulary.autoencoder import AETrainingOptions  # torch, only for this kind
+
         return AETrainingOptions(
             size=self.size, pca_dim=self.pca_dim, pca_per_component=self.pca_per_component, seed=self.seed,
             num_threads=self.num_threads, embedding_dim=self.ae_embedding_dim, epochs=self.ae_epochs,
@@ -183,10 +215,9 @@ def train_vocabulary(
                         f"{descriptors.shape[0]}")
     if descriptors.dtype == np.float64:
         descriptors = descriptors.astype(np.float32)
-    if config.kind == "kmeans":
-        return train_kmeans_quantizer(descriptors, config.size, config.seed, config.kmeans_iterations,
-                                      config.kmeans_max_points_per_centroid)
-    return train_autoencoder_quantizer(descriptors, config.ae_options(), pairs, progress, work_dir)
+    quantizer: Quantizer = kind_module(config.kind).train_quantizer(
+        descriptors, config, pairs=pairs, progress=progress, work_dir=work_dir)
+    return quantizer
 
 
 def bag_of_words(word_ids: np.ndarray, vocabulary_size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -228,8 +259,8 @@ def word_usage(quantizer: Quantizer, descriptors: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "VOCABULARY_KINDS",
-    "KMeansQuantizer",
     "Quantizer",
+    "StoredVocabulary",
     "VocabularyConfig",
     "bag_of_words",
     "sequence_pairs",

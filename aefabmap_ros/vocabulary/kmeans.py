@@ -18,11 +18,17 @@ what faiss can search. ``centroids`` of a binary vocabulary are the packed major
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
 import faiss
 import numpy as np
 from sklearn.cluster import kmeans_plusplus
 
 from aefabmap_ros.errors import ConfigError, DataError
+
+if TYPE_CHECKING:
+    from aefabmap_ros.vocabulary.base import StoredVocabulary, VocabularyConfig
 
 KMEANS_PLUSPLUS_MAX_POINTS = 50_000
 
@@ -170,9 +176,30 @@ class KMeansQuantizer:
             "binary": np.array(self.binary),
         }
 
+    def identity_arrays(self) -> dict[str, np.ndarray]:
+        return {}  # the centres say it all
+
+    def other_files(self) -> dict[str, bytes]:
+        return {}
+
+    def metadata(self) -> dict[str, Any]:
+        return {"pca": None, "embedding_dim": None}
+
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> KMeansQuantizer:
         return cls(np.asarray(arrays["centres"]), int(arrays["descriptor_dim"]), bool(arrays["binary"]))
+
+
+def load_quantizer(stored: StoredVocabulary) -> KMeansQuantizer:
+    """The kind's loader for the model directory (registered in ``kinds.py``)."""
+    return KMeansQuantizer.from_arrays(stored.arrays)
+
+
+def train_quantizer(descriptors: np.ndarray, config: VocabularyConfig, *, pairs: np.ndarray | None = None,
+                    progress: bool = True, work_dir: Path | None = None) -> KMeansQuantizer:
+    """The kind's trainer for ``train_vocabulary`` (k-means uses no pairs, progress or checkpoints)."""
+    return train_kmeans_quantizer(descriptors, config.size, config.seed, config.kmeans_iterations,
+                                  config.kmeans_max_points_per_centroid)
 
 
 def check_descriptors(descriptors: np.ndarray, descriptor_dim: int, binary: bool) -> None:

@@ -12,9 +12,7 @@ import torch
 from aefabmap_ros.errors import ModelError
 from aefabmap_ros.features.extraction import FeatureConfig
 from aefabmap_ros.model.directory import (
-    AUTOENCODER,
     METADATA,
-    PCA_FILE,
     TREE,
     VOCABULARY,
     Model,
@@ -22,7 +20,7 @@ from aefabmap_ros.model.directory import (
     load_model,
     save_model,
 )
-from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder import AUTOENCODER, PCA_FILE, AutoencoderQuantizer
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary
 
 V = 6
