@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, ImageError
-from aefabmap_ros.features.kinds import BINARY_FEATURE_TYPES, DESCRIPTOR_LENGTHS, FEATURE_TYPES
+from aefabmap_ros.features.descriptors import kind_of_type
+from aefabmap_ros.features.kinds import DESCRIPTOR_LENGTHS, FEATURE_TYPES
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,7 @@ def descriptor_dtype(feature: str | FeatureConfig) -> type[np.generic]:
     """numpy dtype of a descriptor type's rows: uint8 for orb, float32 otherwise."""
     name = feature.type if isinstance(feature, FeatureConfig) else feature
     descriptor_length(name)  # validates the name
-    return np.uint8 if name in BINARY_FEATURE_TYPES else np.float32
+    return kind_of_type(name).dtype
 
 
 def compact_descriptors(descriptors: np.ndarray) -> np.ndarray:

@@ -22,11 +22,12 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
+from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
 from aefabmap_ros.io.atomic import atomic_open
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, sequence_pairs, train_vocabulary
-from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, as_float_rows
+from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer
 
 
 @dataclass(frozen=True)
@@ -233,9 +234,9 @@ def sampled_centres_model(
     if len(descriptors) < size:
         raise DataError(f"{len(descriptors)} descriptors are fewer than the vocabulary size {size}")
     rng = np.random.default_rng(seed)
-    binary = descriptors.dtype == np.uint8
-    centres = as_float_rows(descriptors[rng.choice(len(descriptors), size=size, replace=False)], binary)
-    quantizer = KMeansQuantizer(centres, descriptor_dim=descriptors.shape[1], binary=binary)
+    kind = kind_of(descriptors)
+    centres = kind.vectors(descriptors[rng.choice(len(descriptors), size=size, replace=False)])
+    quantizer = KMeansQuantizer(centres, descriptor_dim=descriptors.shape[1], binary=kind.binary)
     bow = binary_bow(quantizer, features)
     return Model.create(
         feature_config=feature_config,

@@ -19,6 +19,7 @@ from std_msgs.msg import Header
 from aefabmap_ros.errors import DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
+from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.verification.relative_pose import CameraModel, PoseOutcome
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
@@ -81,7 +82,7 @@ def message_to_features(message: Features) -> core_features.Features:
     # Byte-carried SIFT goes back to float32 (the type's dtype); older float32 messages read as before.
     descriptors = core_features.restore_descriptors(np.frombuffer(raw, dtype=dtype).reshape(count, length),
                                                     str(message.descriptor_type))
-    if descriptors.dtype != np.uint8 and not np.all(np.isfinite(descriptors)):
+    if not kind_of(descriptors).binary and not np.all(np.isfinite(descriptors)):
         # NaN would become some word (the autoencoder) or a confusing range error (k-means).
         raise DataError(f"Features has {int(np.count_nonzero(~np.isfinite(descriptors)))} NaN/Inf descriptor values")
     keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],

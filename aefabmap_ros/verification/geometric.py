@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.features.descriptors import BINARY, FLOAT, kind_of
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 
@@ -164,16 +165,15 @@ def match_descriptors(query: Features, place: Features, ratio: float) -> tuple[n
         raise DataError(f"cannot match {query.descriptor_type!r} features against {place.descriptor_type!r} ones")
     if len(query) == 0 or len(place) < 2:
         return empty, empty
-    binary = query.descriptors.dtype == np.uint8
-    if binary != (place.descriptors.dtype == np.uint8):
+    kind = kind_of(query.descriptors)
+    if kind != kind_of(place.descriptors):
         raise DataError(f"descriptor dtypes differ: {query.descriptors.dtype} vs {place.descriptors.dtype}")
     if query.descriptors.shape[1] != place.descriptors.shape[1]:  # e.g. 128-d SIFT vs 64-d SURF
         raise DataError(f"cannot match {query.descriptors.shape[1]}-d descriptors against "
                         f"{place.descriptors.shape[1]}-d ones")
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2)
-    dtype = np.uint8 if binary else np.float32
-    pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=dtype),
-                             np.ascontiguousarray(place.descriptors, dtype=dtype), k=2)
+    matcher = cv2.BFMatcher(kind.cv_norm)
+    pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=kind.dtype),
+                             np.ascontiguousarray(place.descriptors, dtype=kind.dtype), k=2)
     best_by_place: dict[int, tuple[float, int]] = {}
     for pair in pairs:
         if len(pair) < 2 or pair[0].distance >= ratio * pair[1].distance:
@@ -341,8 +341,7 @@ class FeatureStore:
             # Strongest first; a stable sort keeps the detector's order among equal responses.
             keep = np.sort(np.argsort(-features.keypoints[:, 4], kind="stable")[: self.max_features_per_frame])
         descriptors = features.descriptors[keep]
-        if descriptors.dtype != np.uint8:
-            descriptors = descriptors.astype(np.float16)
+        descriptors = descriptors.astype(kind_of(descriptors).stored_dtype, copy=False)
         compact = Features(keypoints=np.ascontiguousarray(features.keypoints[keep, :2], dtype=np.float32),
                            descriptors=np.ascontiguousarray(descriptors), descriptor_type=features.descriptor_type)
         self._forget(stamp_ns)
@@ -398,7 +397,7 @@ class FeatureStore:
 
 def _kind(descriptor_type: str, descriptors: np.ndarray) -> tuple[str, str, int]:
     """A descriptor kind as stored: float descriptors are kept as float16, so float32 and float16 agree."""
-    dtype = np.dtype(np.uint8) if descriptors.dtype == np.uint8 else np.dtype(np.float16)
+    dtype = np.dtype(kind_of(descriptors).stored_dtype)
     return descriptor_type, dtype.str, int(descriptors.shape[1])
 
 
@@ -488,7 +487,7 @@ def _stored_frames(path: Path, arrays: dict[str, np.ndarray]) -> list[tuple[int,
         problems.append("negative keypoint counts")
     if keypoints.ndim != 2 or keypoints.shape[1] != 2 or keypoints.dtype != np.float32:
         problems.append(f"keypoints must be (K, 2) float32, got {keypoints.shape} {keypoints.dtype}")
-    if descriptors.ndim != 2 or descriptors.dtype not in (np.float16, np.uint8):
+    if descriptors.ndim != 2 or descriptors.dtype not in (BINARY.stored_dtype, FLOAT.stored_dtype):
         problems.append(f"descriptors must be (K, D) float16 or uint8, got {descriptors.shape} {descriptors.dtype}")
     if not problems and not (int(counts.sum()) == keypoints.shape[0] == descriptors.shape[0]):
         problems.append(f"{int(counts.sum())} keypoints counted, {keypoints.shape[0]} keypoints and "

@@ -61,10 +61,10 @@ from torch import nn
 from tqdm import tqdm
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.features.descriptors import kind_of, kind_of_vocabulary
 from aefabmap_ros.io.atomic import atomic_write_bytes
 from aefabmap_ros.io.npz_files import npz_bytes, read_npz
 from aefabmap_ros.vocabulary.kmeans import (
-    as_float_rows,
     check_descriptors,
     cluster_means,
     kmeans,
@@ -228,7 +228,7 @@ class AutoencoderQuantizer:
     def embed(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) raw descriptors -> (N, E) float32 embeddings."""
         check_descriptors(descriptors, self.descriptor_dim, self.binary)
-        x = self.pca.transform_scaled(as_float_rows(descriptors, self.binary))
+        x = self.pca.transform_scaled(kind_of_vocabulary(self.binary).vectors(descriptors))
         return _embed(self.model, x)
 
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
@@ -236,7 +236,7 @@ class AutoencoderQuantizer:
         check_descriptors(descriptors, self.descriptor_dim, self.binary)
         if descriptors.shape[0] == 0:
             return np.zeros(0, np.int64)
-        x = self.pca.transform_scaled(as_float_rows(descriptors, self.binary))
+        x = self.pca.transform_scaled(kind_of_vocabulary(self.binary).vectors(descriptors))
         out = np.empty(x.shape[0], np.int64)
         centres_sq = (self._centres_t * self._centres_t).sum(dim=1)
         with torch.inference_mode():
@@ -372,7 +372,7 @@ def train_autoencoder_quantizer(
     ``pairs``: optional (M, 2) int64 row indices of descriptors of the same scene point in
     neighbouring frames, used by the match term when ``options.match_weight`` > 0.
     """
-    binary = descriptors.dtype == np.uint8
+    kind = kind_of(descriptors)
     n = descriptors.shape[0]
     if n < options.size:
         raise DataError(f"autoencoder vocabulary of size={options.size} needs >= {options.size} descriptors, got {n}")
@@ -381,7 +381,7 @@ def train_autoencoder_quantizer(
     if pairs is not None and len(pairs) and (pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0
                                              or pairs.max() >= n):
         raise DataError(f"pairs must be (M, 2) row indices in [0, {n}), got shape {pairs.shape}")
-    rows = as_float_rows(descriptors, binary)
+    rows = kind.vectors(descriptors)
     clock = _StageClock()
     with _torch_settings(options.num_threads):
         pca = fit_pca(_subsample(rows, 200_000, options.seed), options.pca_dim, options.pca_per_component)
@@ -408,10 +408,11 @@ def train_autoencoder_quantizer(
         labels, _ = nearest(centres, z_all)
         fallback = _nearest_rows(rows, z_all, centres)
         means = cluster_means(rows, labels, options.size, fallback)
-        centroids = np.packbits(means >= 0.5, axis=1).astype(np.float32) if binary else means
+        centroids = kind.centres(means)
         clock.lap("centroids_s")
         checkpoint.finish()
-    quantizer = AutoencoderQuantizer(pca, model, centres, centroids, binary, descriptors.shape[1], options.alpha)
+    quantizer = AutoencoderQuantizer(pca, model, centres, centroids, kind.binary, descriptors.shape[1],
+                                     options.alpha)
     counts = np.bincount(labels, minlength=options.size)
     quantizer.training_info = {
         **clock.seconds,

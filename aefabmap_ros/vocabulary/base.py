@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.features.extraction import Features, match_features
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
 
@@ -208,7 +209,7 @@ def train_vocabulary(
         raise DataError(f"train_vocabulary needs (N, D) descriptors, got shape {getattr(descriptors, 'shape', None)}")
     if descriptors.dtype not in (np.float32, np.float64, np.uint8):
         raise DataError(f"descriptors must be float32/float64 or uint8 (binary), got {descriptors.dtype}")
-    if descriptors.dtype != np.uint8 and not np.all(np.isfinite(descriptors)):
+    if not kind_of(descriptors).binary and not np.all(np.isfinite(descriptors)):
         raise DataError("training descriptors contain NaN or infinity")
     if descriptors.shape[0] < config.size:
         raise DataError(f"vocabulary size={config.size} needs at least that many descriptors, got "

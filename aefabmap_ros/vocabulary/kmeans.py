@@ -26,18 +26,12 @@ import numpy as np
 from sklearn.cluster import kmeans_plusplus
 
 from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.features.descriptors import kind_of, kind_of_vocabulary
 
 if TYPE_CHECKING:
     from aefabmap_ros.vocabulary.base import StoredVocabulary, VocabularyConfig
 
 KMEANS_PLUSPLUS_MAX_POINTS = 50_000
-
-
-def as_float_rows(descriptors: np.ndarray, binary: bool) -> np.ndarray:
-    """Descriptors -> float32 rows to cluster: bits unpacked to 0/1 for binary descriptors."""
-    if binary:
-        return np.unpackbits(np.ascontiguousarray(descriptors, np.uint8), axis=1).astype(np.float32)
-    return np.ascontiguousarray(descriptors, np.float32)
 
 
 def kmeans(
@@ -157,16 +151,14 @@ class KMeansQuantizer:
     @property
     def centroids(self) -> np.ndarray:
         """(K, D) float32 in descriptor space (packed majority bits for binary descriptors)."""
-        if self.binary:
-            return np.packbits(self.centres >= 0.5, axis=1).astype(np.float32)
-        return self.centres
+        return kind_of_vocabulary(self.binary).centres(self.centres)
 
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) raw descriptors -> (N,) int64 word ids."""
         check_descriptors(descriptors, self.descriptor_dim, self.binary)
         if descriptors.shape[0] == 0:
             return np.zeros(0, np.int64)
-        _, labels = self._index.search(as_float_rows(descriptors, self.binary), 1)
+        _, labels = self._index.search(kind_of_vocabulary(self.binary).vectors(descriptors), 1)
         return labels[:, 0].astype(np.int64)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -208,9 +200,10 @@ def check_descriptors(descriptors: np.ndarray, descriptor_dim: int, binary: bool
         raise DataError(
             f"expected (N, {descriptor_dim}) descriptors, got shape {getattr(descriptors, 'shape', None)}"
         )
-    if binary and descriptors.dtype != np.uint8:
+    given = kind_of(descriptors)
+    if binary and not given.binary:
         raise DataError(f"this vocabulary is for binary (uint8) descriptors, got dtype {descriptors.dtype}")
-    if not binary and descriptors.dtype == np.uint8:
+    if not binary and given.binary:
         raise DataError("this vocabulary is for float descriptors, got uint8 (binary, e.g. ORB) descriptors")
 
 
@@ -218,7 +211,7 @@ def train_kmeans_quantizer(
     descriptors: np.ndarray, size: int, seed: int, iterations: int = 25, max_points_per_centroid: int = 256
 ) -> KMeansQuantizer:
     """k-means vocabulary of ``size`` words from (N, D) descriptors (uint8 rows = binary)."""
-    binary = descriptors.dtype == np.uint8
-    x = as_float_rows(descriptors, binary)
+    kind = kind_of(descriptors)
+    x = kind.vectors(descriptors)
     centres = kmeans(x, size, seed, iterations, max_points_per_centroid)
-    return KMeansQuantizer(centres, descriptors.shape[1], binary)
+    return KMeansQuantizer(centres, descriptors.shape[1], kind.binary)
