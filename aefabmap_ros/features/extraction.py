@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, ImageError
-from aefabmap_ros.features.descriptors import kind_of_type
+from aefabmap_ros.features.descriptors import kind_of, kind_of_type
 from aefabmap_ros.features.kinds import DESCRIPTOR_LENGTHS, FEATURE_TYPES
 
 
@@ -265,13 +265,14 @@ def match_features(a: Features, b: Features, ratio: float = 0.8, ransac_px: floa
     Mutual nearest neighbours passing Lowe's ratio test, then kept only if consistent with a
     fundamental matrix (RANSAC, ``ransac_px`` pixels) when there are enough of them. Used as
     the self-supervised signal of the autoencoder (same scene point, neighbouring frames).
+    Deliberately not ``verification.geometric.match_descriptors`` (one-to-one, MAGSAC++ 2 px): one
+    matcher for both would change either the trained vocabularies or what the verifier publishes.
     """
     if a.descriptor_type != b.descriptor_type:
         raise ConfigError(f"cannot match {a.descriptor_type} with {b.descriptor_type} features")
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if a.descriptors.dtype == np.uint8 else cv2.NORM_L2
-    matcher = cv2.BFMatcher(norm)
+    matcher = cv2.BFMatcher(kind_of(a.descriptors).cv_norm)
     forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
     backward = matcher.knnMatch(b.descriptors, a.descriptors, k=1)
     best_back = {m[0].queryIdx: m[0].trainIdx for m in backward if m}
