@@ -43,3 +43,18 @@ def test_the_rule_catches_an_import_inside_a_function(tmp_path):
 def test_every_folder_of_the_package_is_a_package():
     folders = {path.parent for path in PACKAGE_DIR.rglob("*.py")}
     assert [str(f) for f in sorted(folders) if not (f / "__init__.py").exists()] == []
+
+
+def test_every_package_lists_its_modules_in_all():
+    """``__all__`` of each package names exactly its modules and subpackages (a new module is listed)."""
+    stale = {}
+    for init in sorted(PACKAGE_DIR.rglob("__init__.py")):
+        folder = init.parent
+        present = {p.stem for p in folder.glob("*.py") if p.stem != "__init__"}
+        present |= {p.name for p in folder.iterdir() if (p / "__init__.py").is_file()}
+        namespace: dict[str, list[str]] = {}
+        exec(compile(init.read_text(), str(init), "exec"), namespace)  # only the listing, no submodule imports
+        listed = set(namespace.get("__all__", [])) - {"__version__"}
+        if listed != present:
+            stale[str(folder.relative_to(PACKAGE_DIR))] = sorted(listed ^ present)
+    assert stale == {}

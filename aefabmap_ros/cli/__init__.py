@@ -1,0 +1,27 @@
+"""The command-line tools (console scripts aefabmap_*): options and error reporting here, the work in the library.
+
+A tool whose work is heavy keeps its options in ``<tool>.py`` and its work in ``<tool>_run.py``, imported
+only after parsing, so ``--help`` answers at once."""
+
+__all__ = [
+    "ate",
+    "bag",
+    "bench",
+    "bench_backend",
+    "bench_fabmap",
+    "bench_pipeline",
+    "bench_processes",
+    "bench_verify",
+    "bench_vocab",
+    "common",
+    "demo",
+    "evaluate",
+    "evaluate_run",
+    "gt",
+    "launch",
+    "record",
+    "replay",
+    "synth",
+    "train",
+    "train_run",
+]

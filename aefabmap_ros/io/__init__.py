@@ -1,0 +1,4 @@
+"""Files and bags: rosbag2 bags, image sources, RGB-D recordings, openFABMAP files, config files, atomic
+writes, versioned .npz files, digests. A new file format goes here."""
+
+__all__ = ["atomic", "bags", "config_files", "digests", "image_messages", "npz_files", "openfabmap", "rgbd", "sources"]

@@ -1,0 +1,15 @@
+"""Everything ROS: the rclpy nodes, message conversion, the launch table. The only folder (with the
+launchers in ``cli``) that imports rclpy or message types."""
+
+__all__ = [
+    "common",
+    "fabmap_node",
+    "feature_node",
+    "frame_gate",
+    "launch_table",
+    "messages",
+    "pipeline",
+    "pose_graph_node",
+    "quantizer_node",
+    "verifier_node",
+]
