@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
 from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapConfig, FabMapModel, warm_up_kernels
@@ -160,15 +160,19 @@ def bench_fabmap1_ratio(images: ZipfImages, train: sp.csr_matrix, n_places: int,
     return float(per1)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    parser = ArgumentParser(prog="aefabmap_bench fabmap", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="seconds-long smoke run on small sizes")
     parser.add_argument("--vocabulary-size", type=int, default=None)
     parser.add_argument("--words-per-image", type=int, default=400, help="draws per image (distinct ~ 3/4)")
     parser.add_argument("--zipf-exponent", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    return report_errors(lambda: _run(args))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, _run)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -32,7 +32,9 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
+from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.engines import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
@@ -285,9 +287,9 @@ def _load() -> str:
     return " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="aefabmap_bench pipeline", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    parser = ArgumentParser(prog="aefabmap_bench pipeline", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=200, help="synthetic frames (default 200)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
@@ -305,13 +307,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-pipeline", action="store_true",
                         help="only the three-process launch, not also the one-process --pipeline")
     parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (small frames, no ROS)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, run)
+
+
+def run(args: argparse.Namespace) -> int:
     if args.baseline is not None and not (args.baseline / "aefabmap_ros" / "cli" / "launch.py").is_file():
-        print(f"ERROR: --baseline {args.baseline} is not an aefabmap_ros source tree", file=sys.stderr)
-        return 1
+        raise ConfigError(f"--baseline {args.baseline} is not an aefabmap_ros source tree")
     if args.repeats < 1 or args.rate < 0:
-        print("ERROR: --repeats must be >= 1 and --rate >= 0", file=sys.stderr)
-        return 1
+        raise ConfigError("--repeats must be >= 1 and --rate >= 0")
     if args.quick:
         args.frames, args.width, args.height, args.size, args.no_ros = 24, 320, 240, 100, True
 

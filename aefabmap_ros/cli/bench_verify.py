@@ -20,6 +20,7 @@ from functools import partial
 
 import numpy as np
 
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
 from aefabmap_ros.verification.geometric import (
@@ -63,9 +64,9 @@ def _timed_closures(stored: list[Features], config: VerificationConfig) -> tuple
     return seconds, accepted
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="aefabmap_bench verify", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    parser = ArgumentParser(prog="aefabmap_bench verify", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=60, help="synthetic frames (default 60)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
@@ -74,7 +75,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="keypoint budgets per image (default 500 1000)")
     parser.add_argument("--distance", type=float, default=25.0, help="distant pairs: metres apart at least")
     parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (small frames)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, run)
+
+
+def run(args: argparse.Namespace) -> int:
     if args.quick:
         args.frames, args.width, args.height, args.max_features = 12, 320, 240, [200]
 

@@ -12,13 +12,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary, word_usage
@@ -26,8 +26,8 @@ from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary, wor
 DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
 
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="bench_vocab", description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    parser = ArgumentParser(prog="aefabmap_bench vocab", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="seconds-long smoke run (few images, small vocabulary)")
     parser.add_argument("--images", type=Path, action="append",
                         help="image folder to train on (repeatable); default: kitti00_first300 from ../shared")
@@ -36,7 +36,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--max-images", type=int, default=None, help="use at most this many training images")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
     parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    return parser.parse_args(argv)
+    return parser
 
 
 def _image_paths(folders: list[Path]) -> list[Path]:
@@ -99,8 +99,7 @@ def bench_extraction(images: list[np.ndarray], repeats: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    return report_errors(lambda: _run(args))
+    return run_cli(build_parser(), argv, _run)
 
 
 def _run(args: argparse.Namespace) -> int:
