@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, required=True, help="model directory (from aefabmap_train)")
     parser.add_argument("--params", type=Path, default=None,
-                        help="parameter YAML (default: the package's config/aefabmap.yaml)")
+                        help="parameter YAML (default: the aefabmap.yaml shipped in the package)")
     parser.add_argument("--map", type=Path, default=None, help="map file to save to / reload from")
     parser.add_argument("--image-topic", default="image", help="camera image topic (default: image)")
     parser.add_argument("--image-qos", choices=("sensor_data", "reliable"), default=None,
