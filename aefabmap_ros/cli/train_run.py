@@ -79,7 +79,8 @@ def extract_all(sources: list[ImageSource], feature_config: FeatureConfig, work_
         with tqdm(total=len(source), desc=f"features {source.name}", unit="img", disable=quiet,
                   file=sys.stderr) as bar:
             frames = (gray for _, gray in source.frames())
-            sequence = extract_sequence_features(frames, feature_config, cache, on_frame=lambda _: bar.update())
+            sequence = extract_sequence_features(frames, feature_config, cache_path=cache,
+                                                 on_frame=lambda _: bar.update())
             bar.update(bar.total - bar.n)
         sequences.append(sequence)
     return sequences

@@ -259,7 +259,7 @@ def rootsift(descriptors: np.ndarray) -> np.ndarray:
     return np.sqrt(values / np.maximum(l1, 1e-12)).astype(np.float32)
 
 
-def match_features(a: Features, b: Features, ratio: float = 0.8, ransac_px: float = 3.0) -> np.ndarray:
+def match_features(a: Features, b: Features, *, ratio: float = 0.8, ransac_px: float = 3.0) -> np.ndarray:
     """Matches between two images' features: (M, 2) int64 row indices (into a, into b).
 
     Mutual nearest neighbours passing Lowe's ratio test, then kept only if consistent with a

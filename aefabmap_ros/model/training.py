@@ -96,6 +96,7 @@ def _load_features(path: Path) -> list[Features]:
 def extract_sequence_features(
     frames: Iterable[np.ndarray],
     config: FeatureConfig,
+    *,
     cache_path: Path | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> list[Features]:
@@ -162,6 +163,7 @@ def train_model(
     vocabulary_config: VocabularyConfig,
     training_config: TrainingConfig,
     provenance: dict[str, Any],
+    *,
     work_dir: Path | None = None,
     progress: bool = True,
     log: Progress = _no_progress,
@@ -185,7 +187,7 @@ def train_model(
         log("matching features between neighbouring frames (self-supervision pairs)")
         offset, chunks = 0, []
         for sequence in sequences:  # pairs never cross from one sequence into the next
-            chunks.append(sequence_pairs(sequence, training_config.pair_max_gap) + offset)
+            chunks.append(sequence_pairs(sequence, max_gap=training_config.pair_max_gap) + offset)
             offset += sum(len(f.descriptors) for f in sequence)
         pairs = np.concatenate(chunks) if chunks else None
         report.num_pairs = 0 if pairs is None else len(pairs)

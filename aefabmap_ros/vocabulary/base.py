@@ -194,6 +194,7 @@ class VocabularyConfig:
 def train_vocabulary(
     descriptors: np.ndarray,
     config: VocabularyConfig,
+    *,
     progress: bool = True,
     work_dir: Path | None = None,
     pairs: np.ndarray | None = None,
@@ -236,7 +237,7 @@ def bag_of_words(word_ids: np.ndarray, vocabulary_size: int) -> tuple[np.ndarray
     return unique.astype(np.uint32), counts.astype(np.uint32)
 
 
-def sequence_pairs(features: Sequence[Features], max_gap: int = 1, ratio: float = 0.8) -> np.ndarray:
+def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: float = 0.8) -> np.ndarray:
     """Matched descriptor pairs between frames up to ``max_gap`` apart in an image sequence.
 
     Returns (M, 2) int64 row indices into ``np.concatenate([f.descriptors for f in features])``:
@@ -248,7 +249,7 @@ def sequence_pairs(features: Sequence[Features], max_gap: int = 1, ratio: float 
     chunks = []
     for i in range(len(features)):
         for j in range(i + 1, min(len(features), i + max_gap + 1)):
-            local = match_features(features[i], features[j], ratio)
+            local = match_features(features[i], features[j], ratio=ratio)
             chunks.append(local + np.array([offsets[i], offsets[j]]))
     return np.concatenate(chunks).astype(np.int64) if chunks else np.zeros((0, 2), np.int64)
 
