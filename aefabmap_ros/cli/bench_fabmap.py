@@ -24,7 +24,8 @@ import scipy.sparse as sp
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
-from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapConfig, FabMapModel, warm_up_kernels
+from aefabmap_ros.fabmap.config import FabMapConfig
+from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapModel, warm_up_kernels
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 
 

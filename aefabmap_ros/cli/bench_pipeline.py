@@ -36,7 +36,7 @@ from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.features.images import image_to_gray

@@ -43,7 +43,7 @@ from aefabmap_ros.evaluation.protocol import (
     scores_from_recording,
     unique_slugs,
 )
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.atomic import atomic_write_text

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import Candidate, PlaceRecognizer
 from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, rerank_by_inliers
 from aefabmap_ros.verification.loop_tracking import LoopTrack

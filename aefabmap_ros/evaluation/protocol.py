@@ -66,7 +66,7 @@ from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, Loop
 from aefabmap_ros.evaluation.online_chain import run_online_chain
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.model.directory import Model

@@ -1,4 +1,4 @@
-"""FAB-MAP: Chow-Liu tree, the FAB-MAP 2 / FAB-MAP 1 engines and posterior, the online place recognizer
+"""FAB-MAP: settings, Chow-Liu tree, the FAB-MAP 2 / FAB-MAP 1 engines, the posterior, the online place recognizer
 with its map file, and temporal consistency."""
 
-__all__ = ["chowliu", "consistency", "engines", "recognizer"]
+__all__ = ["chowliu", "config", "consistency", "engines", "posterior", "recognizer"]

@@ -4,7 +4,7 @@ One :class:`PlaceRecognizer` per camera. Every call of :meth:`PlaceRecognizer.pr
 frame and gets the next query id (0, 1, 2, ...), also frames without words. Frames with fewer
 than ``min_words`` distinct words stop there: they carry almost no evidence, and FAB-MAP would
 match a blank frame to any earlier blank frame with certainty (see
-:data:`aefabmap_ros.fabmap.engines.DEFAULT_MIN_WORDS`); they get no posterior and no place, and the
+:data:`aefabmap_ros.fabmap.config.DEFAULT_MIN_WORDS`); they get no posterior and no place, and the
 motion model continues from the last informative frame. Every other frame:
 
 1. FAB-MAP 2 log-likelihoods of every stored place and of the new place.
@@ -14,7 +14,7 @@ motion model continues from the last informative frame. Every other frame:
    of places whose words still overlap the query's. Excluded places are not hypotheses at all
    (they get no probability mass, the posterior sums to one over the remaining hypotheses).
 3. Prior: uniform, or openFABMAP's motion model from the previous frame's posterior (see
-   :func:`aefabmap_ros.fabmap.engines.motion_log_prior`; excluded places count as probability 0
+   :func:`aefabmap_ros.fabmap.posterior.motion_log_prior`; excluded places count as probability 0
    there). The log-likelihoods are divided by ``likelihood_temperature`` (calibration), then
    smoothing p <- s p + (1 - s) / n over the n hypotheses.
 4. Data association: the frame matches the best place when its posterior exceeds
@@ -51,17 +51,10 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.consistency import TemporalConsistency
-from aefabmap_ros.fabmap.engines import (
-    FabMapConfig,
-    GrowableArray,
-    InvertedIndex,
-    as_word_ids,
-    make_engine,
-    motion_log_prior,
-    posterior,
-    top_k_indices,
-)
+from aefabmap_ros.fabmap.engines import GrowableArray, InvertedIndex, as_word_ids, make_engine
+from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 
 MAP_FORMAT_VERSION = 1

@@ -6,7 +6,7 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.online_chain import ChainClosure, run_online_chain
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.geometric import VerificationConfig, cached_pair_verifier
 from test.fabmap.test_recognizer import SAMPLES, V, _tree

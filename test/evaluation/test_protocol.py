@@ -29,7 +29,7 @@ from aefabmap_ros.evaluation.protocol import (
 )
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.vocabulary.base import VocabularyConfig

@@ -14,17 +14,9 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import (
-    ENGINES,
-    FabMap1,
-    FabMap2,
-    FabMapConfig,
-    FabMapModel,
-    InvertedIndex,
-    motion_log_prior,
-    posterior,
-    rows_to_word_ids,
-)
+from aefabmap_ros.fabmap.config import FabMapConfig
+from aefabmap_ros.fabmap.engines import ENGINES, FabMap1, FabMap2, FabMapModel, InvertedIndex, rows_to_word_ids
+from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior
 
 
 class FabMapLUT(FabMap1):

@@ -8,16 +8,9 @@ from hypothesis import strategies as st
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import (
-    FabMap1,
-    FabMap2,
-    FabMapConfig,
-    FabMapModel,
-    InvertedIndex,
-    motion_log_prior,
-    posterior,
-    top_k_indices,
-)
+from aefabmap_ros.fabmap.config import FabMapConfig
+from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapModel, InvertedIndex
+from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
 from test.fabmap.oracles import fabmap_score_matrices
 
 openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden references' config

@@ -6,7 +6,7 @@ import scipy.sparse as sp
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer, jaccard
 from test.fabmap.oracles import fabmap_score_matrices
 

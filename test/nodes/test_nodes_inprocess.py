@@ -290,7 +290,7 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
 
     import yaml
 
-    from aefabmap_ros.fabmap.engines import FabMapConfig
+    from aefabmap_ros.fabmap.config import FabMapConfig
     from aefabmap_ros.verification.geometric import VerificationConfig
     from test.conftest import REPO_ROOT
 

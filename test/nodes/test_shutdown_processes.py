@@ -14,7 +14,7 @@ pytest.importorskip("rclpy")
 pytest.importorskip("aefabmap_msgs.msg")
 
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.fabmap.engines import FabMapConfig
+from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.model.directory import load_model
 from test.revisit_fixture import RevisitData
