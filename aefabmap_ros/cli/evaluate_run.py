@@ -23,26 +23,18 @@ from aefabmap_ros.cli.common import no_empty_folders_left_on_error
 from aefabmap_ros.cli.evaluate import SECTIONS
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.evaluation.ground_truth import loop_matrix_from_kitti
+from aefabmap_ros.evaluation.ground_truth import check_gt_matches, load_gt_npz, loop_matrix_from_kitti
 from aefabmap_ros.evaluation.methods import METHODS, methods_of_kind, parse_methods
 from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, evaluate_scores
 from aefabmap_ros.evaluation.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
-from aefabmap_ros.evaluation.protocol import (
-    EvaluationConfig,
-    MethodResult,
-    check_gt_matches,
+from aefabmap_ros.evaluation.protocol import EvaluationConfig, MethodResult, evaluate_model, leave_one_out_samples
+from aefabmap_ros.evaluation.recordings import (
     closure_scores_markdown,
     closure_scores_to_dict,
-    evaluate_model,
-    leave_one_out_samples,
-    load_gt_npz,
-    online_markdown,
-    result_to_dict,
-    results_markdown,
     score_recorded_closures,
     scores_from_recording,
-    unique_slugs,
 )
+from aefabmap_ros.evaluation.reports import online_markdown, result_to_dict, results_markdown, unique_slugs
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.io import bags

@@ -1,5 +1,5 @@
 """Offline evaluation: the paper's methods and protocol, metrics, ground truth, calibration, trajectory
-error, tf-idf baseline, the nodes' decision chain run offline, and the figures."""
+error, tf-idf baseline, the nodes' decision chain run offline, recorded runs, and the reports and figures."""
 
 __all__ = [
     "calibration",
@@ -9,6 +9,8 @@ __all__ = [
     "online_chain",
     "plots",
     "protocol",
+    "recordings",
+    "reports",
     "tfidf",
     "trajectory_error",
 ]

@@ -504,3 +504,28 @@ def covisibility_loop_matrix(
     gt, _ = covisibility_with_stats(depths, poses, camera_matrix, stamps_ns, min_fraction, min_gap_s, grid_step_px,
                                     tolerance_m, relative_tolerance, prune_voxel_m, depth_scale, max_view_angle_deg)
     return gt
+
+
+def check_gt_matches(gt: np.ndarray, num_frames: int, source: str) -> None:
+    if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
+        raise DataError(f"ground truth must be a square (N, N) matrix, got shape {gt.shape}")
+    if gt.shape[0] != num_frames:
+        raise DataError(f"ground truth is {gt.shape[0]}x{gt.shape[1]} but {source} has {num_frames} frames")
+
+
+def load_gt_npz(path: Path) -> np.ndarray:
+    """The ``gt`` array of a loop-matrix .npz (square, 0/1)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "gt" not in data.files:
+                raise DataError(f"ground-truth file {path} has no array 'gt' (it has {sorted(data.files)})")
+            gt = np.asarray(data["gt"])
+    except FileNotFoundError as error:
+        raise DataError(f"ground-truth file not found: {path}") from error
+    except (OSError, ValueError) as error:
+        raise DataError(f"cannot read ground-truth file {path}: {error}") from error
+    if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
+        raise DataError(f"ground truth in {path} must be a square (N, N) matrix, got shape {gt.shape}")
+    if not np.isin(gt, (0, 1)).all():
+        raise DataError(f"ground truth in {path} must hold only 0 and 1")
+    return gt.astype(np.uint8)

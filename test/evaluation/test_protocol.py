@@ -9,24 +9,20 @@ import scipy.sparse as sp
 from scipy.special import logsumexp
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.evaluation.ground_truth import load_gt_npz
 from aefabmap_ros.evaluation.metrics import evaluate_scores
 from aefabmap_ros.evaluation.protocol import (
     EvaluationConfig,
     MethodResult,
-    RecordedClosure,
-    closure_precision_recall,
     evaluate_model,
     fabmap_evaluation_config,
     fabmap_posterior_matrix,
     leave_one_out_samples,
-    load_gt_npz,
     model_tree,
-    result_to_dict,
-    results_markdown,
-    scores_from_recording,
     tfidf_matrix,
-    unique_slugs,
 )
+from aefabmap_ros.evaluation.recordings import RecordedClosure, closure_precision_recall, scores_from_recording
+from aefabmap_ros.evaluation.reports import result_to_dict, results_markdown, unique_slugs
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
