@@ -93,7 +93,7 @@ RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransa
                               "max_iterations"})
 
 
-class Candidate(NamedTuple):
+class PlaceToVerify(NamedTuple):
     """A place to verify the query against."""
 
     place_id: int
@@ -257,21 +257,21 @@ class VerifierNode(Node):
             del self.posteriors[query_ns]  # this frame is done: no closure will come for it
             self._track(posterior)
 
-    def _posterior_places(self, posterior: PlacePosterior) -> list[tuple[int, Candidate]]:
+    def _posterior_places(self, posterior: PlacePosterior) -> list[tuple[int, PlaceToVerify]]:
         """The posterior's candidates (rank, place) whose features are stored, best first."""
         places = []
         for rank, (place_id, stamp) in enumerate(zip(posterior.place_ids, posterior.place_stamps, strict=False)):
             features = self.store.get(stamp_to_ns(stamp))
             if features is not None:
-                places.append((rank, Candidate(int(place_id), stamp, features)))
+                places.append((rank, PlaceToVerify(int(place_id), stamp, features)))
         return places
 
-    def _candidates(self, message: LoopClosure, posterior: PlacePosterior | None) -> list[Candidate] | None:
+    def _candidates(self, message: LoopClosure, posterior: PlacePosterior | None) -> list[PlaceToVerify] | None:
         """The matched place first, then the posterior's next best with stored features; None: place unknown."""
         matched = self.store.get(stamp_to_ns(message.matched_stamp))
         if matched is None:
             return None
-        candidates = [Candidate(int(message.matched_place_id), message.matched_stamp, matched)]
+        candidates = [PlaceToVerify(int(message.matched_place_id), message.matched_stamp, matched)]
         if posterior is not None:
             matched_id = candidates[0].place_id
             others = [place for _, place in self._posterior_places(posterior) if place.place_id != matched_id]
