@@ -28,7 +28,7 @@ START_NS = 1_700_000_000_000_000_000
 @dataclass(frozen=True)
 class RevisitData:
     model_dir: Path
-    model_id: str
+    vocabulary_id: str
     bag: Path  # both passes
     first_pass_bag: Path
     second_pass_bag: Path
@@ -75,6 +75,6 @@ def revisit_data(tmp_path_factory: pytest.TempPathFactory) -> RevisitData:
     write_image_bag(root / "first", "/image", frames(first, 0))
     write_image_bag(root / "second", "/image", frames(second, FRAMES_PER_PASS))
     return RevisitData(
-        model_dir=root / "model", model_id=model.model_id, bag=root / "both", first_pass_bag=root / "first",
+        model_dir=root / "model", vocabulary_id=model.vocabulary_id, bag=root / "both", first_pass_bag=root / "first",
         second_pass_bag=root / "second", stamps_ns=stamps, gt=gt,
     )

@@ -69,7 +69,7 @@ def _summary(values_ms: list[float]) -> str:
 def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[float]]:
     assert model.tree_matrix is not None
     recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
-                                 FabMapConfig(), model.model_id)
+                                 FabMapConfig(), model.vocabulary_id)
     stages: dict[str, list[float]] = {"decode": [], "features": [], "quantize": [], "fabmap": []}
     for index, image in enumerate(images):
         height, width = image.shape[:2]

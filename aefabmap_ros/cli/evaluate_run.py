@@ -306,7 +306,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
         wanted = methods_of_kind(model.quantizer.kind, methods)
         fabmap_count = sum(1 for name in wanted if METHODS[name][1] == "fabmap")
         run.log(f"quantizing the {num_frames} test images, then scoring {', '.join(wanted)} with "
-                f"{model.quantizer.kind} model {model.model_id}")
+                f"{model.quantizer.kind} model {model.vocabulary_id}")
         with _ProgressFromFirstTick(num_frames * fabmap_count, "FAB-MAP queries", args.quiet) as progress:
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
@@ -393,7 +393,7 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
     raw = recording.candidates[1] if recording.candidates is not None else []
     recorded = scores_from_recording(recording.posteriors, raw, gt.shape[0])
     metrics = evaluate_scores(recorded.scores, gt, min_gap, settings.evaluation.threshold)
-    result = MethodResult(name="recording", vocabulary_kind="recorded", vocabulary_size=0, model_id="",
+    result = MethodResult(name="recording", vocabulary_kind="recorded", vocabulary_size=0, vocabulary_id="",
                           scores=recorded.scores, metrics=metrics, seconds=time.monotonic() - started,
                           model_path=str(args.recording))
     rows = [score_recorded_closures(role, *topic_messages, recording.posteriors, gt, min_gap)

@@ -111,7 +111,7 @@ def train_in(work_dir: Path, args: argparse.Namespace, sources: list[ImageSource
                                 work_dir=work_dir, progress=not args.quiet, log=log)
     save_model(args.out, model)
     seconds = {"features": feature_seconds, **report.seconds}
-    print(f"model {model.model_id} written to {args.out}")
+    print(f"model {model.vocabulary_id} written to {args.out}")
     print(f"  images: {report.num_images} ({report.images_without_features} without features), "
           f"descriptors: {report.num_descriptors}, self-supervision pairs: {report.num_pairs}")
     print(f"  vocabulary: {vocabulary_config.kind}, {model.quantizer.size} words, {report.words_used} used "

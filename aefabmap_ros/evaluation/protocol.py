@@ -228,7 +228,7 @@ class MethodResult:
     name: str
     vocabulary_kind: str
     vocabulary_size: int
-    model_id: str
+    vocabulary_id: str
     scores: np.ndarray  # (N, N) float64, row i = query i
     metrics: LoopMetrics
     seconds: float
@@ -257,7 +257,7 @@ class MethodResult:
 
 def model_tree(model: Model) -> ChowLiuTree:
     if model.tree_matrix is None:
-        raise ModelError(f"model {model.model_id} has no Chow-Liu tree: FAB-MAP needs one")
+        raise ModelError(f"model {model.vocabulary_id} has no Chow-Liu tree: FAB-MAP needs one")
     return ChowLiuTree.from_matrix(model.tree_matrix)
 
 
@@ -288,7 +288,8 @@ def evaluate_model(
         if name not in METHODS:
             raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
         if METHODS[name][0] != kind:
-            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.model_id} is {kind}")
+            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
+                              f"is {kind}")
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
     started = time.monotonic()
@@ -312,7 +313,7 @@ def evaluate_model(
             threshold = config.bow_threshold
         seconds = time.monotonic() - started
         results.append(MethodResult(
-            name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, model_id=model.model_id,
+            name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, vocabulary_id=model.vocabulary_id,
             scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
             new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
             reliability=None if online is None else online.reliability,

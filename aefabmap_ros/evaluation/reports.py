@@ -83,7 +83,7 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
         "geometric_verification": result.verified,
         "vocabulary_kind": result.vocabulary_kind,
         "vocabulary_size": result.vocabulary_size,
-        "model_id": result.model_id,
+        "model_id": result.vocabulary_id,
         "model_path": result.model_path,
         "average_precision": m.average_precision,
         "max_f1": m.max_f1,

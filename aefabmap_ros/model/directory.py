@@ -13,10 +13,11 @@ Layout (format_version 1)::
     chow_liu_tree.npy         (4, V) float64 [parent; marginal; p(z|parent=1); p(z|parent=0)] (optional)
     new_place_samples.npz     scipy.sparse CSR (S, V) binary training observations (optional)
 
-``model_id`` is a short sha256 over the vocabulary-defining contents (PCA, vocabulary
-arrays, autoencoder weights: the values, not the file bytes), so two models quantize the
-same way iff they have the same id; maps and messages carry it to refuse data from another
-vocabulary. Saving is atomic: the directory is written beside the target and renamed into
+The *vocabulary id* (``Model.vocabulary_id``; the key ``model_id`` of metadata.json, kept for
+the directories already written) is a short sha256 over the vocabulary-defining contents (PCA,
+vocabulary arrays, autoencoder weights: the values, not the file bytes), so two models quantize
+the same way iff they have the same id; maps and messages carry it (``vocabulary_id``) to refuse
+data from another vocabulary. Saving is atomic: the directory is written beside the target and renamed into
 place; an existing model directory is replaced only once the new one is complete.
 """
 
@@ -49,12 +50,12 @@ METADATA = "metadata.json"
 VOCABULARY = "vocabulary.npz"
 TREE = "chow_liu_tree.npy"
 NEW_PLACE_SAMPLES = "new_place_samples.npz"
-MODEL_ID_LENGTH = 16
+VOCABULARY_ID_LENGTH = 16
 
 
 @dataclass
 class Model:
-    model_id: str
+    vocabulary_id: str
     feature_config: FeatureConfig
     vocabulary_config: VocabularyConfig
     quantizer: Quantizer
@@ -75,7 +76,7 @@ class Model:
     ) -> Model:
         """A Model with its id computed from the quantizer and the creation time set to now."""
         return cls(
-            model_id=compute_model_id(quantizer),
+            vocabulary_id=compute_vocabulary_id(quantizer),
             feature_config=feature_config,
             vocabulary_config=vocabulary_config,
             quantizer=quantizer,
@@ -90,14 +91,14 @@ class Model:
         return self.quantizer.size
 
 
-def compute_model_id(quantizer: Quantizer) -> str:
+def compute_vocabulary_id(quantizer: Quantizer) -> str:
     """Short sha256 over the values that define how descriptors map to words."""
     digest = hashlib.sha256(quantizer.kind.encode())
     for name, array in sorted(quantizer.to_arrays().items()):
         _hash_array(digest, name, array)
     for name, array in quantizer.identity_arrays().items():  # in the quantizer's order
         _hash_array(digest, name, array)
-    return digest.hexdigest()[:MODEL_ID_LENGTH]
+    return digest.hexdigest()[:VOCABULARY_ID_LENGTH]
 
 
 def _hash_array(digest: Any, name: str, array: np.ndarray) -> None:
@@ -126,9 +127,9 @@ def save_model(directory: Path, model: Model) -> None:
 
 
 def _check_consistent(model: Model) -> None:
-    computed = compute_model_id(model.quantizer)
-    if model.model_id != computed:
-        raise ModelError(f"model_id {model.model_id!r} does not match its contents ({computed!r}); "
+    computed = compute_vocabulary_id(model.quantizer)
+    if model.vocabulary_id != computed:
+        raise ModelError(f"vocabulary_id {model.vocabulary_id!r} does not match its contents ({computed!r}); "
                          "build the Model with Model.create")
     if model.quantizer.kind != model.vocabulary_config.kind:
         raise ModelError(f"quantizer kind {model.quantizer.kind!r} != vocabulary_config.kind "
@@ -159,7 +160,7 @@ def _metadata(model: Model, files: dict[str, str]) -> dict[str, Any]:
     described = quantizer.metadata()
     return {
         "format_version": FORMAT_VERSION,
-        "model_id": model.model_id,
+        "model_id": model.vocabulary_id,
         "created_utc": model.created_utc or datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "feature_config": model.feature_config.to_dict(),
         "vocabulary_config": model.vocabulary_config.to_dict(),
@@ -251,12 +252,12 @@ def load_model(directory: Path) -> Model:
         raise ModelError(f"dimension mismatch: {error}") from error
     tree = _load_tree(directory / TREE, quantizer.size) if TREE in files else None
     samples = _load_samples(directory / NEW_PLACE_SAMPLES, quantizer.size) if NEW_PLACE_SAMPLES in files else None
-    model_id = compute_model_id(quantizer)
-    if model_id != metadata["model_id"]:
-        raise ModelError(f"checksum mismatch in {directory}: contents hash to model_id {model_id}, metadata "
-                         f"says {metadata['model_id']}")
+    vocabulary_id = compute_vocabulary_id(quantizer)
+    if vocabulary_id != metadata["model_id"]:
+        raise ModelError(f"checksum mismatch in {directory}: contents hash to vocabulary id {vocabulary_id}, "
+                         f"metadata says {metadata['model_id']}")
     return Model(
-        model_id=model_id, feature_config=feature_config, vocabulary_config=vocabulary_config,
+        vocabulary_id=vocabulary_id, feature_config=feature_config, vocabulary_config=vocabulary_config,
         quantizer=quantizer, tree_matrix=tree, new_place_samples=samples,
         provenance=dict(metadata.get("provenance") or {}), created_utc=str(metadata.get("created_utc", "")),
     )

@@ -76,10 +76,10 @@ class FabMapNode(Node):
         model = load_model(model_dir)
         if model.tree_matrix is None or model.new_place_samples is None:
             raise ModelError(f"parameter model_dir={model_dir!r}: the model has no Chow-Liu tree / new-place samples")
-        self.vocabulary_id = model.model_id
+        self.vocabulary_id = model.vocabulary_id
         self.vocabulary_size = model.quantizer.size
         self.recognizer = PlaceRecognizer(
-            ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.model_id
+            ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.vocabulary_id
         )
         warm_up_kernels()  # compile/load FAB-MAP's kernels now, not on the first image
         map_path = Path(map_file) if map_file else None

@@ -41,7 +41,7 @@ class QuantizerNode(Node):
             raise ConfigError("quantizer_node: parameter model_dir is required (a directory made by aefabmap_train)")
         model = load_model(model_dir)  # at start-up, never in a callback
         self.quantizer = model.quantizer
-        self.vocabulary_id = model.model_id
+        self.vocabulary_id = model.vocabulary_id
         self.descriptor_type = model.feature_config.type
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))

@@ -54,7 +54,7 @@ def test_rerun_resumes_from_cached_features(tmp_path: Path, revisit_data: Revisi
     before = cached[0].stat().st_mtime_ns
     assert main([*args, "--out", str(tmp_path / "b"), "--work-dir", str(work)]) == 0
     assert cached[0].stat().st_mtime_ns == before  # reused, not recomputed
-    assert load_model(tmp_path / "a").model_id == load_model(tmp_path / "b").model_id  # deterministic
+    assert load_model(tmp_path / "a").vocabulary_id == load_model(tmp_path / "b").vocabulary_id  # deterministic
 
 
 def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:

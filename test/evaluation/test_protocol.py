@@ -210,7 +210,7 @@ def test_evaluate_model_finds_exact_revisits():
         assert result.scores.shape == (24, 24) and np.all((result.scores >= 0) & (result.scores <= 1 + 1e-12))
         assert result.metrics.num_positive_queries == 12
         assert result.metrics.recall_at_100_precision == 1.0  # every revisit has identical words
-        assert result.vocabulary_kind == "kmeans" and result.model_id == model.model_id
+        assert result.vocabulary_kind == "kmeans" and result.vocabulary_id == model.vocabulary_id
     assert results[0].new_place is not None and results[1].new_place is None
     assert results[0].metrics.threshold == 0.99 and results[1].metrics.threshold == EvaluationConfig().bow_threshold
 

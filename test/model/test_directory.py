@@ -16,7 +16,7 @@ from aefabmap_ros.model.directory import (
     TREE,
     VOCABULARY,
     Model,
-    compute_model_id,
+    compute_vocabulary_id,
     load_model,
     save_model,
 )
@@ -61,7 +61,7 @@ def test_round_trip_quantizes_identically(which: str, ae_quantizer: Quantizer, k
     model = _model(quantizer)
     save_model(tmp_path / "model", model)
     loaded = load_model(tmp_path / "model")
-    assert loaded.model_id == model.model_id and len(loaded.model_id) == 16
+    assert loaded.vocabulary_id == model.vocabulary_id and len(loaded.vocabulary_id) == 16
     assert loaded.feature_config == model.feature_config and loaded.vocabulary_config == model.vocabulary_config
     x = _descriptors(1)
     np.testing.assert_array_equal(loaded.quantizer.quantize(x), quantizer.quantize(x))
@@ -83,12 +83,12 @@ def test_optional_parts_may_be_absent(km_quantizer: Quantizer, tmp_path: Path) -
     assert not (tmp_path / "m" / TREE).exists()
 
 
-def test_model_id_depends_on_vocabulary_only(ae_quantizer: Quantizer, km_quantizer: Quantizer) -> None:
-    assert compute_model_id(ae_quantizer) == compute_model_id(ae_quantizer)
-    assert compute_model_id(ae_quantizer) != compute_model_id(km_quantizer)
-    assert _model(km_quantizer).model_id == _model(km_quantizer, tree_matrix=None).model_id
+def test_vocabulary_id_depends_on_vocabulary_only(ae_quantizer: Quantizer, km_quantizer: Quantizer) -> None:
+    assert compute_vocabulary_id(ae_quantizer) == compute_vocabulary_id(ae_quantizer)
+    assert compute_vocabulary_id(ae_quantizer) != compute_vocabulary_id(km_quantizer)
+    assert _model(km_quantizer).vocabulary_id == _model(km_quantizer, tree_matrix=None).vocabulary_id
     other = train_vocabulary(_descriptors(), VocabularyConfig(kind="kmeans", size=V, seed=9))
-    assert compute_model_id(other) != compute_model_id(km_quantizer)
+    assert compute_vocabulary_id(other) != compute_vocabulary_id(km_quantizer)
 
 
 def test_save_replaces_existing_model_atomically(ae_quantizer: Quantizer, km_quantizer: Quantizer,
@@ -105,10 +105,10 @@ def test_failed_save_leaves_previous_model(km_quantizer: Quantizer, tmp_path: Pa
     target = tmp_path / "model"
     save_model(target, _model(km_quantizer))
     wrong = _model(km_quantizer)
-    wrong.model_id = "0123456789abcdef"
+    wrong.vocabulary_id = "0123456789abcdef"
     with pytest.raises(ModelError, match="does not match its contents"):
         save_model(target, wrong)
-    assert load_model(target).model_id == _model(km_quantizer).model_id
+    assert load_model(target).vocabulary_id == _model(km_quantizer).vocabulary_id
     with pytest.raises(ModelError, match="not a model directory"):
         (tmp_path / "other").mkdir()
         (tmp_path / "other" / "precious.txt").write_text("x")
@@ -180,7 +180,7 @@ def test_checksum_mismatch(saved_ae: Path) -> None:
         load_model(saved_ae)
 
 
-def test_model_id_mismatch(saved_ae: Path) -> None:
+def test_vocabulary_id_mismatch(saved_ae: Path) -> None:
     _rewrite_metadata(saved_ae, model_id="ffffffffffffffff")
     with pytest.raises(ModelError, match=r"checksum mismatch .* metadata says ffffffffffffffff"):
         load_model(saved_ae)

@@ -146,7 +146,7 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> Non
         features = features_out.messages[0]
         node._on_features(features)
         words = words_out.messages[0]
-        assert words.vocabulary_id == revisit_data.model_id and words.vocabulary_size == 400
+        assert words.vocabulary_id == revisit_data.vocabulary_id and words.vocabulary_size == 400
         ids = np.asarray(words.word_ids)
         assert ids.size > 0 and np.all(np.diff(ids) > 0) and ids.max() < 400
         assert sum(words.counts) == len(features.x) == len(words.keypoint_words)
@@ -213,7 +213,7 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         posteriors = Captured(node.posterior_publisher)
         # FAB-MAP's own closures are candidates; only verifier_node (or a remap) publishes loop_closures.
         assert node.loop_publisher.topic_name == "/loop_closure_candidates"
-        vid = revisit_data.model_id
+        vid = revisit_data.vocabulary_id
         node._on_words(_words([1, 5, 9], 10, vid))
         node._on_words(_words([1, 5, 9], 10, vid))  # same stamp again
         node._on_words(_words([2, 3], 5, vid))  # older stamp
@@ -253,7 +253,7 @@ def test_fabmap_node_start_up_errors(revisit_data: RevisitData, tmp_path: Path) 
         FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), smoothing="high"))
     foreign_map = tmp_path / "foreign.npz"
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(foreign_map)))
-    node._on_words(_words([1, 2], 1, revisit_data.model_id))
+    node._on_words(_words([1, 2], 1, revisit_data.vocabulary_id))
     node.close()
     node.destroy_node()
     data = dict(np.load(foreign_map, allow_pickle=False))
@@ -605,7 +605,7 @@ def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: Revisi
     map_path = tmp_path / "map.npz"
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
     try:
-        vid = revisit_data.model_id
+        vid = revisit_data.vocabulary_id
         node._on_words(_words([1, 5, 9], 10, vid))
         ten_years = int(time.time()) + 10 * 365 * 86400  # a clock set to 2036
         node._on_words(_words([2, 3], ten_years, vid))
@@ -653,7 +653,7 @@ def test_fabmap_node_warns_about_a_map_made_with_other_settings_and_cleans_kille
     map_path = tmp_path / "map.npz"
     first = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
     try:
-        first._on_words(_words([1, 5, 9], 10, revisit_data.model_id))
+        first._on_words(_words([1, 5, 9], 10, revisit_data.vocabulary_id))
         assert first.close()
     finally:
         first.destroy_node()
@@ -678,7 +678,7 @@ def test_fabmap_node_final_save_failure_is_reported(revisit_data: RevisitData, t
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
                                                   map_file=str(blocker / "map.npz"), save_period_s=0.0))
     try:
-        node._on_words(_words([1, 5, 9], 10, revisit_data.model_id))
+        node._on_words(_words([1, 5, 9], 10, revisit_data.vocabulary_id))
         assert node.close() is False  # run_nodes turns this into exit code 1
     finally:
         node.destroy_node()

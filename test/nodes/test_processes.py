@@ -150,7 +150,7 @@ def _places_in(map_path: Path, data: RevisitData) -> int:
     model = load_model(data.model_dir)
     assert model.tree_matrix is not None
     recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
-                                 FabMapConfig(), model.model_id)
+                                 FabMapConfig(), model.vocabulary_id)
     recognizer.load_map(map_path)
     return recognizer.num_places
 

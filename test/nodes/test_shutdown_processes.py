@@ -51,7 +51,7 @@ def _map_stamps(map_path: Path, data: RevisitData) -> np.ndarray:
     model = load_model(data.model_dir)
     assert model.tree_matrix is not None
     recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
-                                 FabMapConfig(), model.model_id)
+                                 FabMapConfig(), model.vocabulary_id)
     recognizer.load_map(map_path)
     return np.array([recognizer.place_stamp_ns(p) for p in range(recognizer.num_places)], dtype=np.int64)
 
@@ -63,7 +63,7 @@ def test_sigterm_while_busy_saves_a_whole_map_that_later_runs_extend(tmp_path: P
     fabmap_args = ["--ros-args", "-p", f"model_dir:={revisit_data.model_dir}", "-p", f"map_file:={map_path}",
                    "-p", "save_period_s:=0.05", "-p", "keyframe_max_overlap:=1.0"]
     previous = np.zeros(0, dtype=np.int64)
-    with running(publisher, revisit_data.model_id, "400"):
+    with running(publisher, revisit_data.vocabulary_id, "400"):
         for run in range(3):
             with LoggedProcess(tmp_path / f"fabmap{run}.log", "aefabmap_ros.nodes.fabmap_node",
                                *fabmap_args) as fabmap:
