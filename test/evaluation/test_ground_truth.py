@@ -10,6 +10,7 @@ from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.evaluation.ground_truth import (
     covisibility_loop_matrix,
     covisibility_with_stats,
+    load_gt_npz,
     loop_matrix_from_kitti,
     loop_matrix_from_poses,
     positions_and_axes,
@@ -401,3 +402,18 @@ def _bad(**changes):
 def test_covisibility_bad_inputs(changes, error, match):
     with pytest.raises(error, match=match):
         covisibility_loop_matrix(**_bad(**changes))
+
+
+def test_load_gt_npz(tmp_path):
+    good = tmp_path / "gt.npz"
+    np.savez(good, gt=np.eye(3, k=-1, dtype=np.uint8))
+    assert load_gt_npz(good).shape == (3, 3)
+    np.savez(tmp_path / "key.npz", loops=np.zeros((3, 3)))
+    np.savez(tmp_path / "shape.npz", gt=np.zeros((3, 4)))
+    np.savez(tmp_path / "values.npz", gt=np.full((3, 3), 2))
+    (tmp_path / "junk.npz").write_text("not a zip")
+    for name, message in (("missing.npz", "ground-truth file not found"), ("key.npz", "has no array 'gt'"),
+                          ("shape.npz", r"square \(N, N\) matrix, got shape \(3, 4\)"),
+                          ("values.npz", "only 0 and 1"), ("junk.npz", "cannot read ground-truth file")):
+        with pytest.raises(DataError, match=message):
+            load_gt_npz(tmp_path / name)

@@ -9,11 +9,9 @@ import scipy.sparse as sp
 from scipy.special import logsumexp
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.evaluation.ground_truth import load_gt_npz
 from aefabmap_ros.evaluation.metrics import evaluate_scores
 from aefabmap_ros.evaluation.protocol import (
     EvaluationConfig,
-    MethodResult,
     evaluate_model,
     fabmap_evaluation_config,
     fabmap_posterior_matrix,
@@ -21,8 +19,6 @@ from aefabmap_ros.evaluation.protocol import (
     model_tree,
     tfidf_matrix,
 )
-from aefabmap_ros.evaluation.recordings import RecordedClosure, closure_precision_recall, scores_from_recording
-from aefabmap_ros.evaluation.reports import result_to_dict, results_markdown, unique_slugs
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
@@ -226,90 +222,3 @@ def test_evaluate_model_errors():
     model.tree_matrix = None
     with pytest.raises(ModelError, match="has no Chow-Liu tree"):
         model_tree(model)
-
-
-# ----------------------------------------------------------------------------------------- recordings
-
-
-def stamp(ns):
-    return SimpleNamespace(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def posterior(query, places, probabilities, stamps_ns=None):
-    return SimpleNamespace(
-        header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query, place_ids=np.array(places),
-        probabilities=np.array(probabilities, dtype=float),
-        place_stamps=[stamp(s) for s in (stamps_ns if stamps_ns is not None else [1000 + p for p in places])],
-    )
-
-
-def closure(query, place, probability, place_stamp_ns):
-    return SimpleNamespace(header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query,
-                           matched_place_id=place, matched_stamp=stamp(place_stamp_ns), probability=probability)
-
-
-def test_scores_from_recording_maps_places_by_stamp_then_id():
-    posteriors = [posterior(0, [], []), posterior(1, [0], [0.2]), posterior(2, [1, 0], [0.7, 0.1]),
-                  # place id 5 with the stamp of frame 1 (keyframing renumbered places): frame 1
-                  posterior(3, [5, 0], [0.6, 0.3], stamps_ns=[1001, 9999])]
-    closures = [closure(3, 5, 0.995, 1001)]
-    recorded = scores_from_recording(posteriors, closures, 5)
-    expected = np.zeros((5, 5))
-    expected[1, 0], expected[2, 1], expected[2, 0] = 0.2, 0.7, 0.1
-    expected[3, 1], expected[3, 0] = 0.995, 0.3  # the loop closure's probability is the larger
-    np.testing.assert_allclose(recorded.scores, expected)
-    assert recorded.closures == [RecordedClosure(3, 1, 0.995)]
-    assert (recorded.num_posteriors, recorded.num_loop_closures) == (4, 1)
-    assert recorded.stamp_aligned_candidates == 5  # all but the unknown stamp 9999 (place id 0 = frame 0)
-
-
-@pytest.mark.parametrize(("posteriors", "message"), [
-    ([posterior(7, [0], [0.5])], "query id 7 outside the 5 frames"),
-    ([posterior(2, [2], [0.5])], "query 2 maps to frame 2, which is not an earlier frame"),
-    ([posterior(2, [0, 1], [0.5])], "2 place ids but 1 probabilities"),
-])
-def test_scores_from_recording_errors(posteriors, message):
-    with pytest.raises(DataError, match=message):
-        scores_from_recording(posteriors, [], 5)
-
-
-def test_closure_precision_recall():
-    gt = np.zeros((30, 30), np.uint8)
-    gt[20, 2] = gt[21, 3] = gt[22, 4] = gt[23, 20] = 1  # the last is within min gap: not a positive query
-    closures = [RecordedClosure(20, 2, 1.0), RecordedClosure(21, 9, 1.0)]
-    assert closure_precision_recall(closures, gt, 10) == (0.5, pytest.approx(1 / 3))
-    precision, recall = closure_precision_recall([], gt, 10)
-    assert np.isnan(precision) and recall == 0.0
-
-
-# -------------------------------------------------------------------------------------------- reports
-
-
-def test_reports():
-    model, features, gt = small_model_and_features()
-    results = evaluate_model(model, features, gt, ("FABMAP2", "BoW"), EvaluationConfig(min_gap=3), openfabmap())
-    results[1].label = "office/v2"
-    table = results_markdown(results).splitlines()
-    assert len(table) == 4 and table[2].startswith("| FABMAP2 | kmeans 30 | 1.000 |")
-    assert table[3].startswith("| BoW (office/v2) | kmeans 30 |")
-    entry = result_to_dict(results[0])
-    assert entry["recall_at_100_precision"] == 1.0 and entry["method"] == "FABMAP2"
-    assert len(entry["pr_curve"]["precision"]) == len(entry["pr_curve"]["recall"]) >= 1
-    assert unique_slugs(results) == ["fabmap2", "bow_office_v2"]
-    twin = MethodResult(**{**results[0].__dict__})
-    assert unique_slugs([results[0], twin]) == ["fabmap2", "fabmap2_2"]
-
-
-def test_load_gt_npz(tmp_path):
-    good = tmp_path / "gt.npz"
-    np.savez(good, gt=np.eye(3, k=-1, dtype=np.uint8))
-    assert load_gt_npz(good).shape == (3, 3)
-    np.savez(tmp_path / "key.npz", loops=np.zeros((3, 3)))
-    np.savez(tmp_path / "shape.npz", gt=np.zeros((3, 4)))
-    np.savez(tmp_path / "values.npz", gt=np.full((3, 3), 2))
-    (tmp_path / "junk.npz").write_text("not a zip")
-    for name, message in (("missing.npz", "ground-truth file not found"), ("key.npz", "has no array 'gt'"),
-                          ("shape.npz", r"square \(N, N\) matrix, got shape \(3, 4\)"),
-                          ("values.npz", "only 0 and 1"), ("junk.npz", "cannot read ground-truth file")):
-        with pytest.raises(DataError, match=message):
-            load_gt_npz(tmp_path / name)

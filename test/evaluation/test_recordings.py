@@ -1,0 +1,60 @@
+"""A recorded run scored offline: the score matrix rebuilt from posteriors, closures scored per closure."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.errors import DataError
+from aefabmap_ros.evaluation.recordings import RecordedClosure, closure_precision_recall, scores_from_recording
+
+
+def stamp(ns):
+    return SimpleNamespace(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def posterior(query, places, probabilities, stamps_ns=None):
+    return SimpleNamespace(
+        header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query, place_ids=np.array(places),
+        probabilities=np.array(probabilities, dtype=float),
+        place_stamps=[stamp(s) for s in (stamps_ns if stamps_ns is not None else [1000 + p for p in places])],
+    )
+
+
+def closure(query, place, probability, place_stamp_ns):
+    return SimpleNamespace(header=SimpleNamespace(stamp=stamp(1000 + query)), query_id=query,
+                           matched_place_id=place, matched_stamp=stamp(place_stamp_ns), probability=probability)
+
+
+def test_scores_from_recording_maps_places_by_stamp_then_id():
+    posteriors = [posterior(0, [], []), posterior(1, [0], [0.2]), posterior(2, [1, 0], [0.7, 0.1]),
+                  # place id 5 with the stamp of frame 1 (keyframing renumbered places): frame 1
+                  posterior(3, [5, 0], [0.6, 0.3], stamps_ns=[1001, 9999])]
+    closures = [closure(3, 5, 0.995, 1001)]
+    recorded = scores_from_recording(posteriors, closures, 5)
+    expected = np.zeros((5, 5))
+    expected[1, 0], expected[2, 1], expected[2, 0] = 0.2, 0.7, 0.1
+    expected[3, 1], expected[3, 0] = 0.995, 0.3  # the loop closure's probability is the larger
+    np.testing.assert_allclose(recorded.scores, expected)
+    assert recorded.closures == [RecordedClosure(3, 1, 0.995)]
+    assert (recorded.num_posteriors, recorded.num_loop_closures) == (4, 1)
+    assert recorded.stamp_aligned_candidates == 5  # all but the unknown stamp 9999 (place id 0 = frame 0)
+
+
+@pytest.mark.parametrize(("posteriors", "message"), [
+    ([posterior(7, [0], [0.5])], "query id 7 outside the 5 frames"),
+    ([posterior(2, [2], [0.5])], "query 2 maps to frame 2, which is not an earlier frame"),
+    ([posterior(2, [0, 1], [0.5])], "2 place ids but 1 probabilities"),
+])
+def test_scores_from_recording_errors(posteriors, message):
+    with pytest.raises(DataError, match=message):
+        scores_from_recording(posteriors, [], 5)
+
+
+def test_closure_precision_recall():
+    gt = np.zeros((30, 30), np.uint8)
+    gt[20, 2] = gt[21, 3] = gt[22, 4] = gt[23, 20] = 1  # the last is within min gap: not a positive query
+    closures = [RecordedClosure(20, 2, 1.0), RecordedClosure(21, 9, 1.0)]
+    assert closure_precision_recall(closures, gt, 10) == (0.5, pytest.approx(1 / 3))
+    precision, recall = closure_precision_recall([], gt, 10)
+    assert np.isnan(precision) and recall == 0.0
