@@ -31,13 +31,14 @@ from pathlib import Path
 from types import FrameType
 
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
 NODES = DETECTION_NODES
 
 
 def default_params_file() -> Path:
+    from aefabmap_ros.io.config_files import shipped_config  # PyYAML: only when the default is used
+
     return shipped_config("aefabmap.yaml")
 
 
