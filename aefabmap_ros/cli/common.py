@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
@@ -78,3 +79,15 @@ def run_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     if args is None:
         return 1
     return report_errors(lambda: run(args), interrupted)
+
+
+def deferred(target: str) -> Callable[[argparse.Namespace], int]:
+    """The CLI work ``"module:function"``, imported only when called: after ``--help`` and usage errors,
+    so a tool whose work needs torch, numba or OpenCV still answers ``--help`` at once."""
+    module_name, _, function_name = target.partition(":")
+
+    def run(args: argparse.Namespace) -> int:
+        work: Callable[[argparse.Namespace], int] = getattr(importlib.import_module(module_name), function_name)
+        return work(args)
+
+    return run

@@ -53,7 +53,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, run_cli
+from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, deferred, run_cli
 from aefabmap_ros.evaluation.methods import METHODS
 from aefabmap_ros.features.kinds import FEATURE_TYPES
 
@@ -104,14 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run(args: argparse.Namespace) -> int:
-    from aefabmap_ros.cli.evaluate_run import run_evaluation  # the heavy part, after --help and usage errors
-
-    return run_evaluation(args)
-
-
 def main(argv: list[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, run, RESUME_HINT)
+    return run_cli(build_parser(), argv, deferred("aefabmap_ros.cli.evaluate_run:run_evaluation"), RESUME_HINT)
 
 
 if __name__ == "__main__":

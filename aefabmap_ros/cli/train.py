@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, run_cli
+from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, deferred, run_cli
 from aefabmap_ros.features.kinds import FEATURE_TYPES
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
@@ -38,14 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run(args: argparse.Namespace) -> int:
-    from aefabmap_ros.cli.train_run import run_training  # the heavy part, after --help and usage errors
-
-    return run_training(args)
-
-
 def main(argv: list[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, run, RESUME_HINT)
+    return run_cli(build_parser(), argv, deferred("aefabmap_ros.cli.train_run:run_training"), RESUME_HINT)
 
 
 if __name__ == "__main__":

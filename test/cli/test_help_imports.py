@@ -1,0 +1,28 @@
+"""--help and usage errors answer before the heavy libraries load (the work is imported after parsing)."""
+
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("torch", "numba", "cv2", "faiss", "sklearn", "gtsam", "evo", "scipy")
+
+PROBE = """
+import sys
+from importlib import import_module
+main = import_module(sys.argv[1]).main
+for argv in (["--help"], ["--no-such-option"]):
+    try:
+        main(argv)
+    except SystemExit:
+        pass
+print("loaded:" + ",".join(name for name in sys.argv[2].split(",") if name in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("module", ["aefabmap_ros.cli.train", "aefabmap_ros.cli.evaluate", "aefabmap_ros.cli.bench"])
+def test_help_and_usage_errors_import_no_heavy_library(module):
+    result = subprocess.run([sys.executable, "-c", PROBE, module, ",".join(HEAVY)], capture_output=True, text=True,
+                            timeout=120, check=True)
+    assert result.stdout.strip().splitlines()[-1] == "loaded:"
+    assert "usage:" in result.stdout + result.stderr or module.endswith("bench")
