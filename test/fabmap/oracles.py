@@ -15,7 +15,15 @@ import scipy.sparse as sp
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.engines import ENGINES, FabMap1, FabMap2, FabMapModel, InvertedIndex, rows_to_word_ids
+from aefabmap_ros.fabmap.engines import (
+    ENGINES,
+    FabMap1,
+    FabMap2,
+    FabMapModel,
+    InvertedIndex,
+    make_engine,
+    rows_to_word_ids,
+)
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior
 
 
@@ -52,7 +60,7 @@ class FabMapLUT(FabMap1):
         return out
 
 
-ORACLE_ENGINES: dict[str, type[FabMap2]] = {**ENGINES, "fabmaplut": FabMapLUT}
+ORACLE_METHODS = (*ENGINES, "fabmaplut")
 
 
 @dataclass(frozen=True)
@@ -69,11 +77,14 @@ def _engine(
     config: FabMapConfig,
     method: str,
 ) -> FabMap2:
-    if method not in ORACLE_ENGINES:
-        raise ConfigError(f"method = {method!r}: must be one of {tuple(ORACLE_ENGINES)}")
+    """The library's engine of that name, or openFABMAP's look-up-table FAB-MAP 1."""
+    if method not in ORACLE_METHODS:
+        raise ConfigError(f"method = {method!r}: must be one of {ORACLE_METHODS}")
+    if method in ENGINES:
+        return make_engine(tree, new_place_samples, config, method)
     model = FabMapModel(tree, config.p_z_given_e, config.p_z_given_not_e)
     samples = new_place_samples if config.new_place_model == "sampled" else None
-    return ORACLE_ENGINES[method](model, samples, config.new_place_model)
+    return FabMapLUT(model, samples, config.new_place_model)
 
 
 def fabmap_score_matrices(
