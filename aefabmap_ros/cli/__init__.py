@@ -18,6 +18,7 @@ __all__ = [
     "evaluate",
     "evaluate_run",
     "gt",
+    "gt_run",
     "launch",
     "record",
     "replay",

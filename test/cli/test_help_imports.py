@@ -20,7 +20,7 @@ print("loaded:" + ",".join(name for name in sys.argv[2].split(",") if name in sy
 """
 
 
-@pytest.mark.parametrize("module", ["aefabmap_ros.cli.train", "aefabmap_ros.cli.evaluate", "aefabmap_ros.cli.bench"])
+@pytest.mark.parametrize("module", [f"aefabmap_ros.cli.{name}" for name in ("train", "evaluate", "bench", "gt")])
 def test_help_and_usage_errors_import_no_heavy_library(module):
     result = subprocess.run([sys.executable, "-c", PROBE, module, ",".join(HEAVY)], capture_output=True, text=True,
                             timeout=120, check=True)
