@@ -24,7 +24,7 @@ from aefabmap_ros.cli.evaluate import SECTIONS
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.ground_truth import check_gt_matches, load_gt_npz, loop_matrix_from_kitti
-from aefabmap_ros.evaluation.methods import METHODS, methods_of_kind, parse_methods
+from aefabmap_ros.evaluation.methods import METHODS, method_kinds, methods_of_kind, parse_methods
 from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, evaluate_scores
 from aefabmap_ros.evaluation.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
 from aefabmap_ros.evaluation.protocol import EvaluationConfig, MethodResult, evaluate_model, leave_one_out_samples
@@ -85,7 +85,7 @@ class Settings:
         self.vocabulary = {
             kind: build_config(VocabularyConfig, {**common, **section(f"vocabulary_{kind}"), "kind": kind},
                                f"{origin} [vocabulary_{kind}]")
-            for kind in ("kmeans", "autoencoder")
+            for kind in method_kinds()
         }
 
 
@@ -276,7 +276,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
             raise ConfigError(f"none of the selected methods can run with the given models "
                               f"(vocabulary kinds {sorted(kinds_given)})")
     else:
-        kinds = [kind for kind in ("kmeans", "autoencoder") if methods_of_kind(kind, methods)]
+        kinds = [kind for kind in method_kinds() if methods_of_kind(kind, methods)]
         if args.train_on_test:
             sequences = [run.features(source, settings.feature)]
             fingerprint = _fingerprint([source])

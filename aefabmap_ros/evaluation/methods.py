@@ -18,6 +18,11 @@ METHODS: dict[str, tuple[str, str]] = {
 }
 
 
+def method_kinds() -> tuple[str, ...]:
+    """The vocabulary kinds the methods use, in the order of ``METHODS`` (the order they are trained in)."""
+    return tuple(dict.fromkeys(kind for kind, _ in METHODS.values()))
+
+
 def parse_methods(names: Iterable[str]) -> tuple[str, ...]:
     """Canonical method names (case-insensitive, order of ``METHODS``); ConfigError naming an unknown one."""
     by_lower = {name.lower(): name for name in METHODS}

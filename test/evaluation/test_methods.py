@@ -3,7 +3,7 @@
 import pytest
 
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.evaluation.methods import METHODS, methods_of_kind, parse_methods
+from aefabmap_ros.evaluation.methods import METHODS, method_kinds, methods_of_kind, parse_methods
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
 
@@ -19,3 +19,4 @@ def test_parse_methods():
 
 def test_every_method_uses_a_known_vocabulary_kind():
     assert {kind for kind, _ in METHODS.values()} == set(VOCABULARY_KINDS)
+    assert method_kinds() == ("kmeans", "autoencoder")  # k-means first, as the methods table lists them
