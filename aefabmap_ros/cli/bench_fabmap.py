@@ -25,7 +25,9 @@ from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.engines import FabMap1, FabMap2, FabMapModel, warm_up_kernels
+from aefabmap_ros.fabmap.engines import FabMap1, FabMap2
+from aefabmap_ros.fabmap.index import warm_up_kernels
+from aefabmap_ros.fabmap.observation import FabMapModel
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 
 

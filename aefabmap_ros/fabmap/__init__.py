@@ -1,4 +1,13 @@
 """FAB-MAP: settings, Chow-Liu tree, the FAB-MAP 2 / FAB-MAP 1 engines, the posterior, the online place recognizer
 with its map file, and temporal consistency."""
 
-__all__ = ["chowliu", "config", "consistency", "engines", "posterior", "recognizer"]
+__all__ = [
+    "chowliu",
+    "config",
+    "consistency",
+    "engines",
+    "index",
+    "observation",
+    "posterior",
+    "recognizer",
+]

@@ -53,7 +53,9 @@ from aefabmap_ros.errors import ConfigError, DataError, ModelError, VocabularyMi
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.consistency import TemporalConsistency
-from aefabmap_ros.fabmap.engines import GrowableArray, InvertedIndex, as_word_ids, make_engine
+from aefabmap_ros.fabmap.engines import make_engine
+from aefabmap_ros.fabmap.index import GrowableArray, InvertedIndex
+from aefabmap_ros.fabmap.observation import as_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 

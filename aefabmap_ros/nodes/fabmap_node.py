@@ -28,7 +28,7 @@ from rclpy.node import Node
 from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.engines import warm_up_kernels
+from aefabmap_ros.fabmap.index import warm_up_kernels
 from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
 from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.model.directory import load_model

@@ -15,15 +15,9 @@ import scipy.sparse as sp
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.engines import (
-    ENGINES,
-    FabMap1,
-    FabMap2,
-    FabMapModel,
-    InvertedIndex,
-    make_engine,
-    rows_to_word_ids,
-)
+from aefabmap_ros.fabmap.engines import ENGINES, FabMap1, FabMap2, make_engine
+from aefabmap_ros.fabmap.index import InvertedIndex
+from aefabmap_ros.fabmap.observation import FabMapModel, rows_to_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior
 
 
