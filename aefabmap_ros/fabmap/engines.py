@@ -1,14 +1,6 @@
 """FAB-MAP 1 (exact reference) and FAB-MAP 2 (inverted index), with openFABMAP's semantics.
 
-Observation model (Cummins & Newman; openFABMAP ``InferBinary::PzqGzpqL``): for word q with
-tree parent p, query state z_q, parent state z_p and place L,
-
-    p(z_q | z_p, L) = sum_s p(e_q = s | L) * p(z_q | e_q = s, z_p)
-    p(z_q | e_q, z_p) ∝ p(z_q | e_q) p(z_q | z_p) / p(z_q)       (normalised over z_q)
-    p(e_q = 1 | L)   = Bayes on the detector model (PzGe, PzGNe) with prior p(z_q)
-
-and log p(Z | L) = sum_q log p(z_q | z_p(q), L). A root word is its own parent.
-
+Both score log p(Z | L), the sum over words of the observation model in ``observation.py``.
 FAB-MAP 1 evaluates that sum over all V words for every place (O(V) per place).
 FAB-MAP 2 stores, per word, the log-ratio of a place having versus not having the word in the
 four (z_q, z_p) cases (openFABMAP's d1..d4), so a place's score relative to an empty place is
@@ -22,8 +14,8 @@ same machinery (FAB-MAP 2: in the relative scale; openFABMAP's FAB-MAP 2 average
 samples); "meanfield" = the likelihood of a place whose word-existence probabilities are the
 marginals p(z_q) (in FAB-MAP 2's relative scale: minus the empty place's log-likelihood).
 
-The model tables are ``observation.py``, the places' storage and inverted index ``index.py``, the
-posterior over {new, places} ``posterior.py``, the settings ``config.py``.
+The places' storage and inverted index are ``index.py``, the posterior over {new, places}
+``posterior.py``, the settings ``config.py``.
 """
 
 from __future__ import annotations
