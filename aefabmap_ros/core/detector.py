@@ -174,7 +174,9 @@ class PlaceRecognizer:
         self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
-        self._consistency = TemporalConsistency(self.config.consistency_matches, self.config.island_seconds)
+        self._consistency = TemporalConsistency(
+            self.config.consistency_matches, self.config.island_seconds, self.config.consistency_skips
+        )
 
     # -- read-only views ----------------------------------------------------------------------
 
