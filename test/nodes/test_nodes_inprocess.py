@@ -18,6 +18,7 @@ from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
 
 from aefabmap_ros.core.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
 from aefabmap_ros.core.fabmap import FabMapConfig  # noqa: E402
+from aefabmap_ros.core.stamps import stamp_to_ns  # noqa: E402
 from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
@@ -230,10 +231,12 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         assert counts["dropped_VocabularyMismatchError"] == 2
         assert counts["dropped_DataError"] == 2
         assert counts["frames_below_min_words"] == 1
-        # Every image answered (a lockstep replay waits for one posterior per image), the blank one too.
-        assert [p.query_id for p in posteriors.messages] == [0, 1, 2]
-        assert [p.current_place_id for p in posteriors.messages] == [0, 0, 1]  # each frame's own place
-        blank = posteriors.messages[1]
+        # Every image answered (a lockstep replay waits for one posterior per image), the blank and the dropped
+        # ones too (query_id -1: not recognised).
+        assert [p.query_id for p in posteriors.messages] == [0, -1, -1, -1, -1, -1, 1, 2, -1]
+        recognised = [p for p in posteriors.messages if p.query_id >= 0]
+        assert [p.current_place_id for p in recognised] == [0, 0, 1]  # each frame's own place
+        blank = recognised[1]
         assert len(blank.place_ids) == 0 and blank.assigned_place_id == -1 and np.isnan(blank.new_place_probability)
         assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
         node.close()  # saves the map
@@ -707,3 +710,91 @@ def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) ->
     finally:
         node.destroy_node()
     assert len(list(store_dir.glob("chunk-*.npz"))) == 1
+
+
+def test_fabmap_node_ignores_future_places_of_an_old_map_for_ordering(revisit_data: RevisitData,
+                                                                       tmp_path: Path) -> None:
+    """A map saved before future stamps were refused (here: by a node accepting any stamp) holds a place
+    stamped in 2036: a restart keeps it but processes the frames after the last trusted place."""
+    import time
+
+    map_path = tmp_path / "map.npz"
+    vid = revisit_data.model_id
+    old = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path),
+                                                 max_future_stamp_s=0.0))
+    try:
+        old._on_words(_words([1, 5, 9], 10, vid))
+        old._on_words(_words([2, 3, 40], int(time.time()) + 10 * 365 * 86400, vid))
+        assert old.recognizer.num_places == 2 and old.close()
+    finally:
+        old.destroy_node()
+    restarted = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                       map_file=str(map_path)))
+    try:
+        assert restarted.recognizer.num_places == 2  # the future place is kept
+        assert restarted.last_stamp_ns == 10 * 10**9
+        restarted._on_words(_words([2, 7, 60], 20, vid))
+        assert restarted.counter.counts["processed"] == 1
+        assert "dropped_out_of_order" not in restarted.counter.counts
+        assert restarted.recognizer.num_places == 3
+    finally:
+        restarted.destroy_node()
+
+
+def test_fabmap_node_answers_every_frame_it_drops(revisit_data: RevisitData, tmp_path: Path) -> None:
+    """After a restart a replay sends the frames already mapped again: each gets a posterior (query_id -1),
+    so `aefabmap_replay --lockstep place_posteriors` does not wait its timeout on each; so do malformed ones."""
+    map_path = tmp_path / "map.npz"
+    vid = revisit_data.model_id
+    frames = [([1, 5, 9], 10), ([2, 7, 60], 11), ([3, 80, 90], 12)]
+    first = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
+    try:
+        for words, sec in frames:
+            first._on_words(_words(words, sec, vid))
+        assert first.close()
+    finally:
+        first.destroy_node()
+    restarted = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                       map_file=str(map_path)))
+    try:
+        posteriors = Captured(restarted.posterior_publisher)
+        for words, sec in frames:  # the replay from the start
+            restarted._on_words(_words(words, sec, vid))
+        restarted._on_words(_words([3, 400], 13, vid))  # word id out of range: dropped, still answered
+        restarted._on_words(_words([4, 8, 70], 14, vid))  # a new frame
+        assert restarted.counter.counts["dropped_out_of_order"] == 3
+        assert restarted.counter.counts["dropped_DataError"] == 1
+        answers = posteriors.messages
+        assert [a.header.stamp.sec for a in answers] == [10, 11, 12, 13, 14]
+        assert [a.query_id for a in answers] == [-1, -1, -1, -1, 3]
+        assert all(a.assigned_place_id == -1 and len(a.place_ids) == 0 and np.isnan(a.new_place_probability)
+                   for a in answers[:4])
+        assert answers[4].assigned_place_id >= 0
+    finally:
+        restarted.destroy_node()
+
+
+def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_data: RevisitData) -> None:
+    """3e38 is finite but no SIFT value (0-255): refused with a clear error, counted, the next frame processed."""
+    features = _features_of(revisit_data)
+    huge = copy.deepcopy(features)
+    values = np.asarray(huge.binary_descriptors, dtype=np.float32).copy()
+    values[7] = 3e38
+    huge.binary_descriptors = np.zeros(0, np.uint8)
+    huge.float_descriptors = values
+    quantizer = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        words_out = Captured(quantizer.publisher)
+        quantizer._on_features(huge)
+        assert quantizer.counter.counts["dropped_bad_features"] == 1 and not words_out.messages
+        quantizer._on_features(features)
+        assert len(words_out.messages) == 1
+    finally:
+        quantizer.destroy_node()
+    verifier = VerifierNode()
+    try:
+        verifier._on_features(huge)
+        assert verifier.counter.counts["dropped_bad_features"] == 1
+        assert stamp_to_ns(huge.header.stamp) not in verifier.store
+    finally:
+        verifier.destroy_node()
