@@ -47,6 +47,7 @@ from aefabmap_ros.nodes.common import (
     DropCounter,
     PeriodicSave,
     RuntimeParameters,
+    counted_subscription,
     declare_config,
     declare_parameter,
     node_callback,
@@ -101,7 +102,8 @@ class FabMapNode(Node):
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
         self.loop_publisher = self.create_publisher(LoopClosure, "loop_closure_candidates", RESULT_QOS)
-        words = self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
+        words = counted_subscription(self, BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth),
+                                     self.counter)
         report_when_connected(self, words, "words")
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self.recognizer.reconfigure)
