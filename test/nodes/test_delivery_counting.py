@@ -16,6 +16,7 @@ from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
+from test.reliability import Recorder  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
 
@@ -37,8 +38,9 @@ def _image(sec: int) -> Image:
     return image
 
 
+@pytest.mark.reliability
 @pytest.mark.parametrize("qos_kind", ["reliable", "sensor_data"])
-def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str) -> None:
+def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str, reliability: Recorder) -> None:
     """A burst sent while the node takes nothing overflows its queue of DEPTH: every image is then either
     processed, dropped at the door (camera QoS), or counted as lost before the callback."""
     node = FeatureNode(parameter_overrides=[
@@ -78,6 +80,8 @@ def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str) ->
                 published += 1
         assert accounted() - before == published, dict(counts)
         assert counts["dropped_before_callback"] >= BURST - DEPTH
+        reliability.drops(f"feature_node, {qos_kind} QoS, {published} images sent into a queue of {DEPTH} "
+                          f"while it took none ({accounted() - before} accounted for)", counts)
     finally:
         executor.shutdown()
         node.destroy_node()

@@ -24,6 +24,7 @@ from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
+from test.reliability import Recorder  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
@@ -35,6 +36,11 @@ class Captured:
     def __init__(self, publisher: Any) -> None:
         self.messages: list[Any] = []
         publisher.publish = self.messages.append
+
+
+def _dropped(counter: Any) -> int:
+    """Inputs a node counted as dropped (and so survived: the tests then feed it a good one)."""
+    return sum(value for key, value in counter.counts.items() if key.startswith("dropped_"))
 
 
 def _params(**values: Any) -> list[Parameter]:
@@ -52,7 +58,8 @@ def _first_frames(data: RevisitData, count: int) -> list[np.ndarray]:
     return [gray for _, (_, gray) in zip(range(count), frames, strict=False)]
 
 
-def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData, reliability: Recorder) -> None:
     node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
         out = Captured(node.publisher)
@@ -80,6 +87,7 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) 
         assert len(out.messages) == 3 and len(out.messages[2].x) == 0
         assert out.messages[2].header.stamp.sec == 9
         assert node.counter.counts["images_without_features"] == 1
+        reliability.bad_inputs("feature_node", tried=4, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
@@ -136,7 +144,8 @@ def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revis
         node.destroy_node()
 
 
-def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData, reliability: Recorder) -> None:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
@@ -160,6 +169,9 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> Non
         assert node.counter.counts["dropped_wrong_descriptor_type"] == 1
         assert node.counter.counts["dropped_bad_features"] == 1
         assert len(words_out.messages) == 1
+        node._on_features(features)  # alive: the next frame is quantized
+        assert len(words_out.messages) == 2
+        reliability.bad_inputs("quantizer_node", tried=2, survived=_dropped(node.counter))
     finally:
         feature_node.destroy_node()
         node.destroy_node()
@@ -207,7 +219,9 @@ def _words(word_ids: list[int], sec: int, vocabulary_id: str, size: int = 400) -
     return message
 
 
-def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitData, tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitData, tmp_path: Path,
+                                                          reliability: Recorder) -> None:
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
                                                   map_file=str(tmp_path / "map.npz")))
     try:
@@ -239,6 +253,9 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         blank = recognised[1]
         assert len(blank.place_ids) == 0 and blank.assigned_place_id == -1 and np.isnan(blank.new_place_probability)
         assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
+        node._on_words(_words([4, 8, 11], 17, vid))  # alive after the last bad one too
+        assert node.counter.counts["processed"] == 3
+        reliability.bad_inputs("fabmap_node", tried=6, survived=_dropped(node.counter))
         node.close()  # saves the map
         assert (tmp_path / "map.npz").exists()
     finally:
@@ -515,7 +532,8 @@ def test_verifier_node_refuses_bad_parameters() -> None:
         VerifierNode(parameter_overrides=_params(max_stored_frames=0))
 
 
-def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path, reliability: Recorder) -> None:
     from test.core.test_verification import _two_views
 
     query, place, _ = _two_views(seed=23)
@@ -542,6 +560,8 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="cannot read feature store chunk"):
         VerifierNode(parameter_overrides=_params(store_dir=str(store_dir)))
     assert chunk.read_bytes() == b"corrupt"  # refused, not overwritten
+    # Refused at start with the file left as it was; its frames are unreadable, nothing else is lost.
+    reliability.fault("corrupt feature store chunk at start (verifier)", injected=1, survived=1, places_lost=0)
 
 
 def _features_of(revisit_data: RevisitData) -> Any:
@@ -555,7 +575,9 @@ def _features_of(revisit_data: RevisitData) -> Any:
         feature_node.destroy_node()
 
 
-def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: RevisitData,
+                                                               reliability: Recorder) -> None:
     import cv2
 
     node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), max_image_pixels=10_000))
@@ -569,11 +591,14 @@ def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: Rev
         node._on_image(_image(b"\0" * 10, "mono8", 2, 5, 5))  # small enough: decoded (and published)
         assert node.counter.counts["dropped_image_too_large"] == 2
         assert len(out.messages) == 1
+        reliability.bad_inputs("feature_node", tried=2, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
 
-def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData,
+                                                                                  reliability: Recorder) -> None:
     features = _features_of(revisit_data)
     node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
@@ -598,11 +623,14 @@ def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptor
         node._on_features(features)  # the node is alive: the next frame is quantized
         assert node.counter.counts["dropped_RuntimeError"] == 1
         assert len(words_out.messages) == 1
+        reliability.bad_inputs("quantizer_node", tried=2, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
 
-def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: RevisitData, tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: RevisitData, tmp_path: Path,
+                                                            reliability: Recorder) -> None:
     import time
 
     map_path = tmp_path / "map.npz"
@@ -615,6 +643,7 @@ def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: Revisi
         node._on_words(_words([2, 7], 20, vid))  # later frames are not "out of order" because of it
         assert node.counter.counts["dropped_stamp_in_future"] == 1
         assert node.counter.counts["processed"] == 2 and "dropped_out_of_order" not in node.counter.counts
+        reliability.bad_inputs("fabmap_node", tried=1, survived=_dropped(node.counter))
         assert node.close()
     finally:
         node.destroy_node()
@@ -687,7 +716,8 @@ def test_fabmap_node_final_save_failure_is_reported(revisit_data: RevisitData, t
         node.destroy_node()
 
 
-def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path, reliability: Recorder) -> None:
     """A 64-d frame among 128-d ones: refused by the store (so it cannot poison a save), and a closure
     pairing the two kinds is dropped as unverifiable, not a cv2.error that kills the node."""
     from aefabmap_ros.core.features import Features as CoreFeatures
@@ -706,6 +736,7 @@ def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) ->
         node._on_loop_closure(_closure(3, 1, query_id=5))
         assert [m.query_id for m in verified.messages] == [5]
         assert node.counter.counts["dropped_bad_features"] == 1 and len(node.store) == 2
+        reliability.bad_inputs("verifier_node", tried=1, survived=_dropped(node.counter))
         assert node.close()  # the store saves
     finally:
         node.destroy_node()
@@ -741,7 +772,9 @@ def test_fabmap_node_ignores_future_places_of_an_old_map_for_ordering(revisit_da
         restarted.destroy_node()
 
 
-def test_fabmap_node_answers_every_frame_it_drops(revisit_data: RevisitData, tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_answers_every_frame_it_drops(revisit_data: RevisitData, tmp_path: Path,
+                                                  reliability: Recorder) -> None:
     """After a restart a replay sends the frames already mapped again: each gets a posterior (query_id -1),
     so `aefabmap_replay --lockstep place_posteriors` does not wait its timeout on each; so do malformed ones."""
     map_path = tmp_path / "map.npz"
@@ -770,11 +803,14 @@ def test_fabmap_node_answers_every_frame_it_drops(revisit_data: RevisitData, tmp
         assert all(a.assigned_place_id == -1 and len(a.place_ids) == 0 and np.isnan(a.new_place_probability)
                    for a in answers[:4])
         assert answers[4].assigned_place_id >= 0
+        reliability.bad_inputs("fabmap_node", tried=4, survived=_dropped(restarted.counter))
     finally:
         restarted.destroy_node()
 
 
-def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_data: RevisitData,
+                                                                     reliability: Recorder) -> None:
     """3e38 is finite but no SIFT value (0-255): refused with a clear error, counted, the next frame processed."""
     features = _features_of(revisit_data)
     huge = copy.deepcopy(features)
@@ -789,6 +825,7 @@ def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_dat
         assert quantizer.counter.counts["dropped_bad_features"] == 1 and not words_out.messages
         quantizer._on_features(features)
         assert len(words_out.messages) == 1
+        reliability.bad_inputs("quantizer_node", tried=1, survived=_dropped(quantizer.counter))
     finally:
         quantizer.destroy_node()
     verifier = VerifierNode()
@@ -796,5 +833,9 @@ def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_dat
         verifier._on_features(huge)
         assert verifier.counter.counts["dropped_bad_features"] == 1
         assert stamp_to_ns(huge.header.stamp) not in verifier.store
+        features.header.stamp = Time(sec=77)
+        verifier._on_features(features)  # alive: the next frame is stored
+        assert 77 * 10**9 in verifier.store
+        reliability.bad_inputs("verifier_node", tried=1, survived=_dropped(verifier.counter))
     finally:
         verifier.destroy_node()
