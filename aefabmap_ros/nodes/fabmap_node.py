@@ -31,7 +31,7 @@ from rclpy.node import Node
 
 from aefabmap_ros.core.atomic import remove_stale_temporaries
 from aefabmap_ros.core.chowliu import ChowLiuTree
-from aefabmap_ros.core.detector import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
+from aefabmap_ros.core.detector import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer, Recognition
 from aefabmap_ros.core.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.core.fabmap import FabMapConfig, warm_up_kernels
 from aefabmap_ros.core.model import load_model
@@ -137,44 +137,49 @@ class FabMapNode(Node):
 
     @node_callback
     def _on_words(self, message: BagOfWords) -> None:
-        """Recognise one frame; every frame is answered on place_posteriors, a dropped one too (with
-        ``query_id`` -1), so a lockstep replay never waits its timeout on a frame that reached us."""
-        answered = False
+        """Recognise one frame; every frame is answered on place_posteriors exactly once, a dropped one
+        too (``query_id`` -1), so a lockstep replay never waits its timeout on a frame that reached us."""
+        recognition = None
         try:
-            answered = self._recognise(message)
-        finally:
-            if not answered:
-                self.posterior_publisher.publish(unrecognised_posterior(message.header, self.recognizer.num_places))
+            recognition = self._recognise(message)
+        finally:  # an unexpected exception (counted by node_callback) gets its answer as well
+            answer = (unrecognised_posterior(message.header, self.recognizer.num_places) if recognition is None
+                      else recognition_to_posterior(recognition, message.header))
+            self.posterior_publisher.publish(answer)
+        if recognition is not None:
+            self._publish_candidate(recognition, message.header)
 
-    def _recognise(self, message: BagOfWords) -> bool:
-        """True when the frame was recognised and its posterior published; False when it was dropped."""
+    def _recognise(self, message: BagOfWords) -> Recognition | None:
+        """The frame recognised (and added to the map when it makes a place); None when it was dropped."""
         stamp_ns = stamp_to_ns(message.header.stamp)
         if stamp_ns <= self.last_stamp_ns:
             # After a restart, a replay's frames up to the newest saved place are already mapped.
             self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns "
                               "(already mapped, or sent out of order)")
-            return False
+            return None
         limit_ns = self._future_limit_ns()
         if limit_ns is not None and stamp_ns > limit_ns:
             ahead_s = (stamp_ns - limit_ns + self.max_future_ns) / 1e9
             self.counter.drop("stamp_in_future", f"stamp {stamp_ns} ns is {ahead_s:.0f} s ahead of "
                               f"the node's clock (max_future_stamp_s {self.max_future_ns / 1e9:g})")
-            return False
+            return None
         try:
             word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)
             recognition = self.recognizer.process(word_ids, stamp_ns)
         except AefabmapError as exc:
             self.counter.drop(type(exc).__name__, str(exc))
-            return False
+            return None
         self.last_stamp_ns = stamp_ns
-        # Every frame gets its posterior, a blank one too (no places, new-place probability NaN): a
-        # lockstep replay and any subscriber counting frames wait for one answer per image.
-        self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
+        if recognition.informative:  # the map (places, query count, belief) changed: save it
+            self.map_saver.mark_changed()
+        return recognition
+
+    def _publish_candidate(self, recognition: Recognition, header: Any) -> None:
+        """After the frame's posterior: count it, and publish its loop closure candidate if it has one."""
         if not recognition.informative:  # too few words to say anything: no place, no match
             self.counter.ok("frames_below_min_words")
-            return True
-        self.map_saver.mark_changed()
-        loop_closure = recognition_to_loop_closure(recognition, message.header)
+            return
+        loop_closure = recognition_to_loop_closure(recognition, header)
         if loop_closure is not None:
             self.loop_publisher.publish(loop_closure)
             self.counter.ok("loop_closure_candidates")
@@ -183,7 +188,6 @@ class FabMapNode(Node):
                 f"(p={loop_closure.probability:.4f})"
             )
         self.counter.ok()
-        return True
 
     def close(self) -> bool:
         """The final map save; False when it failed (the process then exits 1)."""

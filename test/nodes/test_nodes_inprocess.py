@@ -839,3 +839,24 @@ def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_dat
         reliability.bad_inputs("verifier_node", tried=1, survived=_dropped(verifier.counter))
     finally:
         verifier.destroy_node()
+
+
+def test_fabmap_node_answers_a_frame_once_when_publishing_its_candidate_fails(
+        revisit_data: RevisitData, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An unexpected exception after the posterior went out is counted; the frame is not answered twice
+    (a lockstep replay would take the second answer for the next image's)."""
+    import aefabmap_ros.nodes.fabmap_node as fabmap_module
+
+    def failing(*_args: Any) -> Any:
+        raise RuntimeError("publisher gone")
+
+    monkeypatch.setattr(fabmap_module, "recognition_to_loop_closure", failing)
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        posteriors = Captured(node.posterior_publisher)
+        node._on_words(_words([1, 5, 9], 10, revisit_data.model_id))
+        assert node.counter.counts["dropped_RuntimeError"] == 1
+        assert [p.query_id for p in posteriors.messages] == [0]  # one answer, the real one
+        assert node.map_saver.unsaved_changes  # the place it made is saved at the next period
+    finally:
+        node.destroy_node()
