@@ -203,6 +203,11 @@ class PlaceRecognizer:
         return int(self._place_stamps_ns.view()[place_id])
 
     @property
+    def place_stamps_ns(self) -> np.ndarray:
+        """(P,) int64 stamp of each place's frame (a copy)."""
+        return self._place_stamps_ns.view().copy()
+
+    @property
     def memory_bytes(self) -> int:
         """Bytes held by the place index (word lists, postings, defaults)."""
         return self._engine.places.nbytes + 16 * self.num_places

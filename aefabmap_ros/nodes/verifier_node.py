@@ -75,6 +75,7 @@ from aefabmap_ros.nodes.common import (
     DropCounter,
     PeriodicSave,
     RuntimeParameters,
+    counted_subscription,
     declare_config,
     declare_parameter,
     node_callback,
@@ -154,15 +155,18 @@ class VerifierNode(Node):
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
-        features = self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
+                                        self.counter)
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
-        self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
+        counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS,
+                             self.counter)
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
         if depth_topic:
-            self.create_subscription(Image, depth_topic, self._on_depth, pipeline_qos(depth))
+            counted_subscription(self, Image, depth_topic, self._on_depth, pipeline_qos(depth), self.counter)
         if self.rerank or self.track.enabled:
-            self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
+            counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS,
+                                 self.counter)
         self.store_saver = PeriodicSave(
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
             "the feature store", save_period_s,
