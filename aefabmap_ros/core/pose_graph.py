@@ -219,7 +219,8 @@ class PoseGraph:
                 or not np.allclose(covariance, covariance.T, atol=1e-9) or np.linalg.eigvalsh(covariance)[0] < 0:
             return ClosureResult.BAD_COVARIANCE
         last = self.odometry.last_ns
-        if last is not None and max(closure.query_ns, closure.place_ns) > last:
+        # No odometry yet waits too: a backend's callbacks may take a closure before the odometry queued ahead of it.
+        if last is None or max(closure.query_ns, closure.place_ns) > last:
             self._waiting.append(closure)
             if len(self._waiting) > self.config.max_waiting:
                 self._waiting.pop(0)

@@ -190,3 +190,15 @@ def test_closure_in_base_frame_conjugates_pose_and_moves_covariance() -> None:
     assert np.allclose(moved, moved.T)
     same, unchanged = closure_in_base_frame(cameras[0].between(cameras[1]), covariance, gtsam.Pose3())
     assert same.equals(cameras[0].between(cameras[1]), 1e-12) and np.allclose(unchanged, covariance)
+
+
+def test_a_closure_before_any_odometry_waits_for_it() -> None:
+    """A node may take a closure off its queue before the odometry that came first: it waits, not dropped."""
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    graph = PoseGraph(PoseGraphConfig())
+    assert graph.add_closure(closure(truth, 40, 0)) is ClosureResult.WAITING
+    results = []
+    for index in range(41):
+        results += graph.add_odometry(stamp(index), odometry[index])
+    assert results == [ClosureResult.ADDED]
