@@ -57,9 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="seconds to wait for the lockstep answer before moving on (default: 10)")
     parser.add_argument("--queue-depth", type=int, default=100,
                         help="publisher history depth: raise it for --rate 0 bursts into slow subscribers")
-    parser.add_argument("--with", dest="companions", action="append", default=[], metavar="TOPIC",
+    parser.add_argument("--with", dest="companions", action="append", default=[], metavar="TOPIC[=N]",
                         help="also publish this bag topic (same name), each message before the image with "
-                        "the same or a later log time; repeatable (e.g. /depth /camera_info /odom)")
+                        "the same or a later log time; repeatable (e.g. /depth /camera_info /odom); =N: wait "
+                        "for N subscribers on it (default: the ones discovered, if any, for up to 5 s)")
     parser.add_argument("--quiet", action="store_true", help="no per-image progress")
     return parser
 
@@ -73,8 +74,19 @@ def _validate(args: argparse.Namespace) -> None:
         raise ConfigError("--loop and --lockstep together would never end; choose one")
     if args.loop and args.companions:
         raise ConfigError("--with is not supported with --loop (the companions' stamps would repeat)")
-    if args.topic in args.companions:
+    if args.topic in companion_subscribers(args.companions):
         raise ConfigError(f"--with {args.topic} is the image topic itself")
+
+
+def companion_subscribers(values: list[str]) -> dict[str, int | None]:
+    """--with values -> topic: subscribers to wait for (None: those discovered); ConfigError for a bad count."""
+    wanted: dict[str, int | None] = {}
+    for value in values:
+        topic, separator, count = value.partition("=")
+        if separator and (not count.isdigit() or int(count) < 1):
+            raise ConfigError(f"--with {value}: the subscriber count after '=' must be an integer >= 1")
+        wanted[topic] = int(count) if separator else None
+    return wanted
 
 
 def publish_topic(out_topic: str, msgtype: str) -> str:
@@ -204,8 +216,9 @@ class Replayer:
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)
+        self.companion_subscribers = companion_subscribers(args.companions)
         self.companions = {topic: self._companion_publisher(topic, msgtype, qos)
-                           for topic, msgtype in _companion_types(args.bag, args.companions).items()}
+                           for topic, msgtype in _companion_types(args.bag, list(self.companion_subscribers)).items()}
         self.answers = 0
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
@@ -236,10 +249,17 @@ class Replayer:
                 )
             self.rclpy.spin_once(self.node, timeout_sec=0.05)
         for topic, publisher in self.companions.items():
-            # Every subscriber the graph knows of must be matched, or the first messages are lost to it (a
-            # backend without its first odometry); a topic nobody listens to is not waited for.
-            if not self._spin_until(lambda p=publisher, t=topic: 0 < self.node.count_subscribers(t)
-                                    <= p.get_subscription_count(), min(self.args.wait_timeout, 5.0)):
+            # Every subscriber must be matched, or the first messages are lost to it (a backend without its first
+            # odometry). Without a count: the ones discovered so far (a topic nobody listens to is not waited
+            # for; a subscriber not yet discovered is missed: give the count when it matters).
+            wanted = self.companion_subscribers[topic]
+            if wanted is not None:
+                ready = self._spin_until(lambda p=publisher, n=wanted: p.get_subscription_count() >= n,
+                                         self.args.wait_timeout)
+            else:
+                ready = self._spin_until(lambda p=publisher, t=topic: 0 < self.node.count_subscribers(t)
+                                         <= p.get_subscription_count(), min(self.args.wait_timeout, 5.0))
+            if not ready:
                 print(f"[replay] --with {topic}: {publisher.get_subscription_count()} of "
                       f"{self.node.count_subscribers(topic)} subscriber(s) matched, publishing anyway",
                       file=sys.stderr, flush=True)

@@ -30,6 +30,7 @@ def test_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         ([str(bag), "--topic", "/cam", "--loop", "--with", "/other"], "--with is not supported with --loop"),
         ([str(bag), "--topic", "/cam", "--with", "/cam"], "is the image topic itself"),
         ([str(bag), "--topic", "/cam", "--with", "/odom", "--wait-subscribers", "0"], "--with /odom: not in"),
+        ([str(bag), "--topic", "/cam", "--with", "/odom=0"], "must be an integer >= 1"),
     ]
     for argv, message in cases:
         assert replay.main(argv) == 1
