@@ -304,7 +304,7 @@ class Replayer:
         lap_span_ns, lap_origin_ns = 0, None
         print(f"[replay] publishing {args.topic} of {args.bag} on {self.publisher.topic_name}", file=sys.stderr,
               flush=True)
-        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop, args.companions):
+        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop, list(self.companion_subscribers)):
             if self.stop.requested:
                 break
             if message.topic != args.topic:

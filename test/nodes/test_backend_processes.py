@@ -51,7 +51,7 @@ def test_replayed_odometry_and_a_closure_reach_the_backend_process(tmp_path: Pat
                            "-p", f"trajectory_file:={trajectory}") as backend:
             backend.wait_for_log("pose graph (example backend)", timeout_s=90)
             with LoggedProcess(tmp_path / "replay.log", "aefabmap_ros.cli.replay", bag, "--topic", "/cam",
-                               "--with", "/odom", "--rate", "0", "--wait-subscribers", "0", "--quiet") as replay:
+                               "--with", "/odom=1", "--rate", "0", "--wait-subscribers", "0", "--quiet") as replay:
                 assert replay.wait(timeout_s=120) == 0, replay.log()
             closure = msg.LoopClosure(query_id=end, matched_place_id=0, pose_available=True,
                                       translation_metric=True, pose=gtsam_to_pose(truth[end].between(truth[0])))
