@@ -291,8 +291,13 @@ def test_shipped_parameter_file_matches_declared_parameters(revisit_data: Revisi
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
-    for node_class in (FeatureNode, QuantizerNode, FabMapNode, VerifierNode):
-        values = dict(shipped[node_class.__name__.replace("Node", "").lower() + "_node"]["ros__parameters"])
+    from aefabmap_ros.nodes.pose_graph_node import PoseGraphNode
+
+    sections: dict[type[Any], str] = {
+        FeatureNode: "feature_node", QuantizerNode: "quantizer_node", FabMapNode: "fabmap_node",
+        VerifierNode: "verifier_node", PoseGraphNode: "pose_graph_node"}
+    for node_class, section in sections.items():
+        values = dict(shipped[section]["ros__parameters"])
         if "model_dir" in values:
             values["model_dir"] = str(revisit_data.model_dir)  # the file leaves it for the user to set
         node = node_class(parameter_overrides=_params(**values))
@@ -315,7 +320,10 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "config" / "aefabmap.yaml").read_text())
-    for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig)):
+    from aefabmap_ros.core.pose_graph import PoseGraphConfig
+
+    for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig),
+                         ("pose_graph_node", PoseGraphConfig)):
         values = shipped[node]["ros__parameters"]
         assert {f.name: values[f.name] for f in fields(config)} == {f.name: f.default for f in fields(config)}
 
@@ -440,6 +448,37 @@ def test_verifier_node_attaches_the_relative_pose() -> None:
             assert node.counter.counts["pose_no_camera_info"] == 1 and node.counter.counts["pose_ok"] == 1
         finally:
             node.destroy_node()
+
+
+def test_verifier_node_keeps_metric_poses_across_a_restart(tmp_path: Path) -> None:
+    """The place's keypoint depths are saved with the feature store: after a restart (no new depth image of
+    the place) its closures still get a metric pose; without the depth files they would be monocular."""
+    from test.core.test_verification import _two_views
+
+    query, place, _ = _two_views(seed=21)
+    settings = {"candidates": 1, "track_seconds": 0.0, "depth_topic": "depth", "store_dir": str(tmp_path)}
+    before = VerifierNode(parameter_overrides=_params(**settings))
+    try:
+        before._on_features(_features_message(place, 1))
+        before._on_depth(_place_depth_image(1))
+        assert before.close()
+    finally:
+        before.destroy_node()
+    assert list(tmp_path.glob("depth-*.npz"))
+    after = VerifierNode(parameter_overrides=_params(**settings))
+    try:
+        assert len(after.store) == 1 and after.depths is not None and 1_000_000_000 in after.depths
+        verified = Captured(after.publisher)
+        after._on_camera_info(_camera_info())
+        after._on_features(_features_message(query, 3))
+        after._on_loop_closure(_closure(3, 1, query_id=10))
+        (closure,) = verified.messages
+        assert closure.pose_available and closure.translation_metric
+        position = closure.pose.position
+        assert np.linalg.norm([position.x, position.y, position.z]) == pytest.approx(
+            np.linalg.norm([0.8, 0.1, 0.3]), abs=0.05)
+    finally:
+        after.destroy_node()
 
 
 def _posterior(query_sec: int, place_secs: list[int], candidate: bool = True) -> Any:
