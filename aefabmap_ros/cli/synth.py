@@ -23,7 +23,9 @@ Each sequence DIR/<train|test>/ holds:
                           axis (as ROS 16UC1), 0 = no depth (sky, or beyond 65.535 m)
   bag/                    rosbag2 bag (format mcap or both): sensor_msgs/Image on --topic, the 16UC1
                           depth on <namespace>/depth and sensor_msgs/CameraInfo on
-                          <namespace>/camera_info (namespace of --topic), all with the same stamps
+                          <namespace>/camera_info (namespace of --topic), and the drifting odometry
+                          of odometry.tum as nav_msgs/Odometry on /odom (frame odom, child camera),
+                          all with the same stamps
   poses.txt               KITTI camera-to-world 3x4 poses, one line per frame
   groundtruth.tum         the same poses in TUM format (image stamps in seconds), for aefabmap_ate
   odometry.tum            a drifting odometry of the camera (TUM, same stamps), seeded by --seed:
@@ -139,18 +141,18 @@ def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: 
         for index, image in enumerate(sequence.images):
             _write_png(images / f"{index:06d}.png", image)
             _write_png(directory / "depth" / f"{index:06d}.png", depth_to_16uc1(sequence.depths[index]))
+    # The camera's y axis points down: the world's up is -y in the camera frame.
+    odometry = drifting_odometry(sequence.poses, np.array([0.0, -1.0, 0.0]), OdometryDrift(seed=config.seed))
     if fmt in ("mcap", "both"):
         from aefabmap_ros.io.bags import write_rgbd_bag
 
         frames = ((stamp, image, depth_to_16uc1(depth))
                   for stamp, image, depth in zip(sequence.stamps_ns.tolist(), sequence.images, sequence.depths,
                                                  strict=True))
-        write_rgbd_bag(directory / "bag", topic, frames, sequence.camera_matrix, storage="mcap")
+        write_rgbd_bag(directory / "bag", topic, frames, sequence.camera_matrix, storage="mcap", odometry=odometry)
     write_kitti_poses(directory / "poses.txt", sequence.poses)
     stamps_s = sequence.stamps_ns / 1e9
     atomic_write_text(directory / "groundtruth.tum", tum_text(stamps_s, sequence.poses))
-    # The camera's y axis points down: the world's up is -y in the camera frame.
-    odometry = drifting_odometry(sequence.poses, np.array([0.0, -1.0, 0.0]), OdometryDrift(seed=config.seed))
     atomic_write_text(directory / "odometry.tum", tum_text(stamps_s, odometry))
     atomic_write_bytes(directory / "camera_info.yaml",
                        camera_info_yaml(sequence.camera_matrix, config.width, config.height).encode())

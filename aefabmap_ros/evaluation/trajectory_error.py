@@ -116,3 +116,19 @@ def drifting_odometry(poses: np.ndarray, up_in_body: np.ndarray, drift: Odometry
         noisy[:3, :3] = Rotation.from_rotvec(yaw * up).as_matrix() @ step[:3, :3]
         odometry.append(odometry[-1] @ noisy)
     return np.stack(odometry)
+
+
+def at_stamps(trajectory: PoseTrajectory3D, stamps_s: np.ndarray, max_diff_s: float = DEFAULT_MAX_DIFF_S
+              ) -> PoseTrajectory3D:
+    """The poses of ``trajectory`` whose stamps match one of ``stamps_s`` (within ``max_diff_s``): e.g. the
+    odometry at a backend's keyframes, to compare both over the same poses."""
+    wanted = np.sort(np.asarray(stamps_s, dtype=np.float64))
+    if len(wanted) == 0:
+        raise DataError("no stamps to select")
+    index = np.clip(np.searchsorted(wanted, trajectory.timestamps), 1, len(wanted) - 1) if len(wanted) > 1 \
+        else np.zeros(len(trajectory.timestamps), dtype=int)
+    nearest = np.minimum(np.abs(trajectory.timestamps - wanted[index]),
+                         np.abs(trajectory.timestamps - wanted[np.maximum(index - 1, 0)]))
+    selected = copy.deepcopy(trajectory)
+    selected.reduce_to_ids(np.flatnonzero(nearest <= max_diff_s))
+    return selected

@@ -134,16 +134,24 @@ class FabMapConfig:
     consistency_matches: int = field(
         default=2,
         metadata={
-            "description": "Temporal consistency: a match is a loop closure only when this many consecutive "
-            "informative frames (this one included) matched places within island_seconds of each other "
-            "(1 = every match)."
+            "description": "Temporal consistency: a match is a loop closure only when this many informative "
+            "frames (this one included; consistency_skips others may come between) matched places within "
+            "island_seconds of each other (1 = every match)."
+        },
+    )
+    consistency_skips: int = field(
+        default=1,
+        metadata={
+            "description": "Temporal consistency: up to this many informative frames among the chain's may "
+            "match nothing, or a place elsewhere, without breaking it: along a real revisit the posterior "
+            "flickers (0 = the consistency_matches frames must be consecutive)."
         },
     )
     island_seconds: float = field(
         default=3.0,
         metadata={
             "description": "Temporal consistency: largest gap in map time (stamps of the matched places) "
-            "between the matches of two consecutive frames."
+            "between two matches of the chain."
         },
     )
     top_k: int = field(
@@ -163,7 +171,7 @@ class FabMapConfig:
         posterior (no temperature), a match at 0.99, no time window, no consistency. The defaults of this class are
         the nodes' (dense video, calibrated, consistent); this is the reference for golden comparisons."""
         reference: dict[str, Any] = {"likelihood_temperature": 1.0, "match_threshold": 0.99,
-                                     "exclude_recent_seconds": 0.0, "consistency_matches": 1,
+                                     "exclude_recent_seconds": 0.0, "consistency_matches": 1, "consistency_skips": 0,
                                      "keyframe_max_overlap": 1.0, "keyframe_max_seconds": 0.0}
         return cls(**{**reference, **overrides})
 
@@ -211,6 +219,8 @@ class FabMapConfig:
             raise bad("keyframe_max_seconds", "finite and >= 0")
         if self.consistency_matches < 1:
             raise bad("consistency_matches", ">= 1")
+        if self.consistency_skips < 0:
+            raise bad("consistency_skips", ">= 0")
         if not (np.isfinite(self.island_seconds) and self.island_seconds >= 0.0):
             raise bad("island_seconds", "finite and >= 0")
         if self.top_k < 0:

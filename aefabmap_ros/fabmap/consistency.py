@@ -2,9 +2,15 @@
 
 One match of one frame is weak evidence on dense video: FAB-MAP's posterior over many similar
 places can spike on a look-alike for a single frame. A real revisit lasts: the next frames match
-the same stretch of the map again. So a match is *consistent* only when each of the last
-``min_matches`` informative frames (this one included) matched a place, and each two consecutive
-matches lie within ``island_seconds`` of each other in map time (the stamps of the matched places).
+the same stretch of the map again. So a match is *consistent* only when, among the last
+``min_matches + max_skipped`` informative frames (this one included, which must have matched),
+``min_matches`` matched places that chain within ``island_seconds`` of each other in map time (the
+stamps of the matched places), walking back from this frame's match.
+
+The skips exist because along a real revisit the posterior flickers: at 30 Hz a frame between
+matching ones often falls below the match threshold or onto a look-alike, and requiring
+*consecutive* frames then throws a revisit away. With ``max_skipped = 0`` the rule is the strict
+one: every one of the last ``min_matches`` frames matched.
 
 Why map time and not place ids: place ids of a map built from video are dense in some stretches
 (the camera moved) and sparse in others (it stood still); stamps measure the same "neighbourhood of
@@ -12,8 +18,8 @@ the map" whatever the motion was. ``island_seconds`` has to allow for the two tr
 different speeds: between two query frames ``dt`` apart the matched places may move by ``dt``
 times the speed ratio, plus the jitter of which of several similar places wins.
 
-An informative frame without a match breaks the chain. Frames with too few words to be recognised
-are not observed at all: a blank frame says nothing either way.
+Frames with too few words to be recognised are not observed at all: a blank frame says nothing
+either way.
 """
 
 from __future__ import annotations
@@ -27,14 +33,16 @@ from aefabmap_ros.errors import ConfigError
 class TemporalConsistency:
     """Chain of the last matches (matched place stamps, ``None`` for a frame without a match)."""
 
-    def __init__(self, min_matches: int, island_seconds: float) -> None:
+    def __init__(self, min_matches: int, island_seconds: float, max_skipped: int = 0) -> None:
         if isinstance(min_matches, bool) or not isinstance(min_matches, int) or min_matches < 1:
             raise ConfigError(f"min_matches = {min_matches!r}: must be an integer >= 1")
         if not island_seconds >= 0.0:
             raise ConfigError(f"island_seconds = {island_seconds!r}: must be >= 0")
+        if isinstance(max_skipped, bool) or not isinstance(max_skipped, int) or max_skipped < 0:
+            raise ConfigError(f"max_skipped = {max_skipped!r}: must be an integer >= 0")
         self.min_matches = min_matches
         self._island_ns = island_seconds * 1e9
-        self._recent: deque[int | None] = deque(maxlen=min_matches)
+        self._recent: deque[int | None] = deque(maxlen=min_matches + max_skipped)
 
     def observe(self, matched_stamp_ns: int | None) -> bool:
         """Record one informative frame's match (None: no match); True when it is consistent."""
@@ -42,11 +50,17 @@ class TemporalConsistency:
         return self.is_consistent()
 
     def is_consistent(self) -> bool:
-        chain = list(self._recent)
-        if len(chain) < self.min_matches or any(stamp is None for stamp in chain):
+        if not self._recent or self._recent[-1] is None:
             return False
-        stamps = [int(stamp) for stamp in chain if stamp is not None]
-        return all(abs(later - earlier) <= self._island_ns for earlier, later in itertools.pairwise(stamps))
+        # Walk back from this frame's match; a match joins the chain when it lies within the island of
+        # the last one joined. Frames without a match, or matching elsewhere, are passed over.
+        anchor = self._recent[-1]
+        joined = 1
+        for stamp in itertools.islice(reversed(self._recent), 1, None):
+            if stamp is not None and abs(anchor - stamp) <= self._island_ns:
+                anchor = stamp
+                joined += 1
+        return joined >= self.min_matches
 
     def reset(self) -> None:
         self._recent.clear()

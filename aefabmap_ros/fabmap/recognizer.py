@@ -169,7 +169,9 @@ class PlaceRecognizer:
         self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
-        self._consistency = TemporalConsistency(self.config.consistency_matches, self.config.island_seconds)
+        self._consistency = TemporalConsistency(
+            self.config.consistency_matches, self.config.island_seconds, self.config.consistency_skips
+        )
 
     # -- read-only views ----------------------------------------------------------------------
 
@@ -194,6 +196,11 @@ class PlaceRecognizer:
         if not 0 <= place_id < self.num_places:
             raise DataError(f"place id {place_id} out of range [0, {self.num_places})")
         return int(self._place_stamps_ns.view()[place_id])
+
+    @property
+    def place_stamps_ns(self) -> np.ndarray:
+        """(P,) int64 stamp of each place's frame (a copy)."""
+        return self._place_stamps_ns.view().copy()
 
     @property
     def memory_bytes(self) -> int:

@@ -15,9 +15,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from aefabmap_ros.errors import ConfigError, ImageError
+from aefabmap_ros.errors import ConfigError, DataError, ImageError
 from aefabmap_ros.features.descriptors import kind_of, kind_of_type
 from aefabmap_ros.features.kinds import DESCRIPTOR_LENGTHS, FEATURE_TYPES
+
+# The largest |value| each float descriptor type can hold: a SIFT row is scaled to L2 norm 512 (OpenCV,
+# VLFeat; OpenCV then saturates to bytes, 0-255), so no element passes 512; RootSIFT is the square root of
+# an L1-normalised non-negative row and SURF an L2-normalised row (<= 1 both). A value beyond (e.g. 3e38)
+# is no descriptor: it would become some word (the autoencoder) or overflow k-means' distances into a
+# confusing range error.
+_DESCRIPTOR_VALUE_BOUNDS = {"sift": 512.0, "rootsift": 1.0, "surf": 1.0}
+_BOUND_TOLERANCE = 1.001  # float32 rounding of a normalised row may pass 1 by an ulp or two
 
 
 @dataclass(frozen=True)
@@ -155,6 +163,25 @@ def restore_descriptors(values: np.ndarray, descriptor_type: str) -> np.ndarray:
     if descriptor_type not in FEATURE_TYPES:  # not ours to judge here; consumers check the type
         return np.asarray(values)
     return np.asarray(values).astype(descriptor_dtype(descriptor_type), copy=False)
+
+
+def check_descriptor_values(descriptors: np.ndarray, descriptor_type: str) -> None:
+    """Raise DataError for NaN/Inf values, or values beyond what ``descriptor_type``'s extractor produces."""
+    values = np.asarray(descriptors)
+    if values.dtype == np.uint8 or values.size == 0:  # bytes (ORB, compact SIFT) cannot be out of range
+        return
+    finite = np.isfinite(values)
+    if not finite.all():
+        raise DataError(f"{int(np.count_nonzero(~finite))} NaN/Inf {descriptor_type} descriptor values")
+    bound = _DESCRIPTOR_VALUE_BOUNDS.get(descriptor_type)
+    if bound is None:  # a type of someone else's: its consumer refuses it by name
+        return
+    magnitudes = np.abs(values)
+    outside = magnitudes > bound * _BOUND_TOLERANCE
+    if outside.any():
+        raise DataError(
+            f"{int(np.count_nonzero(outside))} {descriptor_type} descriptor values outside [-{bound:g}, {bound:g}] "
+            f"(largest magnitude {float(magnitudes.max()):.3g}): not what a {descriptor_type} extractor produces")
 
 
 def surf_available() -> bool:

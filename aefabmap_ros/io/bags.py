@@ -28,6 +28,7 @@ from aefabmap_ros.stamps import stamp_to_ns
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
@@ -135,6 +136,33 @@ def make_camera_info_message(
     )
 
 
+def make_odometry_message(pose: np.ndarray, stamp_ns: int, frame_id: str = "odom",
+                          child_frame_id: str = "camera") -> Any:
+    """A rosbags ``nav_msgs/Odometry`` of a (3|4, 4) child-to-odom pose; zero twist, covariances unknown (0)."""
+    matrix = np.asarray(pose, dtype=np.float64)
+    if matrix.shape not in ((3, 4), (4, 4)) or not np.isfinite(matrix).all():
+        raise BagError(f"odometry pose must be a finite (3|4, 4) array, got shape {matrix.shape}")
+    from scipy.spatial.transform import Rotation
+
+    types = get_typestore().types
+    qx, qy, qz, qw = Rotation.from_matrix(matrix[:3, :3]).as_quat()
+    x, y, z = (float(value) for value in matrix[:3, 3])
+    vector = types["geometry_msgs/msg/Vector3"]
+    return types[ODOMETRY_TYPE](
+        header=make_header(stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
+            covariance=np.zeros(36)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=vector(x=0.0, y=0.0, z=0.0),
+                                                   angular=vector(x=0.0, y=0.0, z=0.0)),
+            covariance=np.zeros(36)),
+    )
+
+
 def _replace_path(tmp_path: Path, path: Path, overwrite: bool) -> None:
     if path.exists():
         if not overwrite:
@@ -235,10 +263,15 @@ def write_rgbd_bag(
     storage: str = "mcap",
     frame_id: str = "camera",
     overwrite: bool = False,
+    odometry: np.ndarray | None = None,
+    odometry_topic: str = "/odom",
 ) -> int:
     """Write ``(stamp_ns, image, depth_mm)`` frames: the image, a 16UC1 depth image and a CameraInfo,
     all with the frame's stamp. Topics default to ``<namespace>/depth`` and ``<namespace>/camera_info``
-    beside the image topic. Returns the number of frames written."""
+    beside the image topic. With ``odometry`` ((N, 3|4, 4) camera-to-odom poses, one per frame) a
+    ``nav_msgs/Odometry`` (frame ``odom``, child ``frame_id``) goes on ``odometry_topic`` with each
+    frame's stamp, written before the frame's image: a backend has the odometry of a frame before any
+    loop closure of that frame. Returns the number of frames written."""
     depth_topic = depth_topic or sibling_topic(image_topic, "depth")
     camera_info_topic = camera_info_topic or sibling_topic(image_topic, "camera_info")
     count = 0
@@ -246,15 +279,24 @@ def write_rgbd_bag(
         writer.add_topic(image_topic, IMAGE_TYPE)
         writer.add_topic(depth_topic, IMAGE_TYPE)
         writer.add_topic(camera_info_topic, CAMERA_INFO_TYPE)
+        if odometry is not None:
+            writer.add_topic(odometry_topic, ODOMETRY_TYPE)
         for stamp_ns, image, depth_mm in frames:
             if depth_mm.dtype != np.uint16 or depth_mm.shape != image.shape[:2]:
                 raise BagError(f"frame {count}: depth must be uint16 {image.shape[:2]}, "
                                f"got {depth_mm.dtype} {depth_mm.shape}")
+            if odometry is not None:
+                if count >= len(odometry):
+                    raise BagError(f"{len(odometry)} odometry poses for more frames")
+                writer.write(odometry_topic, stamp_ns,
+                             make_odometry_message(odometry[count], stamp_ns, child_frame_id=frame_id))
             writer.write(image_topic, stamp_ns, make_image_message(image, stamp_ns, frame_id))
             writer.write(depth_topic, stamp_ns, make_image_message(depth_mm, stamp_ns, frame_id))
             info = make_camera_info_message(camera_matrix, image.shape[1], image.shape[0], stamp_ns, frame_id)
             writer.write(camera_info_topic, stamp_ns, info)
             count += 1
+    if odometry is not None and count != len(odometry):
+        raise BagError(f"{len(odometry)} odometry poses for {count} frames")
     return count
 
 

@@ -3,6 +3,7 @@ launchers in ``cli``) that imports rclpy or message types."""
 
 __all__ = [
     "common",
+    "delivery",
     "fabmap_node",
     "feature_node",
     "frame_gate",

@@ -11,7 +11,11 @@ vocabulary is refused at start-up rather than silently mixed; one made with othe
 settings is used, with a warning naming them. Temporaries a killed save left beside the map are
 deleted at start. A frame stamped more than ``max_future_stamp_s`` ahead of the node's clock is
 dropped (counted): it would make every later frame "out of order", and, saved in the map, would
-do so after every restart too.
+do so after every restart too. A map saved before that rule may hold such places: they are kept,
+named in a warning at start, and do not order later frames.
+
+Every frame that reaches the node is answered on ``place_posteriors``: a dropped one (already
+mapped before a restart, out of order, in the future, malformed) with ``query_id`` -1 and no places.
 
 While running, the settings of ``detector.RUNTIME_SETTINGS`` (e.g. ``match_threshold``) can be
 changed with ``ros2 param set``; any other change is refused with the reason.
@@ -29,7 +33,7 @@ from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.index import warm_up_kernels
-from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer
+from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer, Recognition
 from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
@@ -37,6 +41,7 @@ from aefabmap_ros.nodes.common import (
     DropCounter,
     PeriodicSave,
     RuntimeParameters,
+    counted_subscription,
     declare_config,
     declare_parameter,
     node_callback,
@@ -48,8 +53,9 @@ from aefabmap_ros.nodes.messages import (
     message_to_word_ids,
     recognition_to_loop_closure,
     recognition_to_posterior,
+    unrecognised_posterior,
 )
-from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.stamps import newest_stamp_up_to, stamp_to_ns
 
 
 class FabMapNode(Node):
@@ -92,13 +98,13 @@ class FabMapNode(Node):
             if differences:
                 self.get_logger().warning(_differences_text(map_path, differences))
         # Frames at or before the newest saved place are already in the map: replaying them after a
-        # restart must not add them twice.
-        places = self.recognizer.num_places
-        self.last_stamp_ns = self.recognizer.place_stamp_ns(places - 1) if places else -1
+        # restart must not add them twice (they are answered, not recognised again).
+        self.last_stamp_ns = self._ordering_stamp(map_path)
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
         self.loop_publisher = self.create_publisher(LoopClosure, "loop_closure_candidates", RESULT_QOS)
-        words = self.create_subscription(BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth))
+        words = counted_subscription(self, BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth),
+                                     self.counter)
         report_when_connected(self, words, "words")
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self.recognizer.reconfigure)
@@ -107,33 +113,74 @@ class FabMapNode(Node):
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
         )
 
+    def _future_limit_ns(self) -> int | None:
+        """Stamps after this are refused as "in the future"; None: no clock to judge by (max_future_stamp_s 0,
+        or simulated time before the first /clock message)."""
+        now_ns = self.get_clock().now().nanoseconds
+        return now_ns + self.max_future_ns if self.max_future_ns and now_ns > 0 else None
+
+    def _ordering_stamp(self, map_path: Path | None) -> int:
+        """The stamp later frames must follow: the newest place's, except places stamped in the future.
+
+        Such places come from maps saved before future stamps were refused; they stay in the map (they
+        are real images) but do not order later frames, or every frame would be dropped after every restart.
+        """
+        stamps = self.recognizer.place_stamps_ns
+        newest, beyond = newest_stamp_up_to(stamps, self._future_limit_ns())
+        if beyond:
+            named = ", ".join(f"place {i} at {stamps[i] / 1e9:.0f} s" for i in beyond[:5])
+            more = f" and {len(beyond) - 5} more" if len(beyond) > 5 else ""
+            self.get_logger().warning(
+                f"map {map_path} holds {len(beyond)} place(s) stamped more than max_future_stamp_s "
+                f"{self.max_future_ns / 1e9:g} s ahead of the node's clock ({named}{more}); they are kept but "
+                f"ignored for ordering: frames after {newest / 1e9:.3f} s are processed")
+        return newest
+
     @node_callback
     def _on_words(self, message: BagOfWords) -> None:
+        """Recognise one frame; every frame is answered on place_posteriors exactly once, a dropped one
+        too (``query_id`` -1), so a lockstep replay never waits its timeout on a frame that reached us."""
+        recognition = None
+        try:
+            recognition = self._recognise(message)
+        finally:  # an unexpected exception (counted by node_callback) gets its answer as well
+            answer = (unrecognised_posterior(message.header, self.recognizer.num_places) if recognition is None
+                      else recognition_to_posterior(recognition, message.header))
+            self.posterior_publisher.publish(answer)
+        if recognition is not None:
+            self._publish_candidate(recognition, message.header)
+
+    def _recognise(self, message: BagOfWords) -> Recognition | None:
+        """The frame recognised (and added to the map when it makes a place); None when it was dropped."""
         stamp_ns = stamp_to_ns(message.header.stamp)
         if stamp_ns <= self.last_stamp_ns:
-            self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns")
-            return
-        now_ns = self.get_clock().now().nanoseconds
-        # now 0: simulated time before the first /clock message, no reference to judge by.
-        if self.max_future_ns and now_ns > 0 and stamp_ns > now_ns + self.max_future_ns:
-            self.counter.drop("stamp_in_future", f"stamp {stamp_ns} ns is {(stamp_ns - now_ns) / 1e9:.0f} s ahead of "
+            # After a restart, a replay's frames up to the newest saved place are already mapped.
+            self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns "
+                              "(already mapped, or sent out of order)")
+            return None
+        limit_ns = self._future_limit_ns()
+        if limit_ns is not None and stamp_ns > limit_ns:
+            ahead_s = (stamp_ns - limit_ns + self.max_future_ns) / 1e9
+            self.counter.drop("stamp_in_future", f"stamp {stamp_ns} ns is {ahead_s:.0f} s ahead of "
                               f"the node's clock (max_future_stamp_s {self.max_future_ns / 1e9:g})")
-            return
+            return None
         try:
             word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)
             recognition = self.recognizer.process(word_ids, stamp_ns)
         except AefabmapError as exc:
             self.counter.drop(type(exc).__name__, str(exc))
-            return
+            return None
         self.last_stamp_ns = stamp_ns
-        # Every frame gets its posterior, a blank one too (no places, new-place probability NaN): a
-        # lockstep replay and any subscriber counting frames wait for one answer per image.
-        self.posterior_publisher.publish(recognition_to_posterior(recognition, message.header))
+        if recognition.informative:  # the map (places, query count, belief) changed: save it
+            self.map_saver.mark_changed()
+        return recognition
+
+    def _publish_candidate(self, recognition: Recognition, header: Any) -> None:
+        """After the frame's posterior: count it, and publish its loop closure candidate if it has one."""
         if not recognition.informative:  # too few words to say anything: no place, no match
             self.counter.ok("frames_below_min_words")
             return
-        self.map_saver.mark_changed()
-        loop_closure = recognition_to_loop_closure(recognition, message.header)
+        loop_closure = recognition_to_loop_closure(recognition, header)
         if loop_closure is not None:
             self.loop_publisher.publish(loop_closure)
             self.counter.ok("loop_closure_candidates")

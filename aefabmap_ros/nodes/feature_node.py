@@ -27,6 +27,7 @@ from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     DropCounter,
+    counted_subscription,
     declare_config,
     declare_parameter,
     image_qos,
@@ -75,10 +76,12 @@ class FeatureNode(Node):
         if qos_kind == "sensor_data":
             self._worker = threading.Thread(target=self._process_frames, name="feature_worker", daemon=True)
             self._worker.start()
-        self.create_subscription(Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth))
+        counted_subscription(self, Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth),
+                             self.counter)
         if subscribe_compressed:
-            self.create_subscription(CompressedImage, compressed_topic(self.resolve_topic_name("image")),
-                                     partial(self._on_frame, transport="compressed"), image_qos(qos_kind, depth))
+            counted_subscription(self, CompressedImage, compressed_topic(self.resolve_topic_name("image")),
+                                 partial(self._on_frame, transport="compressed"), image_qos(qos_kind, depth),
+                                 self.counter)
         self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image)")
 
     @node_callback

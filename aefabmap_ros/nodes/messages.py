@@ -19,7 +19,6 @@ from std_msgs.msg import Header
 from aefabmap_ros.errors import DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
-from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.verification.relative_pose import CameraModel, PoseOutcome
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
@@ -82,9 +81,10 @@ def message_to_features(message: Features) -> core_features.Features:
     # Byte-carried SIFT goes back to float32 (the type's dtype); older float32 messages read as before.
     descriptors = core_features.restore_descriptors(np.frombuffer(raw, dtype=dtype).reshape(count, length),
                                                     str(message.descriptor_type))
-    if not kind_of(descriptors).binary and not np.all(np.isfinite(descriptors)):
-        # NaN would become some word (the autoencoder) or a confusing range error (k-means).
-        raise DataError(f"Features has {int(np.count_nonzero(~np.isfinite(descriptors)))} NaN/Inf descriptor values")
+    try:
+        core_features.check_descriptor_values(descriptors, str(message.descriptor_type))
+    except DataError as exc:
+        raise DataError(f"Features has {exc}") from exc
     keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],
                          axis=1) if count else np.zeros((0, 5), np.float32)
     return core_features.Features(
@@ -156,6 +156,20 @@ def recognition_to_posterior(recognition: Recognition, header: Any) -> PlacePost
     message.loop_closure_candidate = recognition.loop_closure is not None
     message.new_place_probability = float(recognition.new_place_probability)
     _fill_candidates(message, recognition.candidates)
+    return message
+
+
+def unrecognised_posterior(header: Any, num_places: int) -> PlacePosterior:
+    """The answer to a frame fabmap_node dropped (already mapped, out of order, stamped in the future,
+    malformed): ``query_id`` -1, no place, new-place probability NaN."""
+    message = PlacePosterior()
+    message.header = copy_header(header)
+    message.query_id = -1
+    message.assigned_place_id = -1
+    message.current_place_id = num_places - 1
+    message.is_new_place = False
+    message.loop_closure_candidate = False
+    message.new_place_probability = float("nan")
     return message
 
 

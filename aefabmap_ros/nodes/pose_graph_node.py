@@ -9,8 +9,10 @@ iSAM2 (backend/pose_graph.py has the model). Publishes the optimised keyframe tr
 ``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). On shutdown the keyframe
 trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not written).
 
-Assumes the camera frame is the odometry's child frame (the closure's pose is used as the
-keyframes' relative pose as it is); a robot with an offset camera conjugates it by the extrinsic.
+The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
+``base_to_camera`` ([x, y, z, qx, qy, qz, qw], the camera's pose in the base frame, T_base_camera;
+identity by default, for a camera that is the odometry's child frame) turns each closure into one
+between the two base poses (backend/pose_graph.py ``closure_in_base_frame``).
 Bad input is counted and dropped: odometry out of order, a closure without a pose, a closure to a
 stamp the odometry never covered, a closure the odometry drift cannot explain.
 """
@@ -29,7 +31,15 @@ from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
-from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
+from aefabmap_ros.backend.pose_graph import (
+    Closure,
+    ClosureResult,
+    PoseGraph,
+    PoseGraphConfig,
+    closure_in_base_frame,
+    trajectory_arrays,
+)
+from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
 from aefabmap_ros.nodes.messages import time_from_ns
@@ -50,6 +60,15 @@ def pose_to_gtsam(pose: Pose) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(rotation), np.array([pose.position.x, pose.position.y, pose.position.z]))
 
 
+def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:
+    """[x, y, z, qx, qy, qz, qw] -> Pose3; ConfigError unless 7 finite numbers with a non-zero quaternion."""
+    array = np.asarray(values, dtype=np.float64)
+    if array.shape != (7,) or not np.isfinite(array).all() or np.linalg.norm(array[3:]) < 1e-9:
+        raise ConfigError(f"base_to_camera must be [x, y, z, qx, qy, qz, qw] with a non-zero quaternion, got {values}")
+    rotation = Rotation.from_quat(array[3:] / np.linalg.norm(array[3:])).as_matrix()
+    return gtsam.Pose3(gtsam.Rot3(rotation), array[:3])
+
+
 def gtsam_to_pose(pose3: gtsam.Pose3) -> Pose:
     message = Pose()
     x, y, z = (float(value) for value in pose3.translation())
@@ -67,6 +86,10 @@ class PoseGraphNode(Node):
         trajectory_file = declare_parameter(
             self, "trajectory_file", "", "TUM file the keyframe trajectory is written to on shutdown ('' = none).")
         self.trajectory_file = Path(trajectory_file) if trajectory_file else None
+        self.base_to_camera = extrinsic_to_gtsam(declare_parameter(
+            self, "base_to_camera", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            "The camera's pose in the odometry's child (base) frame, [x, y, z, qx, qy, qz, qw] (identity: the "
+            "camera is the base frame)."))
         self.graph = PoseGraph(declare_config(self, PoseGraphConfig))
         self.counter = DropCounter(self)
         self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
@@ -90,9 +113,10 @@ class PoseGraphNode(Node):
             self.counter.drop(ClosureResult.NO_POSE.value, f"closure of query {message.query_id} has no pose "
                               f"(pose_status {message.pose_status})")
             return
-        covariance = np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6)
-        closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp),
-                          pose_to_gtsam(message.pose), covariance)
+        pose, covariance = closure_in_base_frame(
+            pose_to_gtsam(message.pose), np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6),
+            self.base_to_camera)
+        closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp), pose, covariance)
         self._report([self.graph.add_closure(closure)], closure.query_ns)
 
     def _report(self, results: list[ClosureResult], stamp_ns: int) -> None:

@@ -12,6 +12,7 @@ from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     DropCounter,
+    counted_subscription,
     declare_parameter,
     node_callback,
     pipeline_qos,
@@ -45,7 +46,8 @@ class QuantizerNode(Node):
         self.descriptor_type = model.feature_config.type
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))
-        features = self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
+                                        self.counter)
         report_when_connected(self, features, "features")
         self.get_logger().info(
             f"quantizing {self.descriptor_type} features into {self.quantizer.size} {self.quantizer.kind} words "

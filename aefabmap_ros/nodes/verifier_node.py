@@ -31,8 +31,9 @@ or the ``camera_matrix`` parameter (fx, fy, cx, cy; it wins when set). Without d
 the essential matrix's (rotation and translation direction, ``translation_metric`` false); with
 ``depth_topic`` set (an aligned ``sensor_msgs/Image``, 16UC1 in mm or 32FC1 in m, stamped like the
 images) the depth at each stored keypoint is kept beside the features (same frame bound) and the
-pose is PnP's, in metres. The depth at keypoints is not saved to ``store_dir``: after a restart the
-reloaded places give monocular poses.
+pose is PnP's, in metres. With ``store_dir`` the depth at keypoints is saved there too (``depth-*.npz``
+beside the feature chunks, at the same times), so after a restart the reloaded places still give
+metric poses.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from aefabmap_ros.nodes.common import (
     DropCounter,
     PeriodicSave,
     RuntimeParameters,
+    counted_subscription,
     declare_config,
     declare_parameter,
     node_callback,
@@ -77,6 +79,7 @@ from aefabmap_ros.verification.geometric import (
 from aefabmap_ros.verification.loop_tracking import LoopTrack
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
+    KeypointDepthFolder,
     KeypointDepthStore,
     RelativePoseConfig,
     depths_of_matches,
@@ -141,28 +144,37 @@ class VerifierNode(Node):
         self.camera_fixed = self.camera is not None
         self.depths = KeypointDepthStore(max_frames) if depth_topic else None
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
+        self.depth_folder = KeypointDepthFolder(Path(store_dir)) if store_dir and self.depths is not None else None
         if self.store_folder is not None:
-            for leftover in remove_stale_temporaries(self.store_folder.folder, "chunk-*.npz"):
-                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
+            for pattern in ("chunk-*.npz", "depth-*.npz"):
+                for leftover in remove_stale_temporaries(self.store_folder.folder, pattern):
+                    self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
             self.store_folder.load_into(self.store)  # a corrupt chunk stops start-up (ERROR), is not overwritten
             if len(self.store):
                 self.get_logger().info(
                     f"reloaded the features of {len(self.store)} frames from {self.store_folder.folder}")
+        if self.depth_folder is not None and self.depths is not None:
+            self.depth_folder.load_into(self.depths)
+            if len(self.depths):
+                self.get_logger().info(f"reloaded the keypoint depths of {len(self.depths)} frames")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.rerank = self.config.candidates > 1
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
-        features = self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(depth))
+        features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
+                                        self.counter)
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
-        self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS)
+        counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS,
+                             self.counter)
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
         if depth_topic:
-            self.create_subscription(Image, depth_topic, self._on_depth, pipeline_qos(depth))
+            counted_subscription(self, Image, depth_topic, self._on_depth, pipeline_qos(depth), self.counter)
         if self.rerank or self.track.enabled:
-            self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
+            counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS,
+                                 self.counter)
         self.store_saver = PeriodicSave(
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
             "the feature store", save_period_s,
@@ -206,6 +218,8 @@ class VerifierNode(Node):
             self.depths.add_depth(stamp_to_ns(message.header.stamp), depth_message_to_metres(message))
         except AefabmapError as exc:
             self.counter.drop("bad_depth", str(exc))
+            return
+        self.store_saver.mark_changed()  # a frame's depths may come after its features were saved
 
     def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures) -> None:
         """Fill the closure's relative pose from the query-place matches (or say why there is none)."""
@@ -355,6 +369,8 @@ class VerifierNode(Node):
     def _save_store(self, _folder: Path) -> None:
         if self.store_folder is not None:
             self.store_folder.save(self.store)
+        if self.depth_folder is not None and self.depths is not None:
+            self.depth_folder.save(self.depths)
 
     def close(self) -> bool:
         """The final store save; False when it failed (the process then exits 1)."""

@@ -25,11 +25,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 
 # Below this many correspondences RANSAC has no redundancy (5-point essential, 4-point PnP + checks).
 MIN_POSE_POINTS = 8
@@ -338,12 +340,32 @@ class KeypointDepthStore:
         self._depths: dict[int, np.ndarray] = {}
         self._images: dict[int, np.ndarray] = {}
         self._waiting_keypoints: dict[int, np.ndarray] = {}
+        self._unsaved: dict[int, None] = {}  # stamps sampled since the last save, in order (an ordered set)
 
     def __len__(self) -> int:
         return len(self._depths)
 
+    def __contains__(self, stamp_ns: object) -> bool:
+        return stamp_ns in self._depths
+
     def get(self, stamp_ns: int) -> np.ndarray | None:
         return self._depths.get(stamp_ns)
+
+    def unsaved(self) -> list[tuple[int, np.ndarray]]:
+        """The frames sampled since ``mark_saved`` and still kept, oldest first (what a save appends)."""
+        return [(stamp, self._depths[stamp]) for stamp in self._unsaved if stamp in self._depths]
+
+    def mark_saved(self) -> None:
+        self._unsaved.clear()
+
+    def restore(self, frames: list[tuple[int, np.ndarray]]) -> None:
+        """Replace the kept depths by saved ones (oldest first; the newest ``max_frames`` stay); they count as saved."""
+        self._depths.clear()
+        self._unsaved.clear()
+        for stamp, depths in frames:
+            self._depths.pop(stamp, None)
+            self._depths[stamp] = depths
+        _trim(self._depths, self.max_frames)
 
     def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
         keypoints = self._waiting_keypoints.pop(stamp_ns, None)
@@ -365,9 +387,97 @@ class KeypointDepthStore:
     def _keep(self, stamp_ns: int, depths: np.ndarray) -> None:
         self._depths.pop(stamp_ns, None)
         self._depths[stamp_ns] = depths
+        self._unsaved[stamp_ns] = None
         _trim(self._depths, self.max_frames)
+        if len(self._unsaved) > self.max_frames:  # forgotten before any save: nothing to write for them
+            self._unsaved = {stamp: None for stamp in self._unsaved if stamp in self._depths}
+
+
+DEPTH_FORMAT_VERSION = 1
+_DEPTH_CHUNK_GLOB = "depth-*.npz"
+
+
+class KeypointDepthFolder:
+    """A KeypointDepthStore on disk beside the feature store's chunks (verifier_node's ``store_dir``),
+    so that after a restart the places seen before it still give metric poses.
+
+    Append-only like FeatureStoreFolder: each ``save`` writes the frames sampled since the last one as
+    ``depth-<n>.npz`` (stamps, per-frame counts, the depths concatenated; float32, NaN = none: ~2 KiB
+    per frame of 500 keypoints) and deletes the chunks whose frames have all been forgotten.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self._chunk_stamps: dict[Path, set[int]] = {}
+        self._next_chunk = 0
+
+    def load_into(self, store: KeypointDepthStore) -> None:
+        """Replace ``store``'s depths by the saved ones; ModelError naming a bad chunk (store unchanged)."""
+        chunks = sorted(self.folder.glob(_DEPTH_CHUNK_GLOB)) if self.folder.is_dir() else []
+        frames: list[tuple[int, np.ndarray]] = []
+        chunk_stamps: dict[Path, set[int]] = {}
+        for chunk in chunks:
+            arrays = read_versioned_npz(chunk, "keypoint depth chunk", "keypoint depth chunk",
+                                        ("stamps_ns", "counts", "depths"), DEPTH_FORMAT_VERSION)
+            stamps, counts, depths = arrays["stamps_ns"], arrays["counts"], arrays["depths"]
+            if stamps.ndim != 1 or counts.shape != stamps.shape or depths.ndim != 1 \
+                    or (counts.size and counts.min() < 0) or int(counts.sum()) != depths.size:
+                raise ModelError(f"keypoint depth chunk {chunk}: stamps, counts and depths do not agree")
+            split = np.split(depths.astype(np.float32), np.cumsum(counts)[:-1]) if counts.size else []
+            chunk_frames = list(zip((int(stamp) for stamp in stamps), split, strict=True))
+            chunk_stamps[chunk] = {stamp for stamp, _ in chunk_frames}
+            frames += chunk_frames
+        store.restore(frames)
+        self._chunk_stamps = chunk_stamps
+        self._next_chunk = 1 + max((int(c.stem.removeprefix("depth-")) for c in chunks), default=-1)
+
+    def save(self, store: KeypointDepthStore) -> None:
+        """Append the frames sampled since the last save as one chunk, then drop fully forgotten chunks."""
+        frames = store.unsaved()
+        if frames:
+            chunk = self.folder / f"depth-{self._next_chunk:09d}.npz"
+            write_npz_atomically(chunk, {
+                "format_version": np.array(DEPTH_FORMAT_VERSION, dtype=np.int64),
+                "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
+                "counts": np.array([len(depths) for _, depths in frames], dtype=np.int64),
+                "depths": np.concatenate([depths for _, depths in frames]).astype(np.float32),
+            })
+            self._chunk_stamps[chunk] = {stamp for stamp, _ in frames}
+            self._next_chunk += 1
+            store.mark_saved()
+        for chunk, stamps in list(self._chunk_stamps.items()):
+            if not any(stamp in store for stamp in stamps):
+                chunk.unlink(missing_ok=True)
+                del self._chunk_stamps[chunk]
 
 
 def _trim(frames: dict[int, np.ndarray], limit: int) -> None:
     while len(frames) > limit:
         del frames[next(iter(frames))]
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """A measured relative pose against the ground truth's."""
+
+    rotation_deg: float  # angle of R_true^T R_measured
+    direction_deg: float  # angle between the translations (NaN when the true one is shorter than 1 mm)
+    translation_m: float  # |t_measured - t_true| (meaningful for a metric pose only)
+
+
+def relative_pose_error(query_to_world: np.ndarray, place_to_world: np.ndarray, measured: np.ndarray) -> PoseError:
+    """Error of a measured place-in-query pose (4x4, ``X_query = R X_place + t``) given both cameras'
+    ground-truth camera-to-world poses ((3|4, 4))."""
+    def full(pose: np.ndarray) -> np.ndarray:
+        matrix = np.eye(4)
+        matrix[:3, :] = np.asarray(pose, dtype=np.float64)[:3, :]
+        return matrix
+
+    truth = np.linalg.inv(full(query_to_world)) @ full(place_to_world)
+    estimate = full(measured)
+    rotation = np.degrees(np.linalg.norm(_rotation_vector(truth[:3, :3].T @ estimate[:3, :3])))
+    true_t, measured_t = truth[:3, 3], estimate[:3, 3]
+    lengths = np.linalg.norm(true_t) * np.linalg.norm(measured_t)
+    direction = (float(np.degrees(np.arccos(np.clip(true_t @ measured_t / lengths, -1.0, 1.0))))
+                 if np.linalg.norm(true_t) > 1e-3 and lengths > 0 else float("nan"))
+    return PoseError(float(rotation), direction, float(np.linalg.norm(measured_t - true_t)))

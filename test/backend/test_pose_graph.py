@@ -172,3 +172,33 @@ def test_tum_lines() -> None:
 def test_config_is_checked() -> None:
     with pytest.raises(ConfigError):
         PoseGraphConfig(cauchy_scale=0.0)
+
+
+def test_closure_in_base_frame_conjugates_pose_and_moves_covariance() -> None:
+    """Camera 1 m ahead of the base, turned 90 degrees about z: the base-frame closure is T_bc T_cc T_bc^-1, and
+    an uncertainty along the camera's x (translation) becomes one along the base's y."""
+    from aefabmap_ros.backend.pose_graph import closure_in_base_frame
+
+    base_to_camera = gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.array([1.0, 0.0, 0.0]))
+    bases = (gtsam.Pose3(gtsam.Rot3.Yaw(0.3), np.array([2.0, 1.0, 0.0])),
+             gtsam.Pose3(gtsam.Rot3.Yaw(-0.4), np.zeros(3)))
+    cameras = [base.compose(base_to_camera) for base in bases]
+    covariance = np.diag([4.0, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])  # ROS order: x y z rot
+    pose, moved = closure_in_base_frame(cameras[0].between(cameras[1]), covariance, base_to_camera)
+    assert pose.equals(bases[0].between(bases[1]), 1e-9)
+    assert moved[1, 1] == pytest.approx(4.0, rel=1e-6) and moved[0, 0] < 0.01
+    assert np.allclose(moved, moved.T)
+    same, unchanged = closure_in_base_frame(cameras[0].between(cameras[1]), covariance, gtsam.Pose3())
+    assert same.equals(cameras[0].between(cameras[1]), 1e-12) and np.allclose(unchanged, covariance)
+
+
+def test_a_closure_before_any_odometry_waits_for_it() -> None:
+    """A node may take a closure off its queue before the odometry that came first: it waits, not dropped."""
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    graph = PoseGraph(PoseGraphConfig())
+    assert graph.add_closure(closure(truth, 40, 0)) is ClosureResult.WAITING
+    results = []
+    for index in range(41):
+        results += graph.add_odometry(stamp(index), odometry[index])
+    assert results == [ClosureResult.ADDED]

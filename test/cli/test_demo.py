@@ -72,3 +72,56 @@ def test_closure_printer_summary_counts_published_false_and_events() -> None:
         "    2 loop closures published on /loop_closures (verified), 1 false; 1 of 2 revisit events closed",
         "    3 raw FAB-MAP candidates on /loop_closure_candidates, 2 false; 30 posteriors",
     ]
+
+
+def test_ate_figures_compare_odometry_and_closures_on_the_keyframe_stamps(tmp_path: Path) -> None:
+    """Hand-made: ground truth along x, odometry 10 % too long, the backend's keyframes exact at 3 stamps,
+    the injected backend's 0.1 m off at one of them."""
+    import numpy as np
+
+    from aefabmap_ros.cli.demo_backend import ate_figures, ate_summary
+    from aefabmap_ros.evaluation.trajectory_error import tum_text
+
+    stamps = np.arange(10) * 0.1
+    truth = np.tile(np.eye(4), (10, 1, 1))
+    truth[:, 0, 3] = np.arange(10.0)
+    truth[:, 1, 3] = np.arange(10.0) ** 2 / 10  # a curve: an SE(3) alignment cannot absorb a scale error
+    odometry = truth.copy()
+    odometry[:, :3, 3] *= 1.1
+    (tmp_path / "groundtruth.tum").write_text(tum_text(stamps, truth))
+    (tmp_path / "odometry.tum").write_text(tum_text(stamps, odometry))
+    keyframes = [0, 5, 9]
+    (tmp_path / "kf.tum").write_text(tum_text(stamps[keyframes], truth[keyframes]))
+    wrong = truth[keyframes].copy()
+    wrong[1, 2, 3] += 0.1
+    (tmp_path / "kf_injected.tum").write_text(tum_text(stamps[keyframes], wrong))
+    figures = ate_figures(tmp_path, tmp_path / "kf.tum", tmp_path / "kf_injected.tum")
+    assert figures.keyframes == 3 and figures.closures_m < 1e-6
+    assert figures.odometry_m > 0.05 and figures.odometry_all_m > 0.05
+    assert figures.injected_m is not None and 0.0 < figures.injected_m <= 0.1 / np.sqrt(3) + 1e-6
+    text = ate_summary(figures)
+    assert "over the backend's 3 keyframes" in text and "+ one wrong closure" in text
+
+
+def test_pose_errors_summary_gives_the_medians() -> None:
+    from aefabmap_ros.cli.demo_backend import PoseErrors
+    from aefabmap_ros.verification.relative_pose import PoseError
+
+    errors = PoseErrors(metric=[PoseError(0.2, 1.0, 0.01), PoseError(0.4, 2.0, 0.03), PoseError(9.0, 9.0, 9.0)],
+                        without_pose=2)
+    text = errors.summary()
+    assert "3 metric (PnP with depth), 0 monocular, 2 without a pose" in text
+    assert "median rotation error 0.400 deg" in text and "translation direction 2.000 deg" in text
+    assert "translation 3.00 cm" in text
+
+
+def test_the_wrong_place_is_the_nearest_frame_far_enough_from_the_true_one() -> None:
+    import numpy as np
+
+    from aefabmap_ros.cli.demo_backend import wrong_place_near
+
+    poses = np.tile(np.eye(4)[:3], (10, 1, 1))
+    poses[:, 0, 3] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]
+    assert wrong_place_near(poses, 5, 3.0) == 2  # frames 2 and 8 are both 3 frames away: the earlier
+    assert wrong_place_near(poses, 1, 3.0) == 4
+    assert wrong_place_near(poses, 5, 4.5) == 0

@@ -27,11 +27,29 @@ def test_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         ([str(bag), "--topic", "/image"], "'/image' not in bag"),
         ([str(bag), "--topic", "/cam", "--rate", "-1"], "--rate must be >= 0"),
         ([str(bag), "--topic", "/cam", "--loop", "--lockstep", "place_posteriors"], "never end"),
+        ([str(bag), "--topic", "/cam", "--loop", "--with", "/other"], "--with is not supported with --loop"),
+        ([str(bag), "--topic", "/cam", "--with", "/cam"], "is the image topic itself"),
+        ([str(bag), "--topic", "/cam", "--with", "/odom", "--wait-subscribers", "0"], "--with /odom: not in"),
+        ([str(bag), "--topic", "/cam", "--with", "/odom=0"], "must be an integer >= 1"),
     ]
     for argv, message in cases:
         assert replay.main(argv) == 1
         err = capsys.readouterr().err
         assert err.startswith("ERROR: ") and message in err, err
+
+
+def test_companions_go_out_before_the_image_of_their_log_time() -> None:
+    """A frame's depth and odometry (same log time as its image, written after it) are published first."""
+    from aefabmap_ros.io.bags import BagMessage
+
+    def message(topic: str, time_ns: int) -> BagMessage:
+        return BagMessage(topic, "t", time_ns, time_ns, None, b"")
+
+    in_bag = [message("/image", 1), message("/depth", 1), message("/odom", 1), message("/image", 2),
+              message("/odom", 2), message("/odom", 3), message("/image", 4)]
+    order = [(m.topic, m.log_time_ns) for m in replay.companions_first(in_bag, "/image")]
+    assert order == [("/depth", 1), ("/odom", 1), ("/image", 1), ("/odom", 2), ("/image", 2), ("/odom", 3),
+                     ("/image", 4)]
 
 
 def test_replay_restamps_later_laps() -> None:

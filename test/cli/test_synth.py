@@ -75,7 +75,17 @@ def test_writes_mcap_bag(tmp_path):
     stamps = [m.stamp_ns for m in messages]
     assert stamps == sorted(stamps) and stamps[1] - stamps[0] == 100_000_000
     assert bags.list_topics(directory / "bag") == {"/cam": bags.IMAGE_TYPE, "/depth": bags.IMAGE_TYPE,
-                                                   "/camera_info": bags.CAMERA_INFO_TYPE}
+                                                   "/camera_info": bags.CAMERA_INFO_TYPE, "/odom": bags.ODOMETRY_TYPE}
+    # The odometry topic is odometry.tum's drifting odometry, frame by frame, stamped like the images.
+    odometry = list(bags.read_messages(directory / "bag", ["/odom"]))
+    assert [m.stamp_ns for m in odometry] == stamps
+    assert (odometry[0].message.header.frame_id, odometry[0].message.child_frame_id) == ("odom", "camera")
+    tum = np.loadtxt(directory / "odometry.tum")
+    for message, row in zip(odometry, tum, strict=True):
+        pose = message.message.pose.pose
+        np.testing.assert_allclose([pose.position.x, pose.position.y, pose.position.z], row[1:4], atol=1e-6)
+        quaternion = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
+        assert abs(quaternion @ row[4:8]) == pytest.approx(1.0, abs=1e-6)
     depth = list(bags.read_messages(directory / "bag", ["/depth"]))
     info = list(bags.read_messages(directory / "bag", ["/camera_info"]))
     assert [m.stamp_ns for m in depth] == stamps == [m.stamp_ns for m in info]

@@ -83,3 +83,16 @@ def test_drifting_odometry_is_seeded_and_drifts_as_stated() -> None:
     noisy_b = drifting_odometry(straight, np.array([0.0, 0.0, 1.0]), OdometryDrift(seed=3))
     np.testing.assert_array_equal(noisy_a, noisy_b)
     np.testing.assert_array_equal(noisy_a[0], straight[0])
+
+
+def test_at_stamps_keeps_the_poses_at_the_given_stamps() -> None:
+    from aefabmap_ros.evaluation.trajectory_error import at_stamps, trajectory_from_matrices
+
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, 0, 3] = np.arange(5)
+    trajectory = trajectory_from_matrices(np.array([0.0, 0.1, 0.2, 0.3, 0.4]), poses)
+    selected = at_stamps(trajectory, np.array([0.3, 0.1001, 7.0]))
+    assert selected.timestamps.tolist() == [0.1, 0.3]
+    assert selected.positions_xyz[:, 0].tolist() == [1.0, 3.0]
+    assert at_stamps(trajectory, np.array([0.2])).timestamps.tolist() == [0.2]
+    assert trajectory.num_poses == 5  # the original is left alone

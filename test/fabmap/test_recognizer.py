@@ -252,6 +252,21 @@ def test_consistency_holds_back_a_single_match():
         assert [r.loop_closure is not None for r in results] == closures  # ... but only consistent ones close
 
 
+def test_consistency_skips_a_frame_that_flickers():
+    """Revisit frames 0, (a frame matching nothing), 1: the chain of two matches survives the skipped frame."""
+    frames = [np.arange(0, 10), np.arange(10, 20), np.arange(20, 30), np.arange(30, 40)]
+    flicker = np.r_[0:40:4]  # a few words of every place: no place stands out
+    for skips, closures in ((0, [False, False, False]), (1, [False, False, True])):
+        recognizer = _place_recognizer(consistency_matches=2, consistency_skips=skips, island_seconds=1.5,
+                                       match_threshold=0.5, add_policy="new_only")
+        for i, words in enumerate(frames):
+            recognizer.process(words, i * 10**9)
+        revisit = (frames[0], flicker, frames[1])
+        results = [recognizer.process(words, (5 + k) * 10**9) for k, words in enumerate(revisit)]
+        assert [r.match.place_id if r.match else -1 for r in results] == [0, -1, 1]
+        assert [r.loop_closure is not None for r in results] == closures
+
+
 def test_linked_overlap_excludes_the_stretch_still_in_view():
     """Frames that share words with the query back to the last break are no hypotheses, older ones are."""
     view = np.arange(0, 10)

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 import aefabmap_ros.features.extraction as features_module
-from aefabmap_ros.errors import ConfigError, ImageError
+from aefabmap_ros.errors import ConfigError, DataError, ImageError
 from aefabmap_ros.features.extraction import (
     FeatureConfig,
     Features,
+    check_descriptor_values,
     check_feature_config,
     descriptor_length,
     extract_features,
@@ -149,3 +150,25 @@ def test_compact_descriptors_is_lossless_and_only_bytes_when_exact() -> None:
         assert compact_descriptors(values).dtype == np.float32
     orb = np.array([[1, 2, 3]], np.uint8)
     assert restore_descriptors(compact_descriptors(orb), "orb").dtype == np.uint8
+
+
+@pytest.mark.parametrize("kind", ["sift", "rootsift"])
+def test_real_descriptors_pass_the_value_check(kind: str) -> None:
+    features = extract_features(_textured(3), FeatureConfig(type=kind))
+    assert len(features.descriptors) > 10
+    check_descriptor_values(features.descriptors, kind)  # what the extractor makes is never refused
+
+
+@pytest.mark.parametrize(("kind", "value", "match"), [
+    ("sift", 3e38, "outside \\[-512, 512\\].*largest magnitude 3e\\+38"),
+    ("sift", -600.0, "outside"),
+    ("rootsift", 1.5, "outside \\[-1, 1\\]"),
+    ("surf", 2.0, "outside"),
+    ("sift", np.nan, "1 NaN/Inf sift"),
+    ("rootsift", -np.inf, "NaN/Inf"),
+])
+def test_descriptor_values_no_extractor_makes_are_refused(kind: str, value: float, match: str) -> None:
+    descriptors = np.full((3, 128), 0.1, np.float32)
+    descriptors[1, 5] = value
+    with pytest.raises(DataError, match=match):
+        check_descriptor_values(descriptors, kind)

@@ -15,6 +15,7 @@ rclpy = pytest.importorskip("rclpy")
 from rclpy.node import Node  # noqa: E402
 
 from aefabmap_ros.nodes.common import DropCounter, node_callback, run_nodes  # noqa: E402
+from test.reliability import Recorder  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -124,7 +125,8 @@ class RaisingNode(IdleNode):
         self.handled.append(value)
 
 
-def test_any_exception_in_a_node_callback_is_counted_and_dropped() -> None:
+@pytest.mark.reliability
+def test_any_exception_in_a_node_callback_is_counted_and_dropped(reliability: Recorder) -> None:
     rclpy.init()
     try:
         node = RaisingNode()
@@ -134,6 +136,9 @@ def test_any_exception_in_a_node_callback_is_counted_and_dropped() -> None:
             assert node.handled == [0, 3]
             assert node.counter.counts["dropped_RuntimeError"] == 1
             assert node.counter.counts["dropped_IndexError"] == 1
+            reliability.bad_inputs("any node (an exception in its callback)", tried=2,
+                                   survived=node.counter.counts["dropped_RuntimeError"]
+                                   + node.counter.counts["dropped_IndexError"])
         finally:
             node.destroy_node()
     finally:

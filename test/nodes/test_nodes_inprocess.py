@@ -16,13 +16,15 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
 
-from aefabmap_ros.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402
-from aefabmap_ros.fabmap.engines import FabMapConfig  # noqa: E402
+from aefabmap_ros.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402  # noqa: E402
+from aefabmap_ros.fabmap.engines import FabMapConfig  # noqa: E402  # noqa: E402
 from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
+from aefabmap_ros.stamps import stamp_to_ns  # noqa: E402
+from test.reliability import Recorder  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
@@ -34,6 +36,11 @@ class Captured:
     def __init__(self, publisher: Any) -> None:
         self.messages: list[Any] = []
         publisher.publish = self.messages.append
+
+
+def _dropped(counter: Any) -> int:
+    """Inputs a node counted as dropped (and so survived: the tests then feed it a good one)."""
+    return sum(value for key, value in counter.counts.items() if key.startswith("dropped_"))
 
 
 def _params(**values: Any) -> list[Parameter]:
@@ -51,7 +58,8 @@ def _first_frames(data: RevisitData, count: int) -> list[np.ndarray]:
     return [gray for _, (_, gray) in zip(range(count), frames, strict=False)]
 
 
-def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData, reliability: Recorder) -> None:
     node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
         out = Captured(node.publisher)
@@ -79,6 +87,7 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData) 
         assert len(out.messages) == 3 and len(out.messages[2].x) == 0
         assert out.messages[2].header.stamp.sec == 9
         assert node.counter.counts["images_without_features"] == 1
+        reliability.bad_inputs("feature_node", tried=4, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
@@ -135,7 +144,8 @@ def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revis
         node.destroy_node()
 
 
-def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData, reliability: Recorder) -> None:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
@@ -159,6 +169,9 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData) -> Non
         assert node.counter.counts["dropped_wrong_descriptor_type"] == 1
         assert node.counter.counts["dropped_bad_features"] == 1
         assert len(words_out.messages) == 1
+        node._on_features(features)  # alive: the next frame is quantized
+        assert len(words_out.messages) == 2
+        reliability.bad_inputs("quantizer_node", tried=2, survived=_dropped(node.counter))
     finally:
         feature_node.destroy_node()
         node.destroy_node()
@@ -206,7 +219,9 @@ def _words(word_ids: list[int], sec: int, vocabulary_id: str, size: int = 400) -
     return message
 
 
-def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitData, tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitData, tmp_path: Path,
+                                                          reliability: Recorder) -> None:
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
                                                   map_file=str(tmp_path / "map.npz")))
     try:
@@ -230,12 +245,17 @@ def test_fabmap_node_drops_foreign_and_out_of_order_words(revisit_data: RevisitD
         assert counts["dropped_VocabularyMismatchError"] == 2
         assert counts["dropped_DataError"] == 2
         assert counts["frames_below_min_words"] == 1
-        # Every image answered (a lockstep replay waits for one posterior per image), the blank one too.
-        assert [p.query_id for p in posteriors.messages] == [0, 1, 2]
-        assert [p.current_place_id for p in posteriors.messages] == [0, 0, 1]  # each frame's own place
-        blank = posteriors.messages[1]
+        # Every image answered (a lockstep replay waits for one posterior per image), the blank and the dropped
+        # ones too (query_id -1: not recognised).
+        assert [p.query_id for p in posteriors.messages] == [0, -1, -1, -1, -1, -1, 1, 2, -1]
+        recognised = [p for p in posteriors.messages if p.query_id >= 0]
+        assert [p.current_place_id for p in recognised] == [0, 0, 1]  # each frame's own place
+        blank = recognised[1]
         assert len(blank.place_ids) == 0 and blank.assigned_place_id == -1 and np.isnan(blank.new_place_probability)
         assert node.recognizer.num_places == 2 and node.recognizer.num_queries == 3
+        node._on_words(_words([4, 8, 11], 17, vid))  # alive after the last bad one too
+        assert node.counter.counts["processed"] == 3
+        reliability.bad_inputs("fabmap_node", tried=6, survived=_dropped(node.counter))
         node.close()  # saves the map
         assert (tmp_path / "map.npz").exists()
     finally:
@@ -271,8 +291,13 @@ def test_shipped_parameter_file_matches_declared_parameters(revisit_data: Revisi
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "aefabmap_ros" / "config" / "aefabmap.yaml").read_text())
-    for node_class in (FeatureNode, QuantizerNode, FabMapNode, VerifierNode):
-        values = dict(shipped[node_class.__name__.replace("Node", "").lower() + "_node"]["ros__parameters"])
+    from aefabmap_ros.nodes.pose_graph_node import PoseGraphNode
+
+    sections: dict[type[Any], str] = {
+        FeatureNode: "feature_node", QuantizerNode: "quantizer_node", FabMapNode: "fabmap_node",
+        VerifierNode: "verifier_node", PoseGraphNode: "pose_graph_node"}
+    for node_class, section in sections.items():
+        values = dict(shipped[section]["ros__parameters"])
         if "model_dir" in values:
             values["model_dir"] = str(revisit_data.model_dir)  # the file leaves it for the user to set
         node = node_class(parameter_overrides=_params(**values))
@@ -295,7 +320,10 @@ def test_shipped_parameter_values_are_the_configs_defaults() -> None:
     from test.conftest import REPO_ROOT
 
     shipped = yaml.safe_load((REPO_ROOT / "aefabmap_ros" / "config" / "aefabmap.yaml").read_text())
-    for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig)):
+    from aefabmap_ros.backend.pose_graph import PoseGraphConfig
+
+    for node, config in (("fabmap_node", FabMapConfig), ("verifier_node", VerificationConfig),
+                         ("pose_graph_node", PoseGraphConfig)):
         values = shipped[node]["ros__parameters"]
         assert {f.name: values[f.name] for f in fields(config)} == {f.name: f.default for f in fields(config)}
 
@@ -422,6 +450,37 @@ def test_verifier_node_attaches_the_relative_pose() -> None:
             node.destroy_node()
 
 
+def test_verifier_node_keeps_metric_poses_across_a_restart(tmp_path: Path) -> None:
+    """The place's keypoint depths are saved with the feature store: after a restart (no new depth image of
+    the place) its closures still get a metric pose; without the depth files they would be monocular."""
+    from test.verification.test_geometric import _two_views
+
+    query, place, _ = _two_views(seed=21)
+    settings = {"candidates": 1, "track_seconds": 0.0, "depth_topic": "depth", "store_dir": str(tmp_path)}
+    before = VerifierNode(parameter_overrides=_params(**settings))
+    try:
+        before._on_features(_features_message(place, 1))
+        before._on_depth(_place_depth_image(1))
+        assert before.close()
+    finally:
+        before.destroy_node()
+    assert list(tmp_path.glob("depth-*.npz"))
+    after = VerifierNode(parameter_overrides=_params(**settings))
+    try:
+        assert len(after.store) == 1 and after.depths is not None and 1_000_000_000 in after.depths
+        verified = Captured(after.publisher)
+        after._on_camera_info(_camera_info())
+        after._on_features(_features_message(query, 3))
+        after._on_loop_closure(_closure(3, 1, query_id=10))
+        (closure,) = verified.messages
+        assert closure.pose_available and closure.translation_metric
+        position = closure.pose.position
+        assert np.linalg.norm([position.x, position.y, position.z]) == pytest.approx(
+            np.linalg.norm([0.8, 0.1, 0.3]), abs=0.05)
+    finally:
+        after.destroy_node()
+
+
 def _posterior(query_sec: int, place_secs: list[int], candidate: bool = True) -> Any:
     """fabmap_node's posterior of a query (``candidate``: it also published a loop-closure candidate)."""
     posterior = msg.PlacePosterior(place_ids=place_secs, probabilities=[0.9 / 2**k for k in range(len(place_secs))],
@@ -512,7 +571,8 @@ def test_verifier_node_refuses_bad_parameters() -> None:
         VerifierNode(parameter_overrides=_params(max_stored_frames=0))
 
 
-def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path, reliability: Recorder) -> None:
     from test.verification.test_geometric import _two_views
 
     query, place, _ = _two_views(seed=23)
@@ -539,6 +599,8 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="cannot read feature store chunk"):
         VerifierNode(parameter_overrides=_params(store_dir=str(store_dir)))
     assert chunk.read_bytes() == b"corrupt"  # refused, not overwritten
+    # Refused at start with the file left as it was; its frames are unreadable, nothing else is lost.
+    reliability.fault("corrupt feature store chunk at start (verifier)", injected=1, survived=1, places_lost=0)
 
 
 def _features_of(revisit_data: RevisitData) -> Any:
@@ -552,7 +614,9 @@ def _features_of(revisit_data: RevisitData) -> Any:
         feature_node.destroy_node()
 
 
-def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: RevisitData,
+                                                               reliability: Recorder) -> None:
     import cv2
 
     node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), max_image_pixels=10_000))
@@ -566,11 +630,14 @@ def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: Rev
         node._on_image(_image(b"\0" * 10, "mono8", 2, 5, 5))  # small enough: decoded (and published)
         assert node.counter.counts["dropped_image_too_large"] == 2
         assert len(out.messages) == 1
+        reliability.bad_inputs("feature_node", tried=2, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
 
-def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData,
+                                                                                  reliability: Recorder) -> None:
     features = _features_of(revisit_data)
     node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:
@@ -595,11 +662,14 @@ def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptor
         node._on_features(features)  # the node is alive: the next frame is quantized
         assert node.counter.counts["dropped_RuntimeError"] == 1
         assert len(words_out.messages) == 1
+        reliability.bad_inputs("quantizer_node", tried=2, survived=_dropped(node.counter))
     finally:
         node.destroy_node()
 
 
-def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: RevisitData, tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: RevisitData, tmp_path: Path,
+                                                            reliability: Recorder) -> None:
     import time
 
     map_path = tmp_path / "map.npz"
@@ -612,6 +682,7 @@ def test_fabmap_node_drops_frames_stamped_far_in_the_future(revisit_data: Revisi
         node._on_words(_words([2, 7], 20, vid))  # later frames are not "out of order" because of it
         assert node.counter.counts["dropped_stamp_in_future"] == 1
         assert node.counter.counts["processed"] == 2 and "dropped_out_of_order" not in node.counter.counts
+        reliability.bad_inputs("fabmap_node", tried=1, survived=_dropped(node.counter))
         assert node.close()
     finally:
         node.destroy_node()
@@ -684,7 +755,8 @@ def test_fabmap_node_final_save_failure_is_reported(revisit_data: RevisitData, t
         node.destroy_node()
 
 
-def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) -> None:
+@pytest.mark.reliability
+def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path, reliability: Recorder) -> None:
     """A 64-d frame among 128-d ones: refused by the store (so it cannot poison a save), and a closure
     pairing the two kinds is dropped as unverifiable, not a cv2.error that kills the node."""
     from aefabmap_ros.features.extraction import Features as CoreFeatures
@@ -703,7 +775,127 @@ def test_verifier_node_survives_descriptors_of_another_length(tmp_path: Path) ->
         node._on_loop_closure(_closure(3, 1, query_id=5))
         assert [m.query_id for m in verified.messages] == [5]
         assert node.counter.counts["dropped_bad_features"] == 1 and len(node.store) == 2
+        reliability.bad_inputs("verifier_node", tried=1, survived=_dropped(node.counter))
         assert node.close()  # the store saves
     finally:
         node.destroy_node()
     assert len(list(store_dir.glob("chunk-*.npz"))) == 1
+
+
+def test_fabmap_node_ignores_future_places_of_an_old_map_for_ordering(revisit_data: RevisitData,
+                                                                       tmp_path: Path) -> None:
+    """A map saved before future stamps were refused (here: by a node accepting any stamp) holds a place
+    stamped in 2036: a restart keeps it but processes the frames after the last trusted place."""
+    import time
+
+    map_path = tmp_path / "map.npz"
+    vid = revisit_data.vocabulary_id
+    old = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path),
+                                                 max_future_stamp_s=0.0))
+    try:
+        old._on_words(_words([1, 5, 9], 10, vid))
+        old._on_words(_words([2, 3, 40], int(time.time()) + 10 * 365 * 86400, vid))
+        assert old.recognizer.num_places == 2 and old.close()
+    finally:
+        old.destroy_node()
+    restarted = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                       map_file=str(map_path)))
+    try:
+        assert restarted.recognizer.num_places == 2  # the future place is kept
+        assert restarted.last_stamp_ns == 10 * 10**9
+        restarted._on_words(_words([2, 7, 60], 20, vid))
+        assert restarted.counter.counts["processed"] == 1
+        assert "dropped_out_of_order" not in restarted.counter.counts
+        assert restarted.recognizer.num_places == 3
+    finally:
+        restarted.destroy_node()
+
+
+@pytest.mark.reliability
+def test_fabmap_node_answers_every_frame_it_drops(revisit_data: RevisitData, tmp_path: Path,
+                                                  reliability: Recorder) -> None:
+    """After a restart a replay sends the frames already mapped again: each gets a posterior (query_id -1),
+    so `aefabmap_replay --lockstep place_posteriors` does not wait its timeout on each; so do malformed ones."""
+    map_path = tmp_path / "map.npz"
+    vid = revisit_data.vocabulary_id
+    frames = [([1, 5, 9], 10), ([2, 7, 60], 11), ([3, 80, 90], 12)]
+    first = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), map_file=str(map_path)))
+    try:
+        for words, sec in frames:
+            first._on_words(_words(words, sec, vid))
+        assert first.close()
+    finally:
+        first.destroy_node()
+    restarted = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir),
+                                                       map_file=str(map_path)))
+    try:
+        posteriors = Captured(restarted.posterior_publisher)
+        for words, sec in frames:  # the replay from the start
+            restarted._on_words(_words(words, sec, vid))
+        restarted._on_words(_words([3, 400], 13, vid))  # word id out of range: dropped, still answered
+        restarted._on_words(_words([4, 8, 70], 14, vid))  # a new frame
+        assert restarted.counter.counts["dropped_out_of_order"] == 3
+        assert restarted.counter.counts["dropped_DataError"] == 1
+        answers = posteriors.messages
+        assert [a.header.stamp.sec for a in answers] == [10, 11, 12, 13, 14]
+        assert [a.query_id for a in answers] == [-1, -1, -1, -1, 3]
+        assert all(a.assigned_place_id == -1 and len(a.place_ids) == 0 and np.isnan(a.new_place_probability)
+                   for a in answers[:4])
+        assert answers[4].assigned_place_id >= 0
+        reliability.bad_inputs("fabmap_node", tried=4, survived=_dropped(restarted.counter))
+    finally:
+        restarted.destroy_node()
+
+
+@pytest.mark.reliability
+def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_data: RevisitData,
+                                                                     reliability: Recorder) -> None:
+    """3e38 is finite but no SIFT value (0-255): refused with a clear error, counted, the next frame processed."""
+    features = _features_of(revisit_data)
+    huge = copy.deepcopy(features)
+    values = np.asarray(huge.binary_descriptors, dtype=np.float32).copy()
+    values[7] = 3e38
+    huge.binary_descriptors = np.zeros(0, np.uint8)
+    huge.float_descriptors = values
+    quantizer = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        words_out = Captured(quantizer.publisher)
+        quantizer._on_features(huge)
+        assert quantizer.counter.counts["dropped_bad_features"] == 1 and not words_out.messages
+        quantizer._on_features(features)
+        assert len(words_out.messages) == 1
+        reliability.bad_inputs("quantizer_node", tried=1, survived=_dropped(quantizer.counter))
+    finally:
+        quantizer.destroy_node()
+    verifier = VerifierNode()
+    try:
+        verifier._on_features(huge)
+        assert verifier.counter.counts["dropped_bad_features"] == 1
+        assert stamp_to_ns(huge.header.stamp) not in verifier.store
+        features.header.stamp = Time(sec=77)
+        verifier._on_features(features)  # alive: the next frame is stored
+        assert 77 * 10**9 in verifier.store
+        reliability.bad_inputs("verifier_node", tried=1, survived=_dropped(verifier.counter))
+    finally:
+        verifier.destroy_node()
+
+
+def test_fabmap_node_answers_a_frame_once_when_publishing_its_candidate_fails(
+        revisit_data: RevisitData, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An unexpected exception after the posterior went out is counted; the frame is not answered twice
+    (a lockstep replay would take the second answer for the next image's)."""
+    import aefabmap_ros.nodes.fabmap_node as fabmap_module
+
+    def failing(*_args: Any) -> Any:
+        raise RuntimeError("publisher gone")
+
+    monkeypatch.setattr(fabmap_module, "recognition_to_loop_closure", failing)
+    node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    try:
+        posteriors = Captured(node.posterior_publisher)
+        node._on_words(_words([1, 5, 9], 10, revisit_data.vocabulary_id))
+        assert node.counter.counts["dropped_RuntimeError"] == 1
+        assert [p.query_id for p in posteriors.messages] == [0]  # one answer, the real one
+        assert node.map_saver.unsaved_changes  # the place it made is saved at the next period
+    finally:
+        node.destroy_node()

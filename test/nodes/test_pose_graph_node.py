@@ -72,3 +72,64 @@ def test_pose_graph_node_closes_the_loop_and_writes_tum(tmp_path: Path) -> None:
         assert len(lines) == 2 and float(lines[-1].split()[0]) == pytest.approx(stamp(end) / 1e9)
     finally:
         node.destroy_node()
+
+
+def test_pose_graph_node_moves_camera_closures_to_the_base_frame() -> None:
+    """A camera 0.5 m ahead of the base and turned 90 degrees: the camera-frame closure, conjugated by the
+    ``base_to_camera`` parameter, closes the loop of the base's odometry as the base-frame closure does."""
+    import gtsam
+
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    end = len(truth) - 1
+    base_to_camera = gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.array([0.5, 0.0, 0.2]))
+    cameras = [pose.compose(base_to_camera) for pose in truth]
+    qx, qy, qz, qw = 0.0, 0.0, float(np.sin(np.pi / 4)), float(np.cos(np.pi / 4))  # 90 degrees about z
+    errors = {}
+    for label, extrinsic in (("with", [0.5, 0.0, 0.2, qx, qy, qz, qw]), ("without", [0.0] * 6 + [1.0])):
+        node = PoseGraphNode(parameter_overrides=[Parameter("base_to_camera", value=extrinsic)])
+        try:
+            paths: list[Any] = []
+            node.path_publisher.publish = paths.append
+            node.tf_publisher.publish = lambda _message: None
+            for index, pose in enumerate(odometry):
+                node._on_odometry(_odometry(index, pose))
+            # To frame 2, not 0: the loop ends where it began, and an identity closure looks alike in any frame.
+            node._on_loop_closure(_closure(end, 2, cameras[end].between(cameras[2])))
+            last = paths[-1].poses[-1].pose.position if paths else None
+            errors[label] = (np.inf if last is None else
+                             float(np.linalg.norm(np.array([last.x, last.y, last.z]) - truth[end].translation())))
+        finally:
+            node.destroy_node()
+    odometry_error = np.linalg.norm(odometry[end].translation() - truth[end].translation())
+    assert errors["with"] < 0.1 * odometry_error
+    assert errors["without"] > 0.5 * odometry_error  # the camera's closure taken as the base's: no help
+
+
+def test_pose_graph_node_refuses_a_malformed_extrinsic() -> None:
+    from aefabmap_ros.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="base_to_camera"):
+        PoseGraphNode(parameter_overrides=[Parameter("base_to_camera", value=[0.0, 0.0, 0.0])])
+
+
+def test_pose_graph_node_publishes_map_to_odom_on_tf() -> None:
+    """tf2_msgs is built into the venv (scripts/setup.sh): map -> odom goes out on /tf as a TFMessage."""
+    from tf2_msgs.msg import TFMessage
+
+    node = PoseGraphNode()
+    try:
+        assert node.tf_publisher.topic_name == "/tf" and node.tf_publisher.msg_type is TFMessage
+        sent: list[Any] = []
+        node.tf_publisher.publish = sent.append
+        truth = square_truth()
+        odometry = drifting_odometry(truth)
+        for index, pose in enumerate(odometry):
+            node._on_odometry(_odometry(index, pose))
+        end = len(truth) - 1
+        node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        (message,) = sent
+        (transform,) = message.transforms
+        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "odom")
+    finally:
+        node.destroy_node()

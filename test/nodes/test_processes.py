@@ -23,6 +23,7 @@ from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.io.bags import read_messages, stamp_to_ns
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.verification.geometric import VerificationConfig
+from test.reliability import Recorder
 from test.revisit_fixture import FRAMES_PER_PASS, RevisitData
 from test.ros_processes import LoggedProcess
 
@@ -155,7 +156,9 @@ def _places_in(map_path: Path, data: RevisitData) -> int:
     return recognizer.num_places
 
 
-def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path, revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path, revisit_data: RevisitData,
+                                                                 reliability: Recorder) -> None:
     map_path = tmp_path / "map.npz"
     common: list[str | Path] = [
         "--ros-args", "--params-file", _params_file(tmp_path), "-p", f"model_dir:={revisit_data.model_dir}",
@@ -171,6 +174,8 @@ def test_fabmap_node_killed_and_restarted_keeps_its_saved_places(tmp_path: Path,
                         timeout_s=10)  # the periodic save (every 0.2 s) has caught up
             fabmap.stop(signal.SIGKILL)  # no shutdown hook: only what was saved survives
         assert _places_in(map_path, revisit_data) == FRAMES_PER_PASS
+        reliability.fault("kill -9 of fabmap_node after its periodic save, then restart", injected=1, survived=1,
+                          places_lost=FRAMES_PER_PASS - _places_in(map_path, revisit_data))
 
         with LoggedProcess(tmp_path / "fabmap2.log", "aefabmap_ros.nodes.fabmap_node", *fabmap_args) as fabmap:
             fabmap.wait_for_log(f"reloaded {FRAMES_PER_PASS} places", timeout_s=60)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.model.directory import load_model
+from test.reliability import Recorder
 from test.revisit_fixture import RevisitData
 from test.ros_processes import LoggedProcess, running, write_script
 
@@ -56,13 +58,15 @@ def _map_stamps(map_path: Path, data: RevisitData) -> np.ndarray:
     return np.array([recognizer.place_stamp_ns(p) for p in range(recognizer.num_places)], dtype=np.int64)
 
 
-def test_sigterm_while_busy_saves_a_whole_map_that_later_runs_extend(tmp_path: Path,
-                                                                      revisit_data: RevisitData) -> None:
+@pytest.mark.reliability
+def test_sigterm_while_busy_saves_a_whole_map_that_later_runs_extend(tmp_path: Path, revisit_data: RevisitData,
+                                                                      reliability: Recorder) -> None:
     map_path = tmp_path / "map.npz"
     publisher = write_script(tmp_path, "words_publisher.py", WORDS_PUBLISHER)
     fabmap_args = ["--ros-args", "-p", f"model_dir:={revisit_data.model_dir}", "-p", f"map_file:={map_path}",
                    "-p", "save_period_s:=0.05", "-p", "keyframe_max_overlap:=1.0"]
     previous = np.zeros(0, dtype=np.int64)
+    places_lost = 0
     with running(publisher, revisit_data.vocabulary_id, "400"):
         for run in range(3):
             with LoggedProcess(tmp_path / f"fabmap{run}.log", "aefabmap_ros.nodes.fabmap_node",
@@ -74,11 +78,16 @@ def test_sigterm_while_busy_saves_a_whole_map_that_later_runs_extend(tmp_path: P
                     time.sleep(0.1)
                 time.sleep(1.0)  # busy: words keep coming at ~400 Hz while it stops
                 assert fabmap.stop(signal.SIGTERM) == 0, fabmap.log()[-3000:]
+                in_memory = re.search(r"fabmap_node: (\d+) places", fabmap.log())
+                assert in_memory is not None, fabmap.log()[-3000:]
             stamps = _map_stamps(map_path, revisit_data)
+            places_lost += max(0, int(in_memory.group(1)) - stamps.size)  # held at the signal, missing on disk
             assert stamps.size > previous.size, f"run {run} added no place"
             assert np.all(np.diff(stamps) > 0)
             np.testing.assert_array_equal(stamps[: previous.size], previous)  # the earlier map is its prefix
             previous = stamps
+    reliability.fault("SIGTERM to fabmap_node while words arrive at ~400 Hz", injected=3, survived=3,
+                      places_lost=places_lost)
 
 
 def _children(pid: int) -> list[int]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -183,3 +185,70 @@ def test_keypoint_depths_arrive_in_either_order_and_stay_bounded() -> None:
     third = store.get(30)
     assert third is not None
     np.testing.assert_allclose(depths_of_matches(matched, keypoints, third), np.array([3.0, 9.0]))
+
+
+def test_relative_pose_error_against_a_known_pair() -> None:
+    """Query at the origin, place 2 m along x turned 10 degrees about y; a measurement 1 degree and 5 cm off."""
+    from scipy.spatial.transform import Rotation
+
+    from aefabmap_ros.verification.relative_pose import relative_pose_error
+
+    query = np.eye(4)[:3]
+    place = np.eye(4)
+    place[:3, :3] = Rotation.from_euler("y", 10, degrees=True).as_matrix()
+    place[:3, 3] = [2.0, 0.0, 0.0]
+    measured = place.copy()
+    measured[:3, :3] = Rotation.from_euler("y", 11, degrees=True).as_matrix()
+    measured[:3, 3] = [2.0, 0.05, 0.0]
+    error = relative_pose_error(query, place[:3], measured)
+    assert error.rotation_deg == pytest.approx(1.0, abs=1e-6)
+    assert error.direction_deg == pytest.approx(np.degrees(np.arctan2(0.05, 2.0)), abs=1e-6)
+    assert error.translation_m == pytest.approx(0.05, abs=1e-9)
+    # A monocular (unit) translation along the true direction has no direction error.
+    unit = place.copy()
+    unit[:3, 3] = [1.0, 0.0, 0.0]
+    assert relative_pose_error(query, place, unit).direction_deg == pytest.approx(0.0, abs=1e-6)
+
+
+def test_keypoint_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> None:
+    from aefabmap_ros.verification.relative_pose import KeypointDepthFolder, KeypointDepthStore
+
+    store = KeypointDepthStore(max_frames=2)
+    folder = KeypointDepthFolder(tmp_path)
+    depth_image = np.arange(100, dtype=np.float32).reshape(10, 10)
+    store.add_features(1, np.array([[1.0, 2.0], [3.0, 4.0]], np.float32))
+    store.add_depth(1, depth_image)
+    folder.save(store)
+    store.add_depth(2, depth_image)
+    store.add_features(2, np.array([[5.0, 5.0]], np.float32))
+    folder.save(store)
+    folder.save(store)  # nothing new: no empty chunk
+    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000000.npz", "depth-000000001.npz"]
+
+    reloaded = KeypointDepthStore(max_frames=2)
+    KeypointDepthFolder(tmp_path).load_into(reloaded)
+    first, second = reloaded.get(1), reloaded.get(2)
+    assert first is not None and second is not None
+    assert first.tolist() == [21.0, 43.0] and second.tolist() == [55.0]
+    assert reloaded.unsaved() == []  # reloaded frames count as saved
+
+    # Two more frames push frames 1 and 2 out: their chunks are deleted at the next save.
+    later = KeypointDepthFolder(tmp_path)
+    later.load_into(reloaded)
+    for stamp in (3, 4):
+        reloaded.add_depth(stamp, depth_image)
+        reloaded.add_features(stamp, np.array([[0.0, 0.0]], np.float32))
+    later.save(reloaded)
+    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000002.npz"]
+
+
+def test_a_corrupt_keypoint_depth_chunk_is_named(tmp_path: Path) -> None:
+    from aefabmap_ros.errors import ModelError
+    from aefabmap_ros.io.npz_files import write_npz_atomically
+    from aefabmap_ros.verification.relative_pose import DEPTH_FORMAT_VERSION, KeypointDepthFolder, KeypointDepthStore
+
+    write_npz_atomically(tmp_path / "depth-000000000.npz", {
+        "format_version": np.array(DEPTH_FORMAT_VERSION), "stamps_ns": np.array([1, 2]),
+        "counts": np.array([2, 2]), "depths": np.zeros(3, np.float32)})
+    with pytest.raises(ModelError, match=r"depth-000000000\.npz"):
+        KeypointDepthFolder(tmp_path).load_into(KeypointDepthStore(max_frames=2))

@@ -1,0 +1,88 @@
+"""Messages DDS drops before a callback (reader queue overwritten while busy) are counted by the nodes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("aefabmap_msgs.msg")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+
+from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
+from test.reliability import Recorder  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
+
+DEPTH = 2
+BURST = 30
+
+
+def _spin_until(executor: SingleThreadedExecutor, done: Any, attempts: int = 600) -> None:
+    for _ in range(attempts):
+        if done():
+            return
+        executor.spin_once(timeout_sec=0.05)
+    raise AssertionError("condition not reached")
+
+
+def _image(sec: int) -> Image:
+    image = Image(height=64, width=64, encoding="mono8", step=64, data=bytes(64 * 64))
+    image.header.stamp = Time(sec=sec)
+    return image
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize("qos_kind", ["reliable", "sensor_data"])
+def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str, reliability: Recorder) -> None:
+    """A burst sent while the node takes nothing overflows its queue of DEPTH: every image is then either
+    processed, dropped at the door (camera QoS), or counted as lost before the callback."""
+    node = FeatureNode(parameter_overrides=[
+        Parameter("image_qos", value=qos_kind), Parameter("queue_depth", value=DEPTH),
+        Parameter("subscribe_compressed", value=False)])
+    camera = rclpy.create_node("test_camera")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    counts = node.counter.counts
+
+    def accounted() -> int:
+        return counts["processed"] + counts["dropped_busy"] + counts["dropped_before_callback"]
+
+    try:
+        qos = qos_profile_sensor_data if qos_kind == "sensor_data" else 100
+        publisher = camera.create_publisher(Image, "image", qos)
+        _spin_until(executor, lambda: publisher.get_subscription_count() > 0)
+        sec = 1
+        while accounted() == 0:  # a first image, so the node knows where the camera's numbering stands
+            publisher.publish(_image(sec))
+            sec += 1
+            executor.spin_once(timeout_sec=0.2)
+        for _ in range(10):
+            executor.spin_once(timeout_sec=0.05)
+        before = accounted()
+        for _ in range(BURST):  # the node takes nothing meanwhile: its queue keeps the last DEPTH images
+            publisher.publish(_image(sec))
+            sec += 1
+        published = BURST
+        for attempt in range(400):
+            executor.spin_once(timeout_sec=0.05)
+            if accounted() - before == published:
+                break
+            if attempt % 40 == 39:  # a loss after the last image shows only once another one follows
+                publisher.publish(_image(sec))
+                sec += 1
+                published += 1
+        assert accounted() - before == published, dict(counts)
+        assert counts["dropped_before_callback"] >= BURST - DEPTH
+        reliability.drops(f"feature_node, {qos_kind} QoS, {published} images sent into a queue of {DEPTH} "
+                          f"while it took none ({accounted() - before} accounted for)", counts)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        camera.destroy_node()

@@ -1,0 +1,102 @@
+"""Issue 16's figures, gathered from the tests that exercise them (``scripts/reliability_figures.sh``).
+
+A test marked ``reliability`` records, through the ``reliability`` fixture, what it did: the bad
+inputs it fed a node and how many the node survived (counted, dropped, and the next input
+processed), the faults it injected and the places they lost, the drops a node counted. The figures
+are therefore exactly what the suite checks; a record of a test that failed is shown as such.
+``pytest --reliability-report FILE`` writes them as JSON and prints the tables.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@dataclass
+class Record:
+    kind: str  # "bad_inputs" | "fault" | "drops"
+    subject: str  # a node's name, or the fault injected
+    tried: int = 0  # bad inputs fed / faults injected
+    survived: int = 0  # bad inputs the node survived / faults handled: the state reloads whole, or a damaged
+    # file is refused with an error and left untouched
+    places_lost: int = 0  # faults: places saved before the fault and missing after it
+    counts: dict[str, int] = field(default_factory=dict)  # drops: the node's counters
+    test: str = ""
+    passed: bool = False
+
+
+class Recorder:
+    def __init__(self, test: str, records: list[Record]) -> None:
+        self._test = test
+        self._records = records
+
+    def bad_inputs(self, node: str, tried: int, survived: int) -> None:
+        self._records.append(Record("bad_inputs", node, tried, survived, test=self._test))
+
+    def fault(self, fault: str, injected: int, survived: int, places_lost: int) -> None:
+        self._records.append(Record("fault", fault, injected, survived, places_lost, test=self._test))
+
+    def drops(self, node: str, counts: dict[str, int]) -> None:
+        self._records.append(Record("drops", node, counts=dict(counts), test=self._test))
+
+
+_RECORDS: list[Record] = []
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--reliability-report", metavar="FILE", default="",
+                     help="write the figures recorded by tests marked 'reliability' to FILE (JSON) and print them")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "reliability: records issue 16's figures (scripts/reliability_figures.sh)")
+
+
+@pytest.fixture
+def reliability(request: pytest.FixtureRequest) -> Iterator[Recorder]:
+    first = len(_RECORDS)
+    yield Recorder(request.node.nodeid, _RECORDS)
+    report = getattr(request.node, "reliability_call_report", None)
+    for record in _RECORDS[first:]:
+        record.passed = report is not None and report.passed
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[Any]) -> Iterator[None]:
+    outcome = yield
+    if call.when == "call":
+        item.reliability_call_report = outcome.get_result()  # type: ignore[attr-defined]
+
+
+def tables(records: list[Record]) -> str:
+    lines = ["Bad inputs (per node): tried / survived  [tests]"]
+    for node in sorted({r.subject for r in records if r.kind == "bad_inputs"}):
+        mine = [r for r in records if r.kind == "bad_inputs" and r.subject == node]
+        failed = sum(not r.passed for r in mine)
+        lines.append(f"  {node:<16} {sum(r.tried for r in mine):>4} / {sum(r.survived for r in mine):<4} "
+                     f"[{len(mine)} tests{f', {failed} FAILED' if failed else ''}]")
+    lines.append("Faults: injected / handled (state whole, or damaged file refused untouched) / places lost  [test]")
+    for r in (r for r in records if r.kind == "fault"):
+        lines.append(f"  {r.subject:<44} {r.tried:>3} / {r.survived:<3} / {r.places_lost:<3} "
+                     f"[{r.test.split('::')[-1]}{'' if r.passed else ', FAILED'}]")
+    lines.append("Drops counted (node: counter=value)  [test]")
+    for r in (r for r in records if r.kind == "drops"):
+        counts = ", ".join(f"{k}={v}" for k, v in sorted(r.counts.items()) if k.startswith(("dropped_", "dds_")))
+        lines.append(f"  {r.subject}: {counts or 'none'}  [{r.test.split('::')[-1]}{'' if r.passed else ', FAILED'}]")
+    return "\n".join(lines)
+
+
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    path = config.getoption("--reliability-report")
+    if not path or not _RECORDS:
+        return
+    Path(path).write_text(json.dumps([asdict(r) for r in _RECORDS], indent=1))
+    terminalreporter.write_sep("=", "issue 16 figures")
+    terminalreporter.write_line(tables(_RECORDS))
+    terminalreporter.write_line(f"(written to {path})")
