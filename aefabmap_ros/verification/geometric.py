@@ -42,7 +42,8 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.descriptors import BINARY, FLOAT, kind_of
 from aefabmap_ros.features.extraction import Features
-from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
+from aefabmap_ros.io.chunk_folder import ChunkFolder
+from aefabmap_ros.io.npz_files import read_versioned_npz
 
 CandidateT = TypeVar("CandidateT")
 
@@ -402,62 +403,35 @@ def _kind(descriptor_type: str, descriptors: np.ndarray) -> tuple[str, str, int]
 
 
 _STORE_KEYS = ("descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")
-_CHUNK_GLOB = "chunk-*.npz"
 
 
 class FeatureStoreFolder:
-    """A FeatureStore on disk, as an append-only folder of chunk files (``chunk-<n>.npz``).
-
-    Each ``save`` writes one new chunk holding only the frames added since the last save, so its
-    cost follows the new frames, not the store (a full store of 20,000 SIFT frames is ~2.5 GB); it
-    then deletes the chunks whose frames have all been forgotten. ``load_into`` reads the chunks in
-    order (a later copy of a frame wins) and keeps the newest ``max_frames``. Chunks are written
-    atomically, so a crash loses at most the frames since the last save.
+    """A FeatureStore on disk, as an append-only folder of chunk files (``chunk-<n>.npz``, see
+    :mod:`aefabmap_ros.io.chunk_folder`): each ``save`` writes only the frames added since the last
+    one. ``load_into`` reads the chunks in order (a later copy of a frame wins) and keeps the newest
+    ``max_frames``.
     """
 
     def __init__(self, folder: Path) -> None:
-        self.folder = Path(folder)
-        self._chunk_stamps: dict[Path, set[int]] = {}
-        self._next_chunk = 0
+        self._chunks: ChunkFolder[Features] = ChunkFolder(folder, "chunk", "feature store", _frames_to_arrays,
+                                                          _read_chunk)
+
+    @property
+    def folder(self) -> Path:
+        return self._chunks.folder
 
     def load_into(self, store: FeatureStore) -> None:
         """Replace ``store``'s contents by the saved frames; ModelError naming a bad chunk (store unchanged)."""
-        if self.folder.exists() and not self.folder.is_dir():
-            raise ModelError(f"feature store {self.folder} is not a folder")
-        chunks = sorted(self.folder.glob(_CHUNK_GLOB)) if self.folder.is_dir() else []
-        frames: list[tuple[int, Features]] = []
-        chunk_stamps: dict[Path, set[int]] = {}
-        for chunk in chunks:
-            arrays = read_versioned_npz(chunk, "feature store chunk", "feature store chunk", _STORE_KEYS,
-                                        STORE_FORMAT_VERSION)
-            chunk_frames = _stored_frames(chunk, arrays)
-            chunk_stamps[chunk] = {stamp for stamp, _ in chunk_frames}
-            frames += chunk_frames
-        store._restore(frames)
-        self._chunk_stamps = chunk_stamps
-        self._next_chunk = 1 + max((_chunk_number(c) for c in chunks), default=-1)
+        store._restore(self._chunks.read())
 
     def save(self, store: FeatureStore) -> None:
         """Append the frames added since the last save as one chunk, then drop fully forgotten chunks."""
-        frames = store.unsaved()
-        if frames:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            chunk = self.folder / f"chunk-{self._next_chunk:09d}.npz"
-            write_npz_atomically(chunk, _frames_to_arrays(frames))
-            self._chunk_stamps[chunk] = {stamp for stamp, _ in frames}
-            self._next_chunk += 1
-            store.mark_saved()
-        for chunk, stamps in list(self._chunk_stamps.items()):
-            if not any(stamp in store for stamp in stamps):
-                chunk.unlink(missing_ok=True)
-                del self._chunk_stamps[chunk]
+        self._chunks.save(store)
 
 
-def _chunk_number(chunk: Path) -> int:
-    try:
-        return int(chunk.stem.removeprefix("chunk-"))
-    except ValueError as error:
-        raise ModelError(f"feature store {chunk.parent} holds a chunk with an unexpected name: {chunk.name}") from error
+def _read_chunk(chunk: Path) -> list[tuple[int, Features]]:
+    arrays = read_versioned_npz(chunk, "feature store chunk", "feature store chunk", _STORE_KEYS, STORE_FORMAT_VERSION)
+    return _stored_frames(chunk, arrays)
 
 
 def _frames_to_arrays(frames: list[tuple[int, Features]]) -> dict[str, np.ndarray]:

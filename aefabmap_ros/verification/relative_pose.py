@@ -31,7 +31,8 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
+from aefabmap_ros.io.chunk_folder import ChunkFolder
+from aefabmap_ros.io.npz_files import read_versioned_npz
 
 # Below this many correspondences RANSAC has no redundancy (5-point essential, 4-point PnP + checks).
 MIN_POSE_POINTS = 8
@@ -394,61 +395,52 @@ class KeypointDepthStore:
 
 
 DEPTH_FORMAT_VERSION = 1
-_DEPTH_CHUNK_GLOB = "depth-*.npz"
 
 
 class KeypointDepthFolder:
     """A KeypointDepthStore on disk beside the feature store's chunks (verifier_node's ``store_dir``),
     so that after a restart the places seen before it still give metric poses.
 
-    Append-only like FeatureStoreFolder: each ``save`` writes the frames sampled since the last one as
-    ``depth-<n>.npz`` (stamps, per-frame counts, the depths concatenated; float32, NaN = none: ~2 KiB
-    per frame of 500 keypoints) and deletes the chunks whose frames have all been forgotten.
+    Append-only like FeatureStoreFolder (:mod:`aefabmap_ros.io.chunk_folder`): each ``save`` writes the
+    frames sampled since the last one as ``depth-<n>.npz`` (stamps, per-frame counts, the depths
+    concatenated; float32, NaN = none: ~2 KiB per frame of 500 keypoints).
     """
 
     def __init__(self, folder: Path) -> None:
-        self.folder = Path(folder)
-        self._chunk_stamps: dict[Path, set[int]] = {}
-        self._next_chunk = 0
+        self._chunks: ChunkFolder[np.ndarray] = ChunkFolder(folder, "depth", "keypoint depth store",
+                                                            _depth_arrays, _read_depth_chunk)
+
+    @property
+    def folder(self) -> Path:
+        return self._chunks.folder
 
     def load_into(self, store: KeypointDepthStore) -> None:
         """Replace ``store``'s depths by the saved ones; ModelError naming a bad chunk (store unchanged)."""
-        chunks = sorted(self.folder.glob(_DEPTH_CHUNK_GLOB)) if self.folder.is_dir() else []
-        frames: list[tuple[int, np.ndarray]] = []
-        chunk_stamps: dict[Path, set[int]] = {}
-        for chunk in chunks:
-            arrays = read_versioned_npz(chunk, "keypoint depth chunk", "keypoint depth chunk",
-                                        ("stamps_ns", "counts", "depths"), DEPTH_FORMAT_VERSION)
-            stamps, counts, depths = arrays["stamps_ns"], arrays["counts"], arrays["depths"]
-            if stamps.ndim != 1 or counts.shape != stamps.shape or depths.ndim != 1 \
-                    or (counts.size and counts.min() < 0) or int(counts.sum()) != depths.size:
-                raise ModelError(f"keypoint depth chunk {chunk}: stamps, counts and depths do not agree")
-            split = np.split(depths.astype(np.float32), np.cumsum(counts)[:-1]) if counts.size else []
-            chunk_frames = list(zip((int(stamp) for stamp in stamps), split, strict=True))
-            chunk_stamps[chunk] = {stamp for stamp, _ in chunk_frames}
-            frames += chunk_frames
-        store.restore(frames)
-        self._chunk_stamps = chunk_stamps
-        self._next_chunk = 1 + max((int(c.stem.removeprefix("depth-")) for c in chunks), default=-1)
+        store.restore(self._chunks.read())
 
     def save(self, store: KeypointDepthStore) -> None:
         """Append the frames sampled since the last save as one chunk, then drop fully forgotten chunks."""
-        frames = store.unsaved()
-        if frames:
-            chunk = self.folder / f"depth-{self._next_chunk:09d}.npz"
-            write_npz_atomically(chunk, {
-                "format_version": np.array(DEPTH_FORMAT_VERSION, dtype=np.int64),
-                "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
-                "counts": np.array([len(depths) for _, depths in frames], dtype=np.int64),
-                "depths": np.concatenate([depths for _, depths in frames]).astype(np.float32),
-            })
-            self._chunk_stamps[chunk] = {stamp for stamp, _ in frames}
-            self._next_chunk += 1
-            store.mark_saved()
-        for chunk, stamps in list(self._chunk_stamps.items()):
-            if not any(stamp in store for stamp in stamps):
-                chunk.unlink(missing_ok=True)
-                del self._chunk_stamps[chunk]
+        self._chunks.save(store)
+
+
+def _depth_arrays(frames: list[tuple[int, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {
+        "format_version": np.array(DEPTH_FORMAT_VERSION, dtype=np.int64),
+        "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
+        "counts": np.array([len(depths) for _, depths in frames], dtype=np.int64),
+        "depths": np.concatenate([depths for _, depths in frames]).astype(np.float32),
+    }
+
+
+def _read_depth_chunk(chunk: Path) -> list[tuple[int, np.ndarray]]:
+    arrays = read_versioned_npz(chunk, "keypoint depth chunk", "keypoint depth chunk",
+                                ("stamps_ns", "counts", "depths"), DEPTH_FORMAT_VERSION)
+    stamps, counts, depths = arrays["stamps_ns"], arrays["counts"], arrays["depths"]
+    if stamps.ndim != 1 or counts.shape != stamps.shape or depths.ndim != 1 \
+            or (counts.size and counts.min() < 0) or int(counts.sum()) != depths.size:
+        raise ModelError(f"keypoint depth chunk {chunk}: stamps, counts and depths do not agree")
+    split = np.split(depths.astype(np.float32), np.cumsum(counts)[:-1]) if counts.size else []
+    return list(zip((int(stamp) for stamp in stamps), split, strict=True))
 
 
 def _trim(frames: dict[int, np.ndarray], limit: int) -> None:
