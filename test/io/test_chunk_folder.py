@@ -13,7 +13,9 @@ class _Store:
     """Frames by stamp, the oldest forgotten beyond ``limit``; remembers which are not saved yet."""
 
     def __init__(self, limit: int) -> None:
-        self.limit, self.frames, self._unsaved = limit, {}, []
+        self.limit = limit
+        self.frames: dict[int, float] = {}
+        self._unsaved: list[int] = []
 
     def add(self, stamp: int) -> None:
         self.frames[stamp] = float(stamp) / 10
@@ -21,7 +23,7 @@ class _Store:
         while len(self.frames) > self.limit:
             del self.frames[min(self.frames)]
 
-    def unsaved(self):
+    def unsaved(self) -> list[tuple[int, float]]:
         return [(stamp, self.frames[stamp]) for stamp in self._unsaved if stamp in self.frames]
 
     def mark_saved(self) -> None:
