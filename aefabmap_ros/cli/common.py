@@ -8,6 +8,7 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
+from typing import Any
 
 from aefabmap_ros.errors import AefabmapError
 
@@ -91,3 +92,10 @@ def deferred(target: str) -> Callable[[argparse.Namespace], int]:
         return work(args)
 
     return run
+
+
+def ros_message_class(msgtype: str) -> Any:
+    """The Python class of a ROS message type named as bags name it (``package/msg/Name``); the
+    package is imported only now, so a CLI's ``--help`` does not load ROS."""
+    package, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{package}.msg"), name)

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from aefabmap_ros.cli.common import ros_message_class
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
 
@@ -76,12 +77,6 @@ def _wait_for_publishers(node: Any, topics: list[str], timeout_s: float) -> None
         rclpy.spin_once(node, timeout_sec=0.1)
 
 
-def _message_class(msgtype: str) -> Any:
-    package, _, name = msgtype.split("/")
-    module = __import__(f"{package}.msg", fromlist=[name])
-    return getattr(module, name)
-
-
 def record(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -101,7 +96,7 @@ def record(args: argparse.Namespace) -> int:
                     counts[topic] += 1
                     last_arrival[0] = time.monotonic()
 
-                node.create_subscription(_message_class(msgtype), topic, on_message, 100, raw=True)
+                node.create_subscription(ros_message_class(msgtype), topic, on_message, 100, raw=True)
             _wait_for_publishers(node, args.topics, args.wait_publishers)
             print(f"[record] recording {' '.join(args.topics)}", file=sys.stderr, flush=True)
             started = time.monotonic()

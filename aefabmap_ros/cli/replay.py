@@ -28,6 +28,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+from aefabmap_ros.cli.common import ros_message_class
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
 from aefabmap_ros.nodes.launch_table import compressed_topic
@@ -217,7 +218,7 @@ class Replayer:
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)
         self.companion_subscribers = companion_subscribers(args.companions)
-        self.companions = {topic: self._companion_publisher(topic, msgtype, qos)
+        self.companions = {topic: self.node.create_publisher(ros_message_class(msgtype), topic, qos)
                            for topic, msgtype in _companion_types(args.bag, list(self.companion_subscribers)).items()}
         self.answers = 0
         if args.lockstep:
@@ -225,13 +226,6 @@ class Replayer:
 
             self.answer_subscription = self.node.create_subscription(
                 PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
-
-    def _companion_publisher(self, topic: str, msgtype: str, qos: Any) -> Any:
-        import importlib
-
-        package, _, name = msgtype.split("/")
-        message_class = getattr(importlib.import_module(f"{package}.msg"), name)
-        return self.node.create_publisher(message_class, topic, qos)
 
     def _on_answer(self, _message: bytes) -> None:
         self.answers += 1
