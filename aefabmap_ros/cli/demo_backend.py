@@ -63,17 +63,6 @@ class PoseErrors:
         return "\n".join(lines)
 
 
-def pose_matrix(pose: Any) -> np.ndarray:
-    """A geometry_msgs/Pose as a 4x4 matrix."""
-    from scipy.spatial.transform import Rotation
-
-    q = pose.orientation
-    matrix = np.eye(4)
-    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
-    return matrix
-
-
 class BackendCheck:
     """Fed every published closure (by the demo's printer): scores its pose, relays it to the second
     backend, and injects the wrong closure once."""
@@ -95,7 +84,9 @@ class BackendCheck:
         if not message.pose_available or not known:
             self.errors.without_pose += 1
             return
-        error = relative_pose_error(self._poses[query], self._poses[place], pose_matrix(message.pose))
+        from aefabmap_ros.nodes.messages import pose_to_matrix
+
+        error = relative_pose_error(self._poses[query], self._poses[place], pose_to_matrix(message.pose))
         (self.errors.metric if message.translation_metric else self.errors.monocular).append(error)
         if self.injection is None and self._relayed >= INJECT_AFTER_CLOSURES:
             self._inject(message, query, place)

@@ -196,6 +196,15 @@ def camera_info_to_model(message: Any) -> CameraModel | None:
     return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))
 
 
+def pose_to_matrix(pose: Any) -> np.ndarray:
+    """A geometry_msgs/Pose as a 4x4 matrix (the inverse of what fill_relative_pose writes)."""
+    q = pose.orientation
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return matrix
+
+
 def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
     """Write a relative pose (or why there is none) into a LoopClosure's pose fields."""
     message.pose_status = int(outcome.status)

@@ -37,12 +37,13 @@ from aefabmap_ros.backend.pose_graph import (
     PoseGraph,
     PoseGraphConfig,
     closure_in_base_frame,
+    pose_from_matrix,
     trajectory_arrays,
 )
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
-from aefabmap_ros.nodes.messages import time_from_ns
+from aefabmap_ros.nodes.messages import pose_to_matrix, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
@@ -55,9 +56,7 @@ _DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureRe
 
 
 def pose_to_gtsam(pose: Pose) -> gtsam.Pose3:
-    q = pose.orientation
-    rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    return gtsam.Pose3(gtsam.Rot3(rotation), np.array([pose.position.x, pose.position.y, pose.position.z]))
+    return pose_from_matrix(pose_to_matrix(pose))
 
 
 def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:
