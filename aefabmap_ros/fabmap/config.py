@@ -147,6 +147,14 @@ class FabMapConfig:
             "flickers (0 = the consistency_matches frames must be consecutive)."
         },
     )
+    consistency_window_seconds: float = field(
+        default=0.5,
+        metadata={
+            "description": "Temporal consistency: frames up to this many seconds before this one may join "
+            "its chain too, however many lie between (at video rate a revisit's posterior flickers for a "
+            "fraction of a second, many frames; 0 = only consistency_skips counts)."
+        },
+    )
     island_seconds: float = field(
         default=3.0,
         metadata={
@@ -172,6 +180,7 @@ class FabMapConfig:
         the nodes' (dense video, calibrated, consistent); this is the reference for golden comparisons."""
         reference: dict[str, Any] = {"likelihood_temperature": 1.0, "match_threshold": 0.99,
                                      "exclude_recent_seconds": 0.0, "consistency_matches": 1, "consistency_skips": 0,
+                                     "consistency_window_seconds": 0.0,
                                      "keyframe_max_overlap": 1.0, "keyframe_max_seconds": 0.0}
         return cls(**{**reference, **overrides})
 
@@ -221,6 +230,8 @@ class FabMapConfig:
             raise bad("consistency_matches", ">= 1")
         if self.consistency_skips < 0:
             raise bad("consistency_skips", ">= 0")
+        if not self.consistency_window_seconds >= 0.0:
+            raise bad("consistency_window_seconds", ">= 0")
         if not (np.isfinite(self.island_seconds) and self.island_seconds >= 0.0):
             raise bad("island_seconds", "finite and >= 0")
         if self.top_k < 0:

@@ -170,7 +170,8 @@ class PlaceRecognizer:
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
         self._consistency = TemporalConsistency(
-            self.config.consistency_matches, self.config.island_seconds, self.config.consistency_skips
+            self.config.consistency_matches, self.config.island_seconds, self.config.consistency_skips,
+            self.config.consistency_window_seconds,
         )
 
     # -- read-only views ----------------------------------------------------------------------
@@ -274,7 +275,7 @@ class PlaceRecognizer:
                 probability=float(place_p[best]),
                 log_likelihood=float(place_ll[included[best]]),
             )
-        consistent = self._consistency.observe(None if match is None else match.stamp_ns)
+        consistent = self._consistency.observe(stamp_ns, None if match is None else match.stamp_ns)
         loop_closure = match if consistent else None
 
         added = -1

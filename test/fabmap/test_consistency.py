@@ -12,8 +12,11 @@ from aefabmap_ros.fabmap.consistency import TemporalConsistency
 S = 10**9
 
 
-def _run(chain: TemporalConsistency, matches: list[float | None]) -> list[bool]:
-    return [chain.observe(None if m is None else int(m * S)) for m in matches]
+def _run(chain: TemporalConsistency, matches: list[float | None], frame_period: float = 1.0,
+         start: float = 100.0) -> list[bool]:
+    """Feed one match per frame (frames ``frame_period`` seconds apart from ``start``)."""
+    return [chain.observe(round((start + i * frame_period) * S), None if m is None else int(m * S))
+            for i, m in enumerate(matches)]
 
 
 def test_needs_min_matches_consecutive_matches():
@@ -63,6 +66,38 @@ def test_matches_chain_within_the_island_one_to_the_next():
     assert _run(TemporalConsistency(3, 2.0, max_skipped=1), [11, None, 12.5, 14]) == [False, False, False, True]
 
 
+def test_the_window_reaches_back_over_a_flicker_of_many_frames():
+    # 30 Hz: the revisit matched, then 10 frames matched look-alikes or nothing (1/3 s), then matched again.
+    flicker: list[float | None] = [40.0, None] * 5
+    matches = [10.0, *flicker, 10.4]
+    assert _run(TemporalConsistency(2, 2.0, max_skipped=1, window_seconds=0.5), matches, 1 / 30)[-1]
+    assert not _run(TemporalConsistency(2, 2.0, max_skipped=1, window_seconds=0.3), matches, 1 / 30)[-1]
+    # The window is in the frames' own time: at 1 Hz the same frames are 11 s apart and do not chain.
+    assert not _run(TemporalConsistency(2, 2.0, max_skipped=1, window_seconds=0.5), matches, 1.0)[-1]
+
+
+def test_the_window_does_not_shrink_when_frames_are_dropped():
+    # A busy pipeline took every 6th frame of a 30 Hz camera: two frames 0.2 s apart, one between.
+    assert _run(TemporalConsistency(2, 2.0, window_seconds=0.5), [10.0, None, 10.2], 0.2) == [False, False, True]
+    assert _run(TemporalConsistency(2, 2.0, window_seconds=0.1), [10.0, None, 10.2], 0.2) == [False] * 3
+
+
+def test_the_frame_count_still_reaches_back_at_a_low_frame_rate():
+    # 1 Hz, window 0.5 s: the one allowed skip is what lets the flickering frame pass.
+    assert _run(TemporalConsistency(2, 2.0, max_skipped=1, window_seconds=0.5), [10.0, None, 10.5]) == [
+        False, False, True]
+
+
+def test_memory_stays_bounded_by_the_window_and_after_stamps_jump_back():
+    chain = TemporalConsistency(2, 2.0, max_skipped=1, window_seconds=0.5)
+    _run(chain, [10.0] * 3000, 1 / 30)
+    assert len(chain) <= 0.5 * 30 + 2  # frames within 0.5 s, and the chain's own 3 at least
+    # A bag replayed again into a live node: stamps jump back by 200 s. Frames far from the new stamps
+    # in either direction are out of the window; only the last frames by count stay.
+    _run(chain, [None], 1 / 30, start=0.0)
+    assert len(chain) == 3
+
+
 def _consecutive_reference(matches: list[float | None], k: int, island: float) -> list[bool]:
     """The rule without a window, brute force: the last k frames all matched, each within the island of the next."""
     out = []
@@ -81,7 +116,8 @@ def test_without_skips_it_is_the_consecutive_rule(matches, k):
 @pytest.mark.parametrize(("args", "message"), [((0, 1.0), "min_matches = 0"), ((True, 1.0), "min_matches = True"),
                                               ((2, -1.0), "island_seconds = -1.0"),
                                               ((2, float("nan")), "island_seconds = nan"),
-                                              ((3, 1.0, -1), "max_skipped = -1")])
+                                              ((3, 1.0, -1), "max_skipped = -1"),
+                                              ((3, 1.0, 1, -0.5), "window_seconds = -0.5")])
 def test_bad_config(args, message):
     with pytest.raises(ConfigError, match=message):
         TemporalConsistency(*args)

@@ -267,6 +267,23 @@ def test_consistency_skips_a_frame_that_flickers():
         assert [r.loop_closure is not None for r in results] == closures
 
 
+def test_consistency_window_reaches_over_a_30hz_flicker():
+    """At 30 Hz a revisit matched place 0, flickered for 10 frames (1/3 s), then matched place 1: the
+    time window chains the two matches where a frame count of skips does not."""
+    frames = [np.arange(0, 10), np.arange(10, 20), np.arange(20, 30), np.arange(30, 40)]
+    flicker = np.r_[0:40:4]
+    revisit = (frames[0], *[flicker] * 10, frames[1])
+    for window, closes in ((0.0, False), (0.5, True)):
+        recognizer = _place_recognizer(consistency_matches=2, consistency_skips=1, consistency_window_seconds=window,
+                                       island_seconds=1.5, match_threshold=0.5, add_policy="new_only",
+                                       exclude_recent_seconds=1.0)  # the flicker's own new place is no hypothesis
+        for i, words in enumerate(frames):
+            recognizer.process(words, i * 10**9)
+        results = [recognizer.process(words, 5 * 10**9 + k * 10**9 // 30) for k, words in enumerate(revisit)]
+        assert [r.match.place_id if r.match else -1 for r in results] == [0] + [-1] * 10 + [1]
+        assert [r.loop_closure is not None for r in results] == [False] * 11 + [closes]
+
+
 def test_linked_overlap_excludes_the_stretch_still_in_view():
     """Frames that share words with the query back to the last break are no hypotheses, older ones are."""
     view = np.arange(0, 10)
