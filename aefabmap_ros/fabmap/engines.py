@@ -20,7 +20,9 @@ The places' storage and inverted index are ``index.py``, the posterior over {new
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -35,10 +37,12 @@ from aefabmap_ros.fabmap.observation import FabMapModel, QueryState, rows_to_wor
 # FAB-MAP 2 and FAB-MAP 1 engines (offline and online share them)
 
 
-class FabMap2:
-    """FAB-MAP 2: places in an inverted index; scores relative to an empty place."""
+class FabMapEngine(ABC):
+    """What both engines share: the places and new-place samples (word sets in an ``InvertedIndex``,
+    the one place store the recognizer and the map file read), and the new-place model. Subclasses
+    say how a query is scored against them."""
 
-    method = "fabmap2"
+    method: ClassVar[str]
 
     def __init__(
         self,
@@ -68,6 +72,20 @@ class FabMap2:
     def add(self, word_ids: np.ndarray) -> int:
         return self.places.add(word_ids)
 
+    def clear(self) -> None:
+        """Forget every place (the new-place samples stay: they belong to the model)."""
+        self.places = InvertedIndex(self.model)
+
+    @abstractmethod
+    def log_likelihoods(self, word_ids: np.ndarray, exclude_sample: int | None = None) -> tuple[float, np.ndarray]:
+        """(new-place log-likelihood, (P,) place log-likelihoods) of validated word ids."""
+
+
+class FabMap2(FabMapEngine):
+    """FAB-MAP 2: scores through the inverted index, relative to an empty place."""
+
+    method = "fabmap2"
+
     def place_log_likelihoods(self, state: QueryState) -> np.ndarray:
         return self.places.scores(state)
 
@@ -80,13 +98,13 @@ class FabMap2:
         return _log_mean_exp(self.sample_log_likelihoods(state), exclude_sample)
 
     def log_likelihoods(self, word_ids: np.ndarray, exclude_sample: int | None = None) -> tuple[float, np.ndarray]:
-        """(new-place log-likelihood, (P,) place log-likelihoods) of validated word ids."""
         state = self.model.query_state(word_ids)
         return self.new_place_log_likelihood(state, exclude_sample), self.place_log_likelihoods(state)
 
 
-class FabMap1(FabMap2):
-    """FAB-MAP 1: exact O(V) sum per place (absolute log-likelihoods); the reference for FAB-MAP 2."""
+class FabMap1(FabMapEngine):
+    """FAB-MAP 1: exact O(V) sum per place (absolute log-likelihoods); the reference for FAB-MAP 2.
+    It reads the places' word sets from the shared store and never its postings."""
 
     method = "fabmap1"
 
@@ -125,7 +143,7 @@ def _log_mean_exp(log_values: np.ndarray, exclude: int | None) -> float:
 # Engine by name
 
 
-ENGINES: dict[str, type[FabMap2]] = {"fabmap2": FabMap2, "fabmap1": FabMap1}
+ENGINES: dict[str, type[FabMapEngine]] = {"fabmap2": FabMap2, "fabmap1": FabMap1}
 
 
 def make_engine(
@@ -133,7 +151,7 @@ def make_engine(
     new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
     config: FabMapConfig,
     engine: str = "fabmap2",
-) -> FabMap2:
+) -> FabMapEngine:
     """The engine ``engine`` (a key of ENGINES) on ``tree`` with ``config``'s detector and new-place model."""
     if engine not in ENGINES:
         raise ConfigError(f"engine = {engine!r}: must be one of {tuple(ENGINES)}")

@@ -54,7 +54,7 @@ from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.consistency import TemporalConsistency
 from aefabmap_ros.fabmap.engines import make_engine
-from aefabmap_ros.fabmap.index import GrowableArray, InvertedIndex
+from aefabmap_ros.fabmap.index import GrowableArray
 from aefabmap_ros.fabmap.observation import as_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
@@ -164,7 +164,7 @@ class PlaceRecognizer:
         self._reset()
 
     def _reset(self) -> None:
-        self._engine.places = InvertedIndex(self._engine.model)
+        self._engine.clear()
         self._place_stamps_ns = GrowableArray(np.int64, 64)  # (P,) stamp of each place's frame
         self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
         self._next_query_id = 0

@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.engines import ENGINES, FabMap1, FabMap2, make_engine
+from aefabmap_ros.fabmap.engines import ENGINES, FabMap1, FabMapEngine, make_engine
 from aefabmap_ros.fabmap.index import InvertedIndex
 from aefabmap_ros.fabmap.observation import FabMapModel, rows_to_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior
@@ -70,7 +70,7 @@ def _engine(
     new_place_samples: sp.spmatrix | sp.sparray | np.ndarray | Sequence[np.ndarray] | None,
     config: FabMapConfig,
     method: str,
-) -> FabMap2:
+) -> FabMapEngine:
     """The library's engine of that name, or openFABMAP's look-up-table FAB-MAP 1."""
     if method not in ORACLE_METHODS:
         raise ConfigError(f"method = {method!r}: must be one of {ORACLE_METHODS}")

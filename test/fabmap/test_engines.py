@@ -91,6 +91,23 @@ def test_sampled_new_place_is_mean_sample_likelihood_and_can_exclude_the_query()
         FabMap2(model, None, "sampled")
 
 
+@pytest.mark.parametrize("engine_class", [FabMap1, FabMap2])
+def test_clear_forgets_the_places_and_keeps_the_samples(engine_class):
+    rng = np.random.default_rng(7)
+    tree = _random_tree(rng, 12)
+    samples = [np.flatnonzero(rng.random(12) < 0.4) for _ in range(5)]
+    engine = engine_class(FabMapModel(tree), samples, "sampled")
+    query = np.flatnonzero(rng.random(12) < 0.4)
+    new_before, _ = engine.log_likelihoods(query)
+    for _ in range(3):
+        engine.add(np.flatnonzero(rng.random(12) < 0.4))
+    engine.clear()
+    new_after, places = engine.log_likelihoods(query)
+    assert engine.num_places == 0 and places.shape == (0,)
+    assert new_after == new_before  # the new-place samples belong to the model, not to the map
+    assert engine.add(query) == 0  # place ids start afresh
+
+
 def test_exact_revisit_gets_highest_posterior_and_posteriors_sum_to_one():
     rng = np.random.default_rng(11)
     v = 50
