@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError, ImageError
-from aefabmap_ros.features.descriptors import kind_of, kind_of_type
+from aefabmap_ros.features.descriptors import kind_of_type
 from aefabmap_ros.features.kinds import DESCRIPTOR_LENGTHS, FEATURE_TYPES
 
 # The largest |value| each float descriptor type can hold: a SIFT row is scaled to L2 norm 512 (OpenCV,
@@ -284,35 +284,3 @@ def rootsift(descriptors: np.ndarray) -> np.ndarray:
     values = np.maximum(np.asarray(descriptors, np.float32), 0.0)
     l1 = values.sum(axis=1, keepdims=True)
     return np.sqrt(values / np.maximum(l1, 1e-12)).astype(np.float32)
-
-
-def match_features(a: Features, b: Features, *, ratio: float = 0.8, ransac_px: float = 3.0) -> np.ndarray:
-    """Matches between two images' features: (M, 2) int64 row indices (into a, into b).
-
-    Mutual nearest neighbours passing Lowe's ratio test, then kept only if consistent with a
-    fundamental matrix (RANSAC, ``ransac_px`` pixels) when there are enough of them. Used as
-    the self-supervised signal of the autoencoder (same scene point, neighbouring frames).
-    Deliberately not ``verification.geometric.match_descriptors`` (one-to-one, MAGSAC++ 2 px): one
-    matcher for both would change either the trained vocabularies or what the verifier publishes.
-    """
-    if a.descriptor_type != b.descriptor_type:
-        raise ConfigError(f"cannot match {a.descriptor_type} with {b.descriptor_type} features")
-    if len(a) < 2 or len(b) < 2:
-        return np.zeros((0, 2), np.int64)
-    matcher = cv2.BFMatcher(kind_of(a.descriptors).cv_norm)
-    forward = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
-    backward = matcher.knnMatch(b.descriptors, a.descriptors, k=1)
-    best_back = {m[0].queryIdx: m[0].trainIdx for m in backward if m}
-    pairs = [
-        (m[0].queryIdx, m[0].trainIdx)
-        for m in forward
-        if len(m) == 2 and m[0].distance < ratio * m[1].distance and best_back.get(m[0].trainIdx) == m[0].queryIdx
-    ]
-    matches = np.array(pairs, np.int64).reshape(-1, 2)
-    if len(matches) >= 8:
-        _, inliers = cv2.findFundamentalMat(
-            a.keypoints[matches[:, 0], :2], b.keypoints[matches[:, 1], :2], cv2.FM_RANSAC, ransac_px, 0.99
-        )
-        if inliers is not None:
-            matches = matches[inliers.ravel().astype(bool)]
-    return matches

@@ -42,6 +42,7 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.descriptors import BINARY, FLOAT, kind_of
 from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.features.matching import check_features, match_indices
 from aefabmap_ros.io.chunk_folder import ChunkFolder
 from aefabmap_ros.io.npz_files import read_versioned_npz
 
@@ -143,66 +144,31 @@ class Verification:
     accepted: bool
 
 
-def _check_features(features: Features, role: str) -> None:
-    if features.keypoints.ndim != 2 or features.keypoints.shape[1] < 2:
-        raise DataError(f"{role} keypoints must be (N, >= 2), got shape {features.keypoints.shape}")
-    if features.descriptors.ndim != 2 or features.descriptors.shape[0] != features.keypoints.shape[0]:
-        raise DataError(f"{role} has {features.keypoints.shape[0]} keypoints but descriptors of shape "
-                        f"{features.descriptors.shape}")
-
-
 def match_descriptors(query: Features, place: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ratio-test matches from query to place: (M, 2) float32 query points and (M, 2) place points.
-
-    Binary (uint8) descriptors are compared by Hamming distance, float ones by L2. Each query
-    keypoint keeps its nearest place keypoint when that is closer than ``ratio`` times the second
-    nearest; a place keypoint claimed by several query keypoints keeps only the closest (so no
-    correspondence is counted twice).
-    """
-    _check_features(query, "query")
-    _check_features(place, "place")
-    empty = np.zeros((0, 2), dtype=np.float32)
-    if query.descriptor_type != place.descriptor_type:
-        raise DataError(f"cannot match {query.descriptor_type!r} features against {place.descriptor_type!r} ones")
-    if len(query) == 0 or len(place) < 2:
-        return empty, empty
-    kind = kind_of(query.descriptors)
-    if kind != kind_of(place.descriptors):
-        raise DataError(f"descriptor dtypes differ: {query.descriptors.dtype} vs {place.descriptors.dtype}")
-    if query.descriptors.shape[1] != place.descriptors.shape[1]:  # e.g. 128-d SIFT vs 64-d SURF
-        raise DataError(f"cannot match {query.descriptors.shape[1]}-d descriptors against "
-                        f"{place.descriptors.shape[1]}-d ones")
-    matcher = cv2.BFMatcher(kind.cv_norm)
-    pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=kind.dtype),
-                             np.ascontiguousarray(place.descriptors, dtype=kind.dtype), k=2)
-    best_by_place: dict[int, tuple[float, int]] = {}
-    for pair in pairs:
-        if len(pair) < 2 or pair[0].distance >= ratio * pair[1].distance:
-            continue
-        nearest = pair[0]
-        kept = best_by_place.get(nearest.trainIdx)
-        if kept is None or nearest.distance < kept[0]:
-            best_by_place[nearest.trainIdx] = (nearest.distance, nearest.queryIdx)
-    if not best_by_place:
-        return empty, empty
-    place_index = np.fromiter(best_by_place, dtype=np.int64)
-    query_index = np.fromiter((q for _, q in best_by_place.values()), dtype=np.int64)
-    return (np.ascontiguousarray(query.keypoints[query_index, :2], dtype=np.float32),
-            np.ascontiguousarray(place.keypoints[place_index, :2], dtype=np.float32))
+    """The matches of ``features.matching.match_indices`` as (M, 2) float32 query points and (M, 2) place points."""
+    matches = match_indices(query, place, ratio=ratio)
+    return (np.ascontiguousarray(query.keypoints[matches[:, 0], :2], dtype=np.float32),
+            np.ascontiguousarray(place.keypoints[matches[:, 1], :2], dtype=np.float32))
 
 
-def count_epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> int:
-    """Matches consistent with one robustly fitted fundamental matrix (0 when none can be fitted)."""
+def epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> np.ndarray:
+    """(M,) bool: the matches consistent with one robustly fitted fundamental matrix (none when none fits)."""
     if query_points.shape != place_points.shape or query_points.ndim != 2 or query_points.shape[1] != 2:
         raise DataError(f"point arrays must both be (M, 2), got {query_points.shape} and {place_points.shape}")
+    none = np.zeros(query_points.shape[0], bool)
     if query_points.shape[0] < MIN_MODEL_MATCHES:
-        return 0
+        return none
     try:
         _, mask = cv2.findFundamentalMat(query_points, place_points, cv2.USAC_MAGSAC,
                                          config.ransac_threshold_px, config.confidence, config.max_iterations)
     except cv2.error:  # degenerate configurations (all points on a line, ...): no model, no inliers
-        return 0
-    return 0 if mask is None else int(np.count_nonzero(mask))
+        return none
+    return none if mask is None else mask.ravel().astype(bool)
+
+
+def count_epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> int:
+    """Matches consistent with one robustly fitted fundamental matrix (0 when none can be fitted)."""
+    return int(np.count_nonzero(epipolar_inliers(query_points, place_points, config)))
 
 
 def verify_pair(query: Features, place: Features, config: VerificationConfig) -> Verification:
@@ -329,7 +295,7 @@ class FeatureStore:
         that of the frames already stored: one store is saved as one kind, and a stray frame of
         another would make every later save fail.
         """
-        _check_features(features, "stored frame")
+        check_features(features, "stored frame")
         kind = _kind(features.descriptor_type, features.descriptors)
         stored_kind = self.descriptor_kind
         if stored_kind is not None and kind != stored_kind:

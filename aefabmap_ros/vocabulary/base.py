@@ -16,7 +16,9 @@ import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.descriptors import kind_of
-from aefabmap_ros.features.extraction import Features, match_features
+from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.features.matching import match_indices
+from aefabmap_ros.verification.geometric import VerificationConfig, epipolar_inliers
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
 
 if TYPE_CHECKING:
@@ -241,15 +243,21 @@ def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: flo
     """Matched descriptor pairs between frames up to ``max_gap`` apart in an image sequence.
 
     Returns (M, 2) int64 row indices into ``np.concatenate([f.descriptors for f in features])``:
-    the self-supervised signal for ``train_vocabulary(..., pairs=...)``.
+    the self-supervised signal for ``train_vocabulary(..., pairs=...)``. The same matches the verifier
+    counts (``features.matching``, then the epipolar inliers of its default settings).
     """
+
     if max_gap < 1:
         raise ConfigError(f"max_gap={max_gap} must be >= 1")
     offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
+    geometry = VerificationConfig()
     chunks = []
     for i in range(len(features)):
         for j in range(i + 1, min(len(features), i + max_gap + 1)):
-            local = match_features(features[i], features[j], ratio=ratio)
+            local = match_indices(features[i], features[j], ratio=ratio)
+            points = (features[i].keypoints[local[:, 0], :2].astype(np.float32),
+                      features[j].keypoints[local[:, 1], :2].astype(np.float32))
+            local = local[epipolar_inliers(*points, geometry)]
             chunks.append(local + np.array([offsets[i], offsets[j]]))
     return np.concatenate(chunks).astype(np.int64) if chunks else np.zeros((0, 2), np.int64)
 

@@ -8,12 +8,10 @@ import aefabmap_ros.features.extraction as features_module
 from aefabmap_ros.errors import ConfigError, DataError, ImageError
 from aefabmap_ros.features.extraction import (
     FeatureConfig,
-    Features,
     check_descriptor_values,
     check_feature_config,
     descriptor_length,
     extract_features,
-    match_features,
     rootsift,
     surf_available,
 )
@@ -119,21 +117,6 @@ def test_surf_where_available() -> None:
         pytest.skip("this OpenCV has no non-free SURF")
     features = extract_features(_textured(), FeatureConfig(type="surf", max_features=20))
     assert features.descriptors.shape[1] == 128 and len(features) <= 20
-
-
-def test_match_features_finds_a_known_shift() -> None:
-    image = _textured(3, (260, 340))
-    a = extract_features(image[10:250, 10:330], FeatureConfig())
-    b = extract_features(image[15:255, 3:323], FeatureConfig())  # scene shifted by (+7, -5) pixels
-    matches = match_features(a, b)
-    assert len(matches) > 20
-    shift = b.keypoints[matches[:, 1], :2] - a.keypoints[matches[:, 0], :2]
-    np.testing.assert_allclose(np.median(shift, axis=0), [7, -5], atol=0.5)
-    empty = Features(np.zeros((0, 5), np.float32), np.zeros((0, 128), np.float32), "sift")
-    assert match_features(a, empty).shape == (0, 2)
-    orb = extract_features(image, FeatureConfig(type="orb"))
-    with pytest.raises(ConfigError, match="cannot match sift with orb"):
-        match_features(a, orb)
 
 
 def test_compact_descriptors_is_lossless_and_only_bytes_when_exact() -> None:
