@@ -6,4 +6,5 @@ set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 bash "$ROOT/scripts/setup.sh"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
-exec "${AEFABMAP_VENV:-$ROOT/.venv}/bin/aefabmap_demo" "$@"
+# The checkout's folders; a --out / --bags of the caller's comes later on the line and wins.
+exec "${AEFABMAP_VENV:-$ROOT/.venv}/bin/aefabmap_demo" --out "$ROOT/output/demo" --bags "$ROOT/bags/generated" "$@"

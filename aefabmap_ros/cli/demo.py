@@ -42,7 +42,6 @@ from aefabmap_ros.io.bags import list_topics, read_messages, stamp_to_ns
 from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 # What the replay publishes beside the images (aefabmap_synth's bag): the verifier's depth and
 # intrinsics, and the backend's drifting odometry.
 COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
@@ -51,9 +50,12 @@ COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="aefabmap_demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "output" / "demo", help="results folder")
-    parser.add_argument("--bags", type=Path, default=REPO_ROOT / "bags" / "generated",
-                        help="where the sample bags are made (once) and found")
+    # Relative to the working directory, not to this file: an installed package has no checkout around it
+    # (scripts/demo.sh passes the checkout's output/ and bags/ folders).
+    parser.add_argument("--out", type=Path, default=Path("output") / "demo",
+                        help="results folder (default output/demo)")
+    parser.add_argument("--bags", type=Path, default=Path("bags") / "generated",
+                        help="where the sample bags are made (once) and found (default bags/generated)")
     parser.add_argument("--frames", type=int, default=300, help="frames per synthetic sequence (default 300)")
     parser.add_argument("--size", type=int, default=1000, help="visual words per vocabulary (default 1000)")
     parser.add_argument("--skip-ros", action="store_true", help="offline evaluation only (no ROS nodes)")
