@@ -48,7 +48,8 @@ def image_stamps_ns(args: argparse.Namespace, files: list[Path]) -> np.ndarray:
     if args.rate is not None:
         if not (np.isfinite(args.rate) and args.rate > 0):
             raise ConfigError(f"--rate must be a positive frame rate in Hz, got {args.rate}")
-        return np.rint(args.start * 1e9 + np.arange(len(files)) * (1e9 / args.rate)).astype(np.int64)
+        result: np.ndarray = np.rint(args.start * 1e9 + np.arange(len(files)) * (1e9 / args.rate)).astype(np.int64)
+        return result
     stamps = read_times(args.times, len(files)) if args.times is not None else stamps_from_names(files)
     if np.any(np.diff(stamps) <= 0):
         raise ConfigError("image stamps must increase strictly in file order")

@@ -38,9 +38,10 @@ from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, Backend
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
 from aefabmap_ros.evaluation.metrics import event_scores
-from aefabmap_ros.io.bags import list_topics, read_messages, stamp_to_ns
+from aefabmap_ros.io.bags import list_topics, read_messages
 from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
+from aefabmap_ros.stamps import stamp_to_ns
 
 # What the replay publishes beside the images (aefabmap_synth's bag): the verifier's depth and
 # intrinsics, and the backend's drifting odometry.
@@ -217,7 +218,8 @@ def _demo_params(args: argparse.Namespace, backend_dir: Path) -> Path:
         str(backend_dir / "keyframes.tum")
     path = args.out / "demo_params.yaml"
     path.write_text(yaml.safe_dump(params, sort_keys=False))
-    return path
+    result: Path = path
+    return result
 
 
 def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
@@ -288,7 +290,8 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         if printer.backend is not None:
             print(printer.backend.errors.summary(), flush=True)
         print_backend_result(test, backend_dir)
-    return recording
+    result: Path = recording
+    return result
 
 
 def print_backend_result(test: Path, backend_dir: Path) -> None:

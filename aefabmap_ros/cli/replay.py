@@ -32,6 +32,7 @@ from aefabmap_ros.cli.common import ros_message_class
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
 from aefabmap_ros.nodes.launch_table import compressed_topic
+from aefabmap_ros.stamps import stamp_to_ns
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -104,7 +105,7 @@ def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
         return raw
     typestore = bags.get_typestore()
     message: Any = typestore.deserialize_cdr(raw, msgtype)
-    message.header.stamp = bags.make_time(bags.stamp_to_ns(message.header.stamp) + offset_ns)
+    message.header.stamp = bags.make_time(stamp_to_ns(message.header.stamp) + offset_ns)
     return bytes(typestore.serialize_cdr(message, msgtype))
 
 

@@ -248,7 +248,8 @@ def grid_pixels(height: int, width: int, grid_step_px: int) -> tuple[np.ndarray,
 def _as_metres(values: np.ndarray, depth_scale: float, dtype: type = np.float64) -> np.ndarray:
     """Depth in metres; no depth (0, negative, NaN, inf) becomes NaN."""
     metres = values.astype(dtype) / dtype(depth_scale)
-    return np.where(np.isfinite(metres) & (metres > 0), metres, dtype(np.nan))
+    result: np.ndarray = np.where(np.isfinite(metres) & (metres > 0), metres, dtype(np.nan))
+    return result
 
 
 @dataclass(frozen=True)
@@ -287,7 +288,8 @@ class _PixelRays:
 def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     cells = np.floor(points / points.dtype.type(voxel_m)).astype(np.int64)
     cells = np.clip(cells + _KEY_BIAS, 0, 2 * _KEY_BIAS - 1)
-    return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+    result: np.ndarray = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+    return result
 
 
 def _dilated_keys(keys: np.ndarray) -> np.ndarray:

@@ -34,7 +34,8 @@ def inverse_document_frequency(idf_source: sp.spmatrix | sp.sparray | np.ndarray
     if source.shape[0] == 0:
         raise DataError("idf_source has no images")
     df = np.bincount(source.indices, minlength=source.shape[1]).astype(np.float64)
-    return np.log(source.shape[0] / np.maximum(df, 1.0))
+    result: np.ndarray = np.log(source.shape[0] / np.maximum(df, 1.0))
+    return result
 
 
 def tfidf_vectors(counts: sp.spmatrix | sp.sparray | np.ndarray, idf: np.ndarray) -> sp.csr_matrix:

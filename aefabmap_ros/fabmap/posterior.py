@@ -42,7 +42,8 @@ def posterior(log_likelihoods: np.ndarray, log_prior: np.ndarray | None, smoothi
     np.exp(p, out=p)
     p *= smoothing / p.sum()
     p += (1.0 - smoothing) / p.size
-    return p
+    result: np.ndarray = p
+    return result
 
 
 def top_k_indices(values: np.ndarray, k: int) -> np.ndarray:

@@ -283,4 +283,5 @@ def rootsift(descriptors: np.ndarray) -> np.ndarray:
     """
     values = np.maximum(np.asarray(descriptors, np.float32), 0.0)
     l1 = values.sum(axis=1, keepdims=True)
-    return np.sqrt(values / np.maximum(l1, 1e-12)).astype(np.float32)
+    result: np.ndarray = np.sqrt(values / np.maximum(l1, 1e-12)).astype(np.float32)
+    return result

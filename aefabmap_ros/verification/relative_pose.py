@@ -153,7 +153,8 @@ def _sampson_errors(rotation_vector: np.ndarray, translation: np.ndarray, query_
     e_query = query_h @ essential  # rows: E^T x_query
     algebraic = np.einsum("ij,ij->i", query_h, e_place)
     scale = np.sqrt(e_place[:, 0] ** 2 + e_place[:, 1] ** 2 + e_query[:, 0] ** 2 + e_query[:, 1] ** 2)
-    return algebraic / np.maximum(scale, 1e-12)
+    result: np.ndarray = algebraic / np.maximum(scale, 1e-12)
+    return result
 
 
 def _numeric_jacobian(residual_fn: object, parameters: np.ndarray, step: float = 1e-6) -> np.ndarray:

@@ -440,7 +440,8 @@ class _StageClock:
 def _nearest_rows(rows: np.ndarray, z: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """For each centre, the descriptor whose embedding is nearest (centroid of a word with no member)."""
     index_rows, _ = nearest(z, centres)
-    return rows[index_rows]
+    result: np.ndarray = rows[index_rows]
+    return result
 
 
 def _subsample(x: np.ndarray, limit: int, seed: int) -> np.ndarray:

@@ -41,12 +41,14 @@ class PCA:
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) -> (N, P) float32 projections."""
         x = self._check(descriptors)
-        return ((x - self.mean) @ self.components.T).astype(np.float32, copy=False)
+        result: np.ndarray = ((x - self.mean) @ self.components.T).astype(np.float32, copy=False)
+        return result
 
     def scale(self, projections: np.ndarray) -> np.ndarray:
         """(N, P) projections -> (N, P) float32 in [0, 1] (clipped outside the training range)."""
         scaled = (projections - self.scale_lo) / (self.scale_hi - self.scale_lo)
-        return np.clip(scaled, 0.0, 1.0).astype(np.float32, copy=False)
+        result: np.ndarray = np.clip(scaled, 0.0, 1.0).astype(np.float32, copy=False)
+        return result
 
     def transform_scaled(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) descriptors -> (N, P) float32 in [0, 1]: the autoencoder's input."""

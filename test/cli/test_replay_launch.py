@@ -53,7 +53,8 @@ def test_companions_go_out_before_the_image_of_their_log_time() -> None:
 
 
 def test_replay_restamps_later_laps() -> None:
-    from aefabmap_ros.io.bags import get_typestore, make_image_message, stamp_to_ns
+    from aefabmap_ros.io.bags import get_typestore, make_image_message
+    from aefabmap_ros.stamps import stamp_to_ns
 
     typestore = get_typestore()
     raw = bytes(typestore.serialize_cdr(make_image_message(np.zeros((2, 2), np.uint8), 5_000), "sensor_msgs/msg/Image"))

@@ -55,6 +55,7 @@ def test_closure_precision_recall():
     gt = np.zeros((30, 30), np.uint8)
     gt[20, 2] = gt[21, 3] = gt[22, 4] = gt[23, 20] = 1  # the last is within min gap: not a positive query
     closures = [RecordedClosure(20, 2, 1.0), RecordedClosure(21, 9, 1.0)]
-    assert closure_precision_recall(closures, gt, 10) == (0.5, pytest.approx(1 / 3))
+    precision, recall = closure_precision_recall(closures, gt, 10)
+    assert precision == 0.5 and recall == pytest.approx(1 / 3)
     precision, recall = closure_precision_recall([], gt, 10)
     assert np.isnan(precision) and recall == 0.0

@@ -7,6 +7,7 @@ import pytest
 
 from aefabmap_ros.errors import BagError
 from aefabmap_ros.io import bags
+from aefabmap_ros.stamps import stamp_to_ns
 
 
 def _frames(count: int) -> list[tuple[int, np.ndarray]]:
@@ -66,7 +67,7 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
     read = {m.topic: m.message for m in bags.read_messages(path, ["/loop_closures", "/aefabmap/features", "/image"])}
     got_loop = read["/loop_closures"]
     assert (got_loop.query_id, got_loop.matched_place_id, got_loop.probability, got_loop.inliers) == (42, 7, 0.995, 37)
-    assert bags.stamp_to_ns(got_loop.matched_stamp) == 1_000_000_456
+    assert stamp_to_ns(got_loop.matched_stamp) == 1_000_000_456
     assert got_loop.header.frame_id == "cam"
     got_features = read["/aefabmap/features"]
     np.testing.assert_array_equal(got_features.float_descriptors, np.arange(6, dtype=np.float32))

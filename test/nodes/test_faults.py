@@ -22,7 +22,7 @@ pytest.importorskip("aefabmap_msgs.msg")
 
 from aefabmap_ros.errors import ModelError  # noqa: E402
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree  # noqa: E402
-from aefabmap_ros.fabmap.engines import FabMapConfig  # noqa: E402
+from aefabmap_ros.fabmap.config import FabMapConfig  # noqa: E402
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer  # noqa: E402
 from aefabmap_ros.io.atomic import remove_stale_temporaries  # noqa: E402
 from aefabmap_ros.model.directory import load_model  # noqa: E402

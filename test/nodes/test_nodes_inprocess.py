@@ -17,7 +17,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
 
 from aefabmap_ros.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402  # noqa: E402
-from aefabmap_ros.fabmap.engines import FabMapConfig  # noqa: E402  # noqa: E402
+from aefabmap_ros.fabmap.config import FabMapConfig  # noqa: E402
 from aefabmap_ros.io.sources import ImageSource  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402

@@ -20,8 +20,9 @@ pytest.importorskip("aefabmap_msgs.msg")
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
-from aefabmap_ros.io.bags import read_messages, stamp_to_ns
+from aefabmap_ros.io.bags import read_messages
 from aefabmap_ros.model.directory import load_model
+from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.geometric import VerificationConfig
 from test.reliability import Recorder
 from test.revisit_fixture import FRAMES_PER_PASS, RevisitData

@@ -809,7 +809,8 @@ def _smooth_series(rng: np.random.Generator, count: int, correlation: float) -> 
     pad = int(3 * sigma) + 1
     noise = gaussian_filter1d(rng.normal(size=count + 2 * pad), sigma, mode="reflect")[pad : pad + count]
     std = float(noise.std())
-    return noise / std if std > 0 else noise
+    result: np.ndarray = noise / std if std > 0 else noise
+    return result
 
 
 # dense-video speed plan: (share of the drive's duration, relative speed); the stop lasts _STOP_S.
@@ -965,7 +966,8 @@ def _cast_columns(
 
 def _level(footprint_texels: np.ndarray) -> np.ndarray:
     """Mip level of a pixel covering this many level-0 texels."""
-    return np.clip(np.log2(np.maximum(footprint_texels, 1e-6)), 0.0, NUM_LEVELS - 1.0).astype(np.float32)
+    result: np.ndarray = np.clip(np.log2(np.maximum(footprint_texels, 1e-6)), 0.0, NUM_LEVELS - 1.0).astype(np.float32)
+    return result
 
 
 @dataclass
@@ -1154,8 +1156,10 @@ def _shade(world: World, maps: _Maps) -> np.ndarray:
     low = low.astype(np.float32)
     if low.ndim == 3:
         blend, gain, offset = maps.blend[:, :, None], maps.gain[:, :, None], maps.offset[:, :, None]
-        return (low + (high - low) * blend) * gain + offset * world.fog_value
-    return (low + (high - low) * maps.blend) * maps.gain + maps.offset * float(world.fog_value[0])
+        shaded: np.ndarray = (low + (high - low) * blend) * gain + offset * world.fog_value
+        return shaded
+    result: np.ndarray = (low + (high - low) * maps.blend) * maps.gain + maps.offset * float(world.fog_value[0])
+    return result
 
 
 def _camera_effects(
