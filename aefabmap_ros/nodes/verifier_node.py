@@ -50,6 +50,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.features.extraction import Features as CoreFeatures
+from aefabmap_ros.features.matching import match_indices
 from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.nodes.common import (
@@ -71,8 +72,9 @@ from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
     FeatureStoreFolder,
+    Verification,
     VerificationConfig,
-    match_descriptors,
+    matched_points,
     rerank_by_inliers,
     verify_pair,
 )
@@ -82,7 +84,6 @@ from aefabmap_ros.verification.relative_pose import (
     KeypointDepthFolder,
     KeypointDepthStore,
     RelativePoseConfig,
-    depths_of_matches,
     relative_pose,
 )
 
@@ -221,12 +222,16 @@ class VerifierNode(Node):
             return
         self.store_saver.mark_changed()  # a frame's depths may come after its features were saved
 
-    def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures) -> None:
-        """Fill the closure's relative pose from the query-place matches (or say why there is none)."""
-        query_points, place_points = match_descriptors(query, place, self.config.ratio)
+    def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures,
+                     verification: Verification) -> None:
+        """Fill the closure's relative pose from the matches verification accepted (or say why there is none)."""
+        rows = verification.matched_rows
+        if rows is None:  # verify_pair always keeps them; a caller that dropped them pays one more matching
+            rows = match_indices(query, place, ratio=self.config.ratio)
+        query_points, place_points = matched_points(query, place, rows)
         keypoint_depths = None if self.depths is None else self.depths.get(stamp_to_ns(closure.matched_stamp))
-        place_depths = None if keypoint_depths is None else depths_of_matches(
-            place_points, place.keypoints, keypoint_depths)
+        # The depth store samples the stored keypoints in their order: a place row is its depth's index.
+        place_depths = None if keypoint_depths is None else keypoint_depths[rows[:, 1]].astype(np.float64)
         outcome = relative_pose(query_points, place_points, self.camera, self.pose_config, place_depths)
         fill_relative_pose(closure, outcome)
         self.counter.ok(f"pose_{outcome.status.name.lower()}")
@@ -317,7 +322,7 @@ class VerifierNode(Node):
             probability=float(posterior.probabilities[rank]), log_likelihood=float(posterior.log_likelihoods[rank]),
             inliers=outcome.verification.inliers,
         )
-        self._attach_pose(closure, query, place.features)
+        self._attach_pose(closure, query, place.features, outcome.verification)
         self.track.accept(query_ns, stamp_to_ns(place.stamp))
         self.counter.ok("accepted_by_tracking")
         self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
@@ -359,7 +364,7 @@ class VerifierNode(Node):
         self.get_logger().info(f"{text} accepted: {outcome.verification.inliers} inliers of "
                                f"{outcome.verification.matches} matches")
         message.inliers = outcome.verification.inliers
-        self._attach_pose(message, query, winner.features)
+        self._attach_pose(message, query, winner.features, outcome.verification)
         self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
         self.publisher.publish(message)
 

@@ -31,7 +31,7 @@ a query is matched to, not how confident the detection is.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import TypeVar
@@ -142,13 +142,20 @@ class Verification:
     matches: int  # descriptor matches that passed the ratio test
     inliers: int  # of those, consistent with the fitted fundamental matrix
     accepted: bool
+    # (M, 2) keypoint rows of the matches (query, place): an accepted pair's relative pose is computed from
+    # the same matches without matching again. Not part of the outcome's value.
+    matched_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 def match_descriptors(query: Features, place: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """The matches of ``features.matching.match_indices`` as (M, 2) float32 query points and (M, 2) place points."""
-    matches = match_indices(query, place, ratio=ratio)
-    return (np.ascontiguousarray(query.keypoints[matches[:, 0], :2], dtype=np.float32),
-            np.ascontiguousarray(place.keypoints[matches[:, 1], :2], dtype=np.float32))
+    return matched_points(query, place, match_indices(query, place, ratio=ratio))
+
+
+def matched_points(query: Features, place: Features, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) float32 image points of matched keypoint ``rows`` (query row, place row)."""
+    return (np.ascontiguousarray(query.keypoints[rows[:, 0], :2], dtype=np.float32),
+            np.ascontiguousarray(place.keypoints[rows[:, 1], :2], dtype=np.float32))
 
 
 def epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> np.ndarray:
@@ -174,12 +181,13 @@ def count_epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, c
 def verify_pair(query: Features, place: Features, config: VerificationConfig) -> Verification:
     """Geometric verification of one candidate pair: enough inliers of one fundamental matrix, and enough
     of them for the two images' keypoint counts (``min_inlier_ratio``)."""
-    query_points, place_points = match_descriptors(query, place, config.ratio)
+    rows = match_indices(query, place, ratio=config.ratio)
+    query_points, place_points = matched_points(query, place, rows)
     inliers = count_epipolar_inliers(query_points, place_points, config)
     # The share of keypoints that fit one geometry: an overlap measure, independent of resolution.
     shared = inliers >= config.min_inlier_ratio * max(min(len(query), len(place)), 1)
-    return Verification(matches=int(query_points.shape[0]), inliers=inliers,
-                        accepted=inliers >= config.min_inliers and shared)
+    return Verification(matches=int(rows.shape[0]), inliers=inliers,
+                        accepted=inliers >= config.min_inliers and shared, matched_rows=rows)
 
 
 PairVerifier = Callable[[int, int], Verification]
@@ -191,8 +199,8 @@ def cached_pair_verifier(features: Sequence[Features], config: VerificationConfi
 
     def verify(query: int, place: int) -> Verification:
         key = (query, place)
-        if key not in cache:
-            cache[key] = verify_pair(features[query], features[place], config)
+        if key not in cache:  # without the matched rows: a long sequence verifies many pairs
+            cache[key] = replace(verify_pair(features[query], features[place], config), matched_rows=None)
         return cache[key]
 
     return verify

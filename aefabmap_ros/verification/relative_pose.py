@@ -317,14 +317,6 @@ def depth_at_pixels(depth_m: np.ndarray, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def depths_of_matches(matched_points: np.ndarray, keypoints: np.ndarray, keypoint_depths: np.ndarray) -> np.ndarray:
-    """Depth of each matched place point, looked up by its exact coordinates among the place's keypoints
-    (matching copies the keypoints' coordinates); NaN where the keypoint has none."""
-    by_position = {(float(x), float(y)): float(d) for (x, y), d in zip(keypoints[:, :2], keypoint_depths, strict=True)}
-    return np.array([by_position.get((float(x), float(y)), np.nan) for x, y in matched_points[:, :2]],
-                    dtype=np.float64)
-
-
 class KeypointDepthStore:
     """Depth (metres, float32, NaN = none) at each stored keypoint of recent frames, by image stamp.
 

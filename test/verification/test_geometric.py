@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.features.matching import match_indices
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
     FeatureStoreFolder,
@@ -149,6 +150,10 @@ def test_a_true_second_view_is_accepted_with_its_correspondences_as_inliers() ->
     assert result.accepted
     # Independent reference: the scene's own correspondences are the inliers (clutter is not).
     assert 0.9 * shared <= result.inliers <= result.matches <= shared + 5
+    # The accepted pair keeps its matches (the relative pose uses them): the matcher's rows.
+    assert result.matched_rows is not None
+    np.testing.assert_array_equal(result.matched_rows, match_indices(query, place, ratio=0.8))
+    assert result == Verification(result.matches, result.inliers, True)  # the rows are not part of the value
 
 
 def test_a_small_shared_part_of_two_busy_images_is_no_match() -> None:

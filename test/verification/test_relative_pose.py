@@ -16,7 +16,6 @@ from aefabmap_ros.verification.relative_pose import (
     PoseStatus,
     RelativePoseConfig,
     depth_image_to_metres,
-    depths_of_matches,
     essential_pose,
     pnp_pose,
     relative_pose,
@@ -181,10 +180,6 @@ def test_keypoint_depths_arrive_in_either_order_and_stay_bounded() -> None:
     store.add_depth(30, depth)
     store.add_features(30, keypoints)
     assert len(store) == 2 and store.get(10) is None
-    matched = keypoints[[1, 0]]
-    third = store.get(30)
-    assert third is not None
-    np.testing.assert_allclose(depths_of_matches(matched, keypoints, third), np.array([3.0, 9.0]))
 
 
 def test_relative_pose_error_against_a_known_pair() -> None:
