@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from aefabmap_ros.cli.common import report_errors
+from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, BackendCheck, ate_figures, ate_summary
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
@@ -49,7 +49,7 @@ COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_demo", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     # Relative to the working directory, not to this file: an installed package has no checkout around it
     # (scripts/demo.sh passes the checkout's output/ and bags/ folders).
@@ -350,7 +350,9 @@ def _interrupt(_signum: int, _frame: FrameType | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_or_report(build_parser(), argv)
+    if args is None:
+        return 1
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     signal.signal(signal.SIGTERM, _interrupt)
     return report_errors(lambda: run(args))

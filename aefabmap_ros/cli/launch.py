@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.nodes.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
 
@@ -43,7 +44,7 @@ def default_params_file() -> Path:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_launch", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_launch", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, required=True, help="model directory (from aefabmap_train)")
     parser.add_argument("--params", type=Path, default=None,
@@ -177,24 +178,20 @@ def _is_parameter_section(section: object) -> bool:
     return all(_is_parameter_section(inner) for inner in section.values())
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(args: argparse.Namespace) -> int:
     if not args.model.is_dir():
-        print(f"ERROR: --model {args.model} is not a directory (train one with aefabmap_train)", file=sys.stderr)
-        return 1
-    try:
-        params = args.params or default_params_file()
-    except ConfigError as error:  # the package's own file is missing: a broken install
-        print(f"ERROR: {error}", file=sys.stderr)
-        return 1
+        raise ConfigError(f"--model {args.model} is not a directory (train one with aefabmap_train)")
+    params = args.params or default_params_file()  # a ConfigError when the package's own file is missing
     if not params.is_file():
-        print(f"ERROR: --params {params} does not exist", file=sys.stderr)
-        return 1
+        raise ConfigError(f"--params {params} does not exist")
     problem = params_file_problem(params)
     if problem is not None:
-        print(f"ERROR: {problem}", file=sys.stderr)
-        return 1
+        raise ConfigError(problem)
     return supervise(node_commands(args))
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, run)
 
 
 if __name__ == "__main__":

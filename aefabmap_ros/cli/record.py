@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from aefabmap_ros.cli.common import ros_message_class
-from aefabmap_ros.errors import AefabmapError, ConfigError
+from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli
+from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io import bags
 
 # The suite's topics and their types; other topics' types are discovered from the graph.
@@ -30,7 +30,7 @@ DEFAULT_TOPICS = ("loop_closures", "loop_closure_candidates", "place_posteriors"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_record", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_record", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("output", type=Path, help="bag directory to create")
     parser.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS),
@@ -117,18 +117,18 @@ def record(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(args: argparse.Namespace) -> int:
     import rclpy
 
     rclpy.init()
     try:
         return record(args)
-    except AefabmapError as exc:
-        print(f"ERROR: {exc}", file=sys.stderr)
-        return 1
     finally:
         rclpy.try_shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(build_parser(), argv, run)
 
 
 if __name__ == "__main__":

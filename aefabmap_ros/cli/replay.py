@@ -28,7 +28,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from aefabmap_ros.cli.common import ros_message_class
+from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, ros_message_class
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.io import bags
 from aefabmap_ros.nodes.launch_table import compressed_topic
@@ -36,7 +36,7 @@ from aefabmap_ros.stamps import stamp_to_ns
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aefabmap_replay", description=__doc__,
+    parser = ArgumentParser(prog="aefabmap_replay", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", type=Path, help="rosbag2 bag directory (mcap or sqlite3)")
     parser.add_argument("--topic", default="/image", help="image topic in the bag (default: /image)")
@@ -354,7 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     if "--ros-args" in raw_argv:
         cut = raw_argv.index("--ros-args")
         raw_argv, ros_args = raw_argv[:cut], raw_argv[cut:]
-    args = parser.parse_args(raw_argv)
+    args = parse_or_report(parser, raw_argv)
+    if args is None:
+        return 1
     stop = StopRequest()
     stop.install()  # before anything slow: a signal during start-up is a clean stop too
     try:

@@ -26,3 +26,16 @@ def test_help_and_usage_errors_import_no_heavy_library(module):
                             timeout=120, check=True)
     assert result.stdout.strip().splitlines()[-1] == "loaded:"
     assert "usage:" in result.stdout + result.stderr or module.endswith("bench")
+
+
+CLIS = ("train", "evaluate", "gt", "synth", "bag", "ate", "launch", "replay", "record", "demo")
+
+
+@pytest.mark.parametrize("name", CLIS)
+def test_a_usage_error_is_one_error_line_and_exit_1(name, capsys):
+    """Every CLI maps a bad option the same way (argparse alone would exit 2 with its own message)."""
+    from importlib import import_module
+
+    assert import_module(f"aefabmap_ros.cli.{name}").main(["--no-such-option"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("ERROR: ") and "usage: aefabmap_" in err  # the missing argument or the unknown option
