@@ -37,7 +37,7 @@ from aefabmap_ros.errors import ConfigError
 class TemporalConsistency:
     """Chain of the recent matches: (query stamp, matched place stamp or ``None`` for no match)."""
 
-    def __init__(self, min_matches: int, island_seconds: float, max_skipped: int = 0,
+    def __init__(self, min_matches: int, island_seconds: float, *, max_skipped: int = 0,
                  window_seconds: float = 0.0) -> None:
         if isinstance(min_matches, bool) or not isinstance(min_matches, int) or min_matches < 1:
             raise ConfigError(f"min_matches = {min_matches!r}: must be an integer >= 1")

@@ -170,8 +170,8 @@ class PlaceRecognizer:
         self._next_query_id = 0
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
         self._consistency = TemporalConsistency(
-            self.config.consistency_matches, self.config.island_seconds, self.config.consistency_skips,
-            self.config.consistency_window_seconds,
+            self.config.consistency_matches, self.config.island_seconds, max_skipped=self.config.consistency_skips,
+            window_seconds=self.config.consistency_window_seconds,
         )
 
     # -- read-only views ----------------------------------------------------------------------

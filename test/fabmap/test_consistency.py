@@ -113,11 +113,10 @@ def test_without_skips_it_is_the_consecutive_rule(matches, k):
     assert _run(TemporalConsistency(k, 2.0), matches) == _consecutive_reference(matches, k, 2.0)
 
 
-@pytest.mark.parametrize(("args", "message"), [((0, 1.0), "min_matches = 0"), ((True, 1.0), "min_matches = True"),
-                                              ((2, -1.0), "island_seconds = -1.0"),
-                                              ((2, float("nan")), "island_seconds = nan"),
-                                              ((3, 1.0, -1), "max_skipped = -1"),
-                                              ((3, 1.0, 1, -0.5), "window_seconds = -0.5")])
-def test_bad_config(args, message):
+@pytest.mark.parametrize(("args", "options", "message"), [
+    ((0, 1.0), {}, "min_matches = 0"), ((True, 1.0), {}, "min_matches = True"),
+    ((2, -1.0), {}, "island_seconds = -1.0"), ((2, float("nan")), {}, "island_seconds = nan"),
+    ((3, 1.0), {"max_skipped": -1}, "max_skipped = -1"), ((3, 1.0), {"window_seconds": -0.5}, "window_seconds = -0.5")])
+def test_bad_config(args, options, message):
     with pytest.raises(ConfigError, match=message):
-        TemporalConsistency(*args)
+        TemporalConsistency(*args, **options)
