@@ -96,6 +96,7 @@ class Setup:
     code: str  # "this" or "baseline"
     source: Path | None
     pipeline: bool  # one aefabmap_pipeline process instead of three node processes
+    model_dir: Path | None = None  # the model its nodes load instead of the run's (--baseline-model)
 
     @property
     def label(self) -> str:
@@ -116,7 +117,8 @@ def _launch(setup: Setup, model_dir: Path, params: Path, log: Any) -> subprocess
     environment = dict(os.environ)
     if setup.source is not None:  # the baseline's package first on the path: its nodes, our messages
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(setup.source), environment.get("PYTHONPATH")]))
-    command = [sys.executable, "-m", "aefabmap_ros.cli.launch", "--model", str(model_dir), "--params", str(params),
+    command = [sys.executable, "-m", "aefabmap_ros.cli.launch", "--model", str(setup.model_dir or model_dir),
+               "--params", str(params),
                "--no-verify"] + (["--pipeline"] if setup.pipeline else [])
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment,
                             cwd=setup.source or None)
@@ -300,6 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--baseline", type=Path, default=None,
                         help="source tree of the code to compare with (e.g. a worktree of an older commit): its "
                         "nodes run with this tree's messages, and images/s are given as ratios against it")
+    parser.add_argument("--baseline-model", type=Path, default=None,
+                        help="the model the baseline's nodes load (default: --model), for a model the baseline "
+                        "cannot read, e.g. one with a feature setting it does not know")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each setup, interleaved (default 2)")
     parser.add_argument("--rate", type=float, default=0.0,
                         help="0 (default): replay as fast as possible, reliable QoS, images/s; > 0: a camera at "
@@ -317,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.baseline is not None and not (args.baseline / "aefabmap_ros" / "cli" / "launch.py").is_file():
         raise ConfigError(f"--baseline {args.baseline} is not an aefabmap_ros source tree")
+    if args.baseline_model is not None and (args.baseline is None or args.model is None):
+        raise ConfigError("--baseline-model needs --baseline and --model")
     if args.repeats < 1 or args.rate < 0:
         raise ConfigError("--repeats must be >= 1 and --rate >= 0")
     if args.quick:
@@ -326,10 +333,11 @@ def run(args: argparse.Namespace) -> int:
     images = sequence.images
     print(f"{len(images)} synthetic frames {args.width}x{args.height}; "
           f"{'model ' + str(args.model) if args.model else f'sampled {args.size}-word vocabulary'}; "
+          f"{'baseline model ' + str(args.baseline_model) + '; ' if args.baseline_model else ''}"
           f"{os.cpu_count()} cores, load average {_load()}")
     setups = [Setup("this", None, pipeline) for pipeline in ([False] if args.no_pipeline else [False, True])]
     if args.baseline is not None:
-        setups += [Setup("baseline", args.baseline.resolve(), setup.pipeline) for setup in setups]
+        setups += [Setup("baseline", args.baseline.resolve(), setup.pipeline, args.baseline_model) for setup in setups]
     with tempfile.TemporaryDirectory(prefix="aefabmap_bench_") as tmp:
         work = Path(tmp)
         bag = work / "bag"

@@ -27,6 +27,10 @@ from aefabmap_ros.features.kinds import DESCRIPTOR_LENGTHS, FEATURE_TYPES
 _DESCRIPTOR_VALUE_BOUNDS = {"sift": 512.0, "rootsift": 1.0, "surf": 1.0}
 _BOUND_TOLERANCE = 1.001  # float32 rounding of a normalised row may pass 1 by an ulp or two
 
+# SIFT's first octave: -1 = OpenCV's only behaviour (the image doubled), 0 = VLFeat's default (see
+# _detect_from_octave_zero for how OpenCV is made to start there).
+SIFT_FIRST_OCTAVES = (-1, 0)
+
 
 @dataclass(frozen=True)
 class FeatureConfig:
@@ -55,6 +59,12 @@ class FeatureConfig:
     )
     sift_sigma: float = field(
         default=1.6, metadata={"description": "SIFT/RootSIFT Gaussian sigma at octave 0."}
+    )
+    sift_first_octave: int = field(
+        default=-1,
+        metadata={"description": "SIFT/RootSIFT first octave: -1 doubles the image first (Lowe, OpenCV); 0 "
+                  "starts at the image's own resolution (VLFeat's default): about 4x less pyramid work, "
+                  "no keypoints finer than the image's pixels."},
     )
     orb_scale_factor: float = field(
         default=1.2, metadata={"description": "ORB pyramid decimation ratio (> 1)."}
@@ -85,6 +95,8 @@ class FeatureConfig:
         _require(self.sift_edge_threshold > 0, "sift_edge_threshold", self.sift_edge_threshold, "> 0")
         _require(self.sift_n_octave_layers >= 1, "sift_n_octave_layers", self.sift_n_octave_layers, ">= 1")
         _require(self.sift_sigma > 0, "sift_sigma", self.sift_sigma, "> 0")
+        _require(type(self.sift_first_octave) is int and self.sift_first_octave in SIFT_FIRST_OCTAVES,
+                 "sift_first_octave", self.sift_first_octave, f"one of {SIFT_FIRST_OCTAVES}")
         _require(self.orb_scale_factor > 1.0, "orb_scale_factor", self.orb_scale_factor, "> 1")
         _require(self.orb_n_levels >= 1, "orb_n_levels", self.orb_n_levels, ">= 1")
         _require(0 <= self.orb_fast_threshold <= 255, "orb_fast_threshold", self.orb_fast_threshold,
@@ -255,12 +267,12 @@ def extract_features(gray: np.ndarray, config: FeatureConfig) -> Features:
     if gray.size == 0:
         raise ImageError(f"extract_features got an empty image of shape {gray.shape}")
     detector = _detector(config)
-    cv_keypoints, descriptors = detector.detectAndCompute(np.ascontiguousarray(gray), None)
-    if descriptors is None or len(cv_keypoints) == 0:
+    if config.type in ("sift", "rootsift") and config.sift_first_octave == 0:
+        keypoints, descriptors = _detect_from_octave_zero(detector, gray)
+    else:
+        keypoints, descriptors = _detect(detector, np.ascontiguousarray(gray))
+    if descriptors is None or len(keypoints) == 0:
         return empty_features(config)
-    keypoints = np.array(
-        [(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in cv_keypoints], dtype=np.float32
-    ).reshape(-1, 5)
     descriptors = np.asarray(descriptors, dtype=descriptor_dtype(config))
     if config.type == "surf" and config.max_features > 0 and len(keypoints) > config.max_features:
         # SURF has no nfeatures option: keep the strongest responses ourselves.
@@ -273,6 +285,50 @@ def extract_features(gray: np.ndarray, config: FeatureConfig) -> Features:
         descriptors=np.ascontiguousarray(descriptors),
         descriptor_type=config.type,
     )
+
+
+def _detect(detector: Any, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """OpenCV's keypoints as (N, 5) float32 rows [x, y, size, angle, response], and its descriptors."""
+    cv_keypoints, descriptors = detector.detectAndCompute(gray, None)
+    keypoints = np.array(
+        [(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in cv_keypoints], dtype=np.float32
+    ).reshape(-1, 5)
+    return keypoints, descriptors
+
+
+def _detect_from_octave_zero(detector: Any, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT with its first octave at the image's own resolution (VLFeat's firstOctave 0), from OpenCV's
+    SIFT, which always doubles its input first (firstOctave -1) and has no option to stop it.
+
+    It is given the image halved instead (each 2x2 block averaged), so its doubled first octave is back
+    at the image's resolution: 4x fewer pixels in the finest octave, the one that costs most. Why this is
+    octave 0 of the image up to resampling, in the image's pixels (= the doubled half's): OpenCV assumes
+    its input carries 0.5 (input) px of blur, 1.0 px once doubled, and blurs on by sqrt(1.6^2 - 1.0^2) to
+    reach sigma 1.6. What it really gets is the camera's 0.5 px, the 2x2 box's 0.58 px and the bilinear
+    doubling's 0.87 px, then its 1.25 px: sqrt(0.5^2 + 0.58^2 + 0.87^2 + 1.25^2) = 1.70 px at the first
+    level. OpenCV's own octave 0 with the doubling (its level 3.2 px in doubled pixels, built on 1.0 px
+    + the same 0.87 px of bilinear doubling, halved) is at sqrt(1.0 + 0.75 + 3.2^2 - 1.0) / 2 = 1.66 px:
+    the same scale space to 3 %, so both find the same blobs at the same sizes (a test checks sizes and
+    positions of matched keypoints). What halving loses (detail above a quarter cycle per pixel) is what
+    a 1.6 px Gaussian removes anyway: it passes exp(-2 pi^2 1.6^2 0.25^2) = 4 % of it. The coarser octaves
+    follow from the first, as in VLFeat. Descriptors need no change: they are sampled relative to each
+    keypoint's scale and orientation, then normalised. An odd last row or column is cut so the halving
+    is exactly 2x.
+
+    Keypoints come back in the image's pixels by x 2 (sizes too). Why not 2x + 0.5, though halved pixel
+    i is the centre of image pixels 2i and 2i + 1: OpenCV reports positions in its doubled image divided
+    by 2, a quarter input pixel beyond where its bilinear doubling put them (doubled pixel j lies at
+    input j/2 - 0.25), so its x is the true x_half + 0.25, and 2 (x_half + 0.25) = the image's x - 0.5
+    + 0.5. Measured on blobs at known sub-pixel centres: this lands on them to 0.01 px; OpenCV's own
+    first octave -1 reports them 0.25 px right and down (left as it is: the vocabularies were made so).
+    """
+    height, width = (gray.shape[0] // 2) * 2, (gray.shape[1] // 2) * 2
+    if height == 0 or width == 0:  # a one-pixel strip: nothing for SIFT to find at any octave
+        return np.zeros((0, 5), np.float32), None
+    halved = cv2.resize(gray[:height, :width], (width // 2, height // 2), interpolation=cv2.INTER_AREA)
+    keypoints, descriptors = _detect(detector, halved)
+    keypoints[:, :3] *= 2.0  # x, y, size
+    return keypoints, descriptors
 
 
 def rootsift(descriptors: np.ndarray) -> np.ndarray:

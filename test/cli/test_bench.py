@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import subprocess
+from pathlib import Path
+from typing import Any
+
 import pytest
 
-from aefabmap_ros.cli import bench
+from aefabmap_ros.cli import bench, bench_pipeline
 
 
 def test_dispatcher_rejects_unknown_benchmark(capsys: pytest.CaptureFixture[str]) -> None:
@@ -18,6 +22,23 @@ def test_pipeline_quick(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     for stage in ("decode", "features", "quantize", "fabmap", "images/s on one core"):
         assert stage in out
+
+
+def test_pipeline_baseline_model_needs_a_baseline(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert bench.main(["pipeline", "--quick", "--model", str(tmp_path), "--baseline-model", str(tmp_path)]) == 1
+    assert "ERROR: --baseline-model needs --baseline and --model" in capsys.readouterr().err
+
+
+def test_baseline_nodes_load_the_baseline_model(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # A model with a setting the baseline does not know cannot be loaded there: its nodes get their own.
+    commands: list[list[str]] = []
+    monkeypatch.setattr(subprocess, "Popen", lambda command, **_: commands.append(command))
+    ours, theirs = bench_pipeline.Setup("this", None, False), bench_pipeline.Setup("baseline", tmp_path, False,
+                                                                                    Path("/old_model"))
+    log: Any = None
+    for setup in (ours, theirs):
+        bench_pipeline._launch(setup, Path("/model"), tmp_path / "params.yaml", log)
+    assert [command[command.index("--model") + 1] for command in commands] == ["/model", "/old_model"]
 
 
 def test_fabmap_quick(capsys: pytest.CaptureFixture[str]) -> None:

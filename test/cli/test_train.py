@@ -45,6 +45,31 @@ def test_trains_a_model_the_nodes_load(tmp_path: Path, revisit_data: RevisitData
         rclpy.try_shutdown()
 
 
+def test_the_trained_sift_first_octave_is_what_feature_node_extracts_with(tmp_path: Path,
+                                                                          revisit_data: RevisitData) -> None:
+    config = tmp_path / "train.yaml"
+    config.write_text("feature:\n  sift_first_octave: 0\n")
+    out = tmp_path / "model"
+    assert main(["--bag", str(revisit_data.first_pass_bag), "--topic", "/image", "--config", str(config),
+                 "--out", str(out), *SMALL]) == 0
+    model = load_model(out)
+    assert model.feature_config.sift_first_octave == 0 and model.feature_config.max_features == 150
+
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.parameter import Parameter
+
+    from aefabmap_ros.nodes.feature_node import FeatureNode
+
+    rclpy.init()
+    try:  # the node's own parameter says -1: the model's setting wins, so its features match the vocabulary
+        node = FeatureNode(parameter_overrides=[Parameter("model_dir", value=str(out)),
+                                                Parameter("sift_first_octave", value=-1)])
+        assert node.config == model.feature_config
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_rerun_resumes_from_cached_features(tmp_path: Path, revisit_data: RevisitData) -> None:
     args = ["--bag", str(revisit_data.first_pass_bag), "--topic", "/image", *SMALL]
     work = tmp_path / "work"
