@@ -21,7 +21,8 @@ import numpy as np
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
-from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary, word_usage
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary, word_usage
 
 DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
@@ -143,15 +144,34 @@ def _run(args: argparse.Namespace) -> int:
         _report(f"{name}_words_used", float(np.mean(usage > 0) * 100), "%")
         _report(f"{name}_largest_word", float(usage.max() / usage.sum() * 100), "% of descriptors")
 
+    bench_quantization(ae, km, descriptors, repeats=5 if args.quick else 30)
+    return 0
+
+
+def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, repeats: int) -> None:
+    """Quantizing 1,000 descriptors: the distilled encoder (the default), the paper's network, k-means."""
+    if not isinstance(ae, AutoencoderQuantizer):
+        raise AefabmapError(f"expected an autoencoder vocabulary, got {ae.kind!r}")
+    info = ae.training_info
+    if "student_word_agreement" in info:
+        _report("student_word_agreement", info["student_word_agreement"] * 100,
+                f"% of {info['student_held_out_descriptors']:.0f} held-out descriptors get the network's word")
     rows = np.random.default_rng(0).choice(descriptors.shape[0], 1000, replace=descriptors.shape[0] < 1000)
     batch = descriptors[rows]
-    repeats = 5 if args.quick else 30
-    ae_ms = _median_ms(lambda: ae.quantize(batch), repeats)
-    km_ms = _median_ms(lambda: km.quantize(batch), repeats)
-    _report("quantize_1000_autoencoder_ms", ae_ms, "ms")
-    _report("quantize_1000_kmeans_ms", km_ms, "ms")
-    _report("quantize_ratio_ae_over_kmeans", ae_ms / km_ms, "x")
-    return 0
+    network = ae.with_student(None)
+    timed: dict[str, float] = {}
+    # Interleaved, so that a change in the machine's load falls on all three alike.
+    for name, quantizer in (("student", ae if ae.student is not None else None), ("network", network), ("kmeans", km)):
+        if quantizer is not None:
+            timed[name] = _median_ms(lambda q=quantizer: q.quantize(batch), repeats)  # type: ignore[misc]
+    for name, ms in timed.items():
+        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, the default)"
+                                                       if name == "student" else ""))
+    for name in ("student", "network"):
+        if name in timed:
+            _report(f"quantize_ratio_{name}_over_kmeans", timed[name] / timed["kmeans"], "x")
+    if "student" in timed:
+        _report("quantize_ratio_network_over_student", timed["network"] / timed["student"], "x")
 
 
 if __name__ == "__main__":

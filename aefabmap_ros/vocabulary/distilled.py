@@ -1,0 +1,153 @@
+"""A small encoder distilled from the paper's convolutional autoencoder (issue 14), run in numpy.
+
+The paper's encoder (conv 32/64/128 + dense, ``autoencoder.py``) costs about five times k-means'
+nearest-centre search per descriptor in multiply-adds, so no leaner forward pass of it can quantize
+as cheaply as k-means. The student is a one-hidden-layer MLP, PCA vector (P) -> H (ReLU) -> embedding
+(E), trained after the teacher to reproduce the teacher's embeddings (mean squared error) on the
+same PCA-scaled training vectors. The words stay the teacher's: the same K centres in the same
+embedding space, nearest centre = word. Per descriptor it costs P*H + H*E + K*E multiply-adds against
+k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k against 128k), in float32 numpy: two
+matmuls and the centre search as one matmul with the centres' squared norms computed once.
+
+Only training needs torch (``distill_student``); ``StudentEncoder`` is numpy alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from aefabmap_ros.errors import DataError
+
+# The arrays of a student as the model directory stores them (student.npz), in this order.
+STUDENT_ARRAYS = ("w1", "b1", "w2", "b2")
+
+
+@dataclass(frozen=True)
+class StudentEncoder:
+    """relu(x @ w1 + b1) @ w2 + b2: (N, P) PCA-scaled vectors -> (N, E) embeddings, float32."""
+
+    w1: np.ndarray  # (P, H)
+    b1: np.ndarray  # (H,)
+    w2: np.ndarray  # (H, E)
+    b2: np.ndarray  # (E,)
+
+    def __post_init__(self) -> None:
+        arrays = {name: np.ascontiguousarray(getattr(self, name), np.float32) for name in STUDENT_ARRAYS}
+        w1, b1, w2, b2 = (arrays[name] for name in STUDENT_ARRAYS)
+        if w1.ndim != 2 or w2.ndim != 2 or b1.shape != (w1.shape[1],) or w2.shape[0] != w1.shape[1] \
+                or b2.shape != (w2.shape[1],):
+            raise DataError(f"student encoder arrays do not chain: w1 {w1.shape}, b1 {b1.shape}, "
+                            f"w2 {w2.shape}, b2 {b2.shape} (expected (P, H), (H,), (H, E), (E,))")
+        for name, array in arrays.items():
+            if not np.all(np.isfinite(array)):
+                raise DataError(f"student encoder {name} contains NaN or infinity")
+            object.__setattr__(self, name, array)
+
+    @property
+    def input_dim(self) -> int:
+        return int(self.w1.shape[0])
+
+    @property
+    def hidden_dim(self) -> int:
+        return int(self.w1.shape[1])
+
+    @property
+    def embedding_dim(self) -> int:
+        return int(self.w2.shape[1])
+
+    def embed(self, x: np.ndarray) -> np.ndarray:
+        """(N, P) float32 -> (N, E) float32."""
+        hidden = x @ self.w1
+        hidden += self.b1
+        np.maximum(hidden, 0.0, out=hidden)
+        z = hidden @ self.w2
+        z += self.b2
+        return z
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in STUDENT_ARRAYS}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> StudentEncoder:
+        missing = [name for name in STUDENT_ARRAYS if name not in arrays]
+        if missing:
+            raise DataError(f"student encoder lacks the array(s) {missing}")
+        return cls(*(arrays[name] for name in STUDENT_ARRAYS))
+
+    @classmethod
+    def from_torch(cls, network: nn.Sequential) -> StudentEncoder:
+        """From ``student_network``'s layers (torch stores Linear weights as (out, in))."""
+        first, second = network[0], network[2]
+        if not isinstance(first, nn.Linear) or not isinstance(second, nn.Linear):
+            raise DataError("a student network is Linear, ReLU, Linear (see student_network)")
+        return cls(first.weight.detach().numpy().T, first.bias.detach().numpy(),
+                   second.weight.detach().numpy().T, second.bias.detach().numpy())
+
+
+def student_network(input_dim: int, hidden_dim: int, embedding_dim: int) -> nn.Sequential:
+    """The torch form of ``StudentEncoder`` (for training)."""
+    return nn.Sequential(nn.Linear(input_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, embedding_dim))
+
+
+def nearest_centre(z: np.ndarray, centres_t: np.ndarray, centres_sq: np.ndarray) -> np.ndarray:
+    """(N,) int64 index of the nearest centre of each row of ``z`` (N, E).
+
+    ``centres_t``: (E, K) the centres transposed; ``centres_sq``: (K,) their squared norms. |z|^2 is
+    the same for every centre of a row, so argmin |z - c|^2 = argmin (|c|^2 - 2 z.c): one matmul.
+    """
+    scores = z @ centres_t
+    scores *= -2.0
+    scores += centres_sq
+    return np.argmin(scores, axis=1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class DistillOptions:
+    hidden_dim: int
+    epochs: int
+    batch_size: int
+    learning_rate: float
+    seed: int
+
+
+def distill_student(x: np.ndarray, teacher_z: np.ndarray, options: DistillOptions) -> StudentEncoder:
+    """Fit a student to the teacher's embeddings ``teacher_z`` (N, E) of PCA vectors ``x`` (N, P).
+
+    Mean squared error on the embeddings, Adam, the learning rate cosine-annealed to 0 over the epochs.
+    Deterministic given ``options.seed`` (the caller holds torch's deterministic settings).
+    """
+    if x.shape[0] != teacher_z.shape[0] or x.shape[0] == 0:
+        raise DataError(f"distillation needs as many embeddings as vectors, got {x.shape} and {teacher_z.shape}")
+    torch.manual_seed(options.seed)
+    network = student_network(x.shape[1], options.hidden_dim, teacher_z.shape[1])
+    optimizer = torch.optim.Adam(network.parameters(), lr=options.learning_rate)
+    n_batches = max(1, x.shape[0] // options.batch_size)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, options.epochs * n_batches))
+    inputs, targets = torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(teacher_z))
+    mse = nn.MSELoss()
+    network.train()
+    for epoch in range(options.epochs):
+        order = torch.from_numpy(np.random.default_rng([options.seed, 7, epoch]).permutation(x.shape[0]))
+        for b in range(n_batches):
+            idx = order[b * options.batch_size:(b + 1) * options.batch_size]
+            loss = mse(network(inputs[idx]), targets[idx])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            schedule.step()
+    network.eval()
+    return StudentEncoder.from_torch(network)
+
+
+__all__ = [
+    "STUDENT_ARRAYS",
+    "DistillOptions",
+    "StudentEncoder",
+    "distill_student",
+    "nearest_centre",
+    "student_network",
+]
