@@ -114,36 +114,53 @@ class DistillOptions:
     seed: int
 
 
+# Small training sets still get this many optimizer steps (epochs are repeated): a few thousand descriptors
+# in batches of 256 would otherwise give the student a few dozen steps and leave it far from the network.
+MIN_DISTILL_STEPS = 2000
+
+
 def distill_student(x: np.ndarray, teacher_z: np.ndarray, options: DistillOptions) -> StudentEncoder:
     """Fit a student to the teacher's embeddings ``teacher_z`` (N, E) of PCA vectors ``x`` (N, P).
 
-    Mean squared error on the embeddings, Adam, the learning rate cosine-annealed to 0 over the epochs.
-    Deterministic given ``options.seed`` (the caller holds torch's deterministic settings).
+    Mean squared error on the embeddings, centred and divided by one overall scale (so that the
+    learning rate suits any embedding scale while the loss still weighs every dimension as the
+    distance to the centres does); the scaling is folded back into the last layer afterwards. Adam,
+    the learning rate cosine-annealed to 0. Deterministic given ``options.seed`` (the caller holds
+    torch's deterministic settings).
     """
     if x.shape[0] != teacher_z.shape[0] or x.shape[0] == 0:
         raise DataError(f"distillation needs as many embeddings as vectors, got {x.shape} and {teacher_z.shape}")
+    mean = teacher_z.mean(axis=0, dtype=np.float64)
+    scale = float(np.sqrt(np.mean((teacher_z - mean) ** 2))) or 1.0
+    targets = torch.from_numpy(((teacher_z - mean) / scale).astype(np.float32))
+    inputs = torch.from_numpy(np.ascontiguousarray(x, np.float32))
     torch.manual_seed(options.seed)
     network = student_network(x.shape[1], options.hidden_dim, teacher_z.shape[1])
     optimizer = torch.optim.Adam(network.parameters(), lr=options.learning_rate)
-    n_batches = max(1, x.shape[0] // options.batch_size)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, options.epochs * n_batches))
-    inputs, targets = torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(teacher_z))
+    batch = min(options.batch_size, x.shape[0])
+    n_batches = x.shape[0] // batch
+    epochs = max(options.epochs, -(-MIN_DISTILL_STEPS // n_batches))
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs * n_batches)
     mse = nn.MSELoss()
     network.train()
-    for epoch in range(options.epochs):
+    for epoch in range(epochs):
         order = torch.from_numpy(np.random.default_rng([options.seed, 7, epoch]).permutation(x.shape[0]))
         for b in range(n_batches):
-            idx = order[b * options.batch_size:(b + 1) * options.batch_size]
+            idx = order[b * batch:(b + 1) * batch]
             loss = mse(network(inputs[idx]), targets[idx])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             schedule.step()
     network.eval()
-    return StudentEncoder.from_torch(network)
+    student = StudentEncoder.from_torch(network)
+    # z = scale * (normalised prediction) + mean: exact, folded into the second layer.
+    return StudentEncoder(student.w1, student.b1, student.w2 * np.float32(scale),
+                          (student.b2 * scale + mean).astype(np.float32))
 
 
 __all__ = [
+    "MIN_DISTILL_STEPS",
     "STUDENT_ARRAYS",
     "DistillOptions",
     "StudentEncoder",

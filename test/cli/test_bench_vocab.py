@@ -14,8 +14,10 @@ def test_quick_run_prints_every_figure(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["--quick", "--no-progress", "--images", str(tmp_path), "--size", "10", "--threads", "1"]) == 0
     out = capsys.readouterr().out
     for name in ("extract_sift_640x480_ms", "extract_orb_640x480_ms", "train_autoencoder_total_s",
-                 "ae_stage_pretrain_s", "train_kmeans_total_s", "quantize_1000_autoencoder_ms",
-                 "quantize_1000_kmeans_ms", "quantize_ratio_ae_over_kmeans", "autoencoder_words_used"):
+                 "ae_stage_pretrain_s", "ae_stage_distill_s", "train_kmeans_total_s", "student_word_agreement",
+                 "quantize_1000_student_ms", "quantize_1000_network_ms", "quantize_1000_kmeans_ms",
+                 "quantize_ratio_student_over_kmeans", "quantize_ratio_network_over_kmeans",
+                 "quantize_ratio_network_over_student", "autoencoder_words_used"):
         assert f"{name}: " in out
 
 
