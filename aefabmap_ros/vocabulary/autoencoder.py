@@ -84,7 +84,7 @@ from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.descriptors import kind_of, kind_of_vocabulary
 from aefabmap_ros.io.atomic import atomic_write_bytes
 from aefabmap_ros.io.npz_files import npz_bytes, read_npz
-from aefabmap_ros.vocabulary.distilled import DistillOptions, StudentEncoder, distill_student, nearest_centre
+from aefabmap_ros.vocabulary.distilled import CentreSearch, DistillOptions, StudentEncoder, distill_student
 from aefabmap_ros.vocabulary.kmeans import (
     check_descriptors,
     cluster_means,
@@ -245,9 +245,7 @@ class AutoencoderQuantizer:
         self.student = student
         self.embedding_centres = np.ascontiguousarray(embedding_centres, np.float32)
         self._centres_t = torch.from_numpy(self.embedding_centres)
-        # The centre search of the student path: (E, K) and |c|^2 once, not per call.
-        self._centres_transposed = np.ascontiguousarray(self.embedding_centres.T)
-        self._centres_sq = np.einsum("ke,ke->k", self.embedding_centres, self.embedding_centres)
+        self._centre_search = CentreSearch(self.embedding_centres)  # the student path's, built once
         self._centroids = np.ascontiguousarray(descriptor_centroids, np.float32)
         self.binary = binary
         self.descriptor_dim = descriptor_dim
@@ -286,7 +284,7 @@ class AutoencoderQuantizer:
             return np.zeros(0, np.int64)
         x = self.pca.transform_scaled(kind_of_vocabulary(self.binary).vectors(descriptors))
         if self.student is not None:
-            return nearest_centre(self.student.embed(x), self._centres_transposed, self._centres_sq)
+            return self._centre_search.nearest(self.student.embed_with_one(x))
         out = np.empty(x.shape[0], np.int64)
         centres_sq = (self._centres_t * self._centres_t).sum(dim=1)
         with torch.inference_mode():

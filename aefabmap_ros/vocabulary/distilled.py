@@ -7,13 +7,14 @@ as cheaply as k-means. The student is a one-hidden-layer MLP, PCA vector (P) -> 
 same PCA-scaled training vectors. The words stay the teacher's: the same K centres in the same
 embedding space, nearest centre = word. Per descriptor it costs P*H + H*E + K*E multiply-adds against
 k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k against 128k), in float32 numpy: two
-matmuls and the centre search as one matmul with the centres' squared norms computed once.
+matmuls and the centre search as one matmul (``CentreSearch``).
 
 Only training needs torch (``distill_student``); ``StudentEncoder`` is numpy alone.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,12 +62,26 @@ class StudentEncoder:
 
     def embed(self, x: np.ndarray) -> np.ndarray:
         """(N, P) float32 -> (N, E) float32."""
+        return self._hidden(x) @ self.w2 + self.b2
+
+    def embed_with_one(self, x: np.ndarray) -> np.ndarray:
+        """(N, P) -> (N, E + 1): the embedding with a column of ones appended, made by the same matmul
+        (a zero column in w2, a 1 in b2), for ``CentreSearch.nearest``."""
+        w2, b2 = self._with_one
+        z = self._hidden(x) @ w2
+        z += b2
+        return z
+
+    def _hidden(self, x: np.ndarray) -> np.ndarray:
         hidden = x @ self.w1
         hidden += self.b1
         np.maximum(hidden, 0.0, out=hidden)
-        z = hidden @ self.w2
-        z += self.b2
-        return z
+        return hidden
+
+    @functools.cached_property
+    def _with_one(self) -> tuple[np.ndarray, np.ndarray]:
+        w2 = np.concatenate([self.w2, np.zeros((self.w2.shape[0], 1), np.float32)], axis=1)
+        return np.ascontiguousarray(w2), np.append(self.b2, np.float32(1.0))
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in STUDENT_ARRAYS}
@@ -93,16 +108,19 @@ def student_network(input_dim: int, hidden_dim: int, embedding_dim: int) -> nn.S
     return nn.Sequential(nn.Linear(input_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, embedding_dim))
 
 
-def nearest_centre(z: np.ndarray, centres_t: np.ndarray, centres_sq: np.ndarray) -> np.ndarray:
-    """(N,) int64 index of the nearest centre of each row of ``z`` (N, E).
+class CentreSearch:
+    """Nearest centre as one matmul: argmin_k |z - c_k|^2 = argmin_k (|c_k|^2 - 2 z.c_k), |z|^2 being the
+    same for every centre of a row; with a 1 appended to z the bias |c_k|^2 is a row of the matrix too,
+    so the (N, K) scores are written once and read once by argmin (no passes to scale and shift them)."""
 
-    ``centres_t``: (E, K) the centres transposed; ``centres_sq``: (K,) their squared norms. |z|^2 is
-    the same for every centre of a row, so argmin |z - c|^2 = argmin (|c|^2 - 2 z.c): one matmul.
-    """
-    scores = z @ centres_t
-    scores *= -2.0
-    scores += centres_sq
-    return np.argmin(scores, axis=1).astype(np.int64)
+    def __init__(self, centres: np.ndarray) -> None:
+        centres = np.asarray(centres, np.float32)
+        squared_norms = np.einsum("ke,ke->k", centres, centres)
+        self.matrix = np.ascontiguousarray(np.vstack([-2.0 * centres.T, squared_norms[None, :]]), np.float32)
+
+    def nearest(self, z_with_one: np.ndarray) -> np.ndarray:
+        """(N, E + 1) embeddings with a trailing column of ones -> (N,) int64 nearest centre."""
+        return np.argmin(z_with_one @ self.matrix, axis=1).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -162,9 +180,9 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, options: DistillOption
 __all__ = [
     "MIN_DISTILL_STEPS",
     "STUDENT_ARRAYS",
+    "CentreSearch",
     "DistillOptions",
     "StudentEncoder",
     "distill_student",
-    "nearest_centre",
     "student_network",
 ]

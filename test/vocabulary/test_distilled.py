@@ -8,7 +8,7 @@ import torch
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
-from aefabmap_ros.vocabulary.distilled import StudentEncoder, nearest_centre, student_network
+from aefabmap_ros.vocabulary.distilled import CentreSearch, StudentEncoder, student_network
 
 K = 8
 DIM = 128
@@ -47,15 +47,18 @@ def test_numpy_forward_pass_equals_torch() -> None:
     got = student.embed(x)
     assert got.dtype == np.float32 and got.shape == (300, 8)
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    with_one = student.embed_with_one(x)
+    np.testing.assert_allclose(with_one[:, :8], expected, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(with_one[:, 8], 1.0)
     # The hidden layer's ReLU matters on these inputs (a network without it would not match).
     assert np.any(network[0](torch.from_numpy(x)).detach().numpy() < 0)
 
 
-def test_nearest_centre_is_brute_force_nearest() -> None:
+def test_centre_search_is_brute_force_nearest() -> None:
     rng = np.random.default_rng(1)
     z, centres = rng.normal(size=(500, 6)).astype(np.float32), rng.normal(size=(40, 6)).astype(np.float32)
     brute = ((z[:, None, :].astype(np.float64) - centres[None]) ** 2).sum(axis=2).argmin(axis=1)
-    got = nearest_centre(z, np.ascontiguousarray(centres.T), (centres * centres).sum(axis=1))
+    got = CentreSearch(centres).nearest(np.concatenate([z, np.ones((500, 1), np.float32)], axis=1))
     assert got.dtype == np.int64
     np.testing.assert_array_equal(got, brute)
 
