@@ -156,7 +156,7 @@ def _run(args: argparse.Namespace) -> int:
         _report(f"{name}_words_used", float(np.mean(usage > 0) * 100), "%")
         _report(f"{name}_largest_word", float(usage.max() / usage.sum() * 100), "% of descriptors")
 
-    bench_quantization(ae, km, descriptors, repeats=5 if args.quick else 30)
+    bench_quantization(ae, km, descriptors, repeats=5 if args.quick else 100)
     return 0
 
 
@@ -177,12 +177,19 @@ def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, re
                 f"% of {info['student_held_out_descriptors']:.0f} held-out descriptors get the network's word")
     rows = np.random.default_rng(0).choice(descriptors.shape[0], 1000, replace=descriptors.shape[0] < 1000)
     batch = descriptors[rows]
-    network = ae.with_student(None)
-    timed: dict[str, float] = {}
-    # Interleaved, so that a change in the machine's load falls on all three alike.
-    for name, quantizer in (("student", ae if ae.student is not None else None), ("network", network), ("kmeans", km)):
-        if quantizer is not None:
-            timed[name] = _median_ms(lambda q=quantizer: q.quantize(batch), repeats)  # type: ignore[misc]
+    contenders: dict[str, Quantizer] = {"network": ae.with_student(None), "kmeans": km}
+    if ae.student is not None:
+        contenders = {"student": ae, **contenders}
+    times: dict[str, list[float]] = {name: [] for name in contenders}
+    for quantizer in contenders.values():
+        quantizer.quantize(batch)  # warm-up (lazy init, caches)
+    # Round-robin, one call of each per round, so that a change in the machine's load falls on all alike.
+    for _ in range(repeats):
+        for name, quantizer in contenders.items():
+            start = time.perf_counter()
+            quantizer.quantize(batch)
+            times[name].append(time.perf_counter() - start)
+    timed = {name: float(np.median(values) * 1000.0) for name, values in times.items()}
     for name, ms in timed.items():
         _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, the default)"
                                                        if name == "student" else ""))
