@@ -41,7 +41,11 @@ network trained with the demo's settings, 20k held-out descriptors; targets not 
 H = 128 and 10 epochs agreed on 91.6 %, 30 epochs 92.7 %, H = 256 92.2 %; trained on the words instead (cross-entropy on
 -|z - c|^2 logits against the fixed centres, T = 1 / 0.1) 81.7 / 80.7 %, both losses together
 83.1 %. Hence: MSE, H = 128, 10 epochs. Agreement saturates near 92 %: the rest lie near a boundary
-between two words. Retrieval with either encoder: see README ("Quantizing 1000 descriptors").
+between two words (the branch's trainer, targets normalised: 92.5-92.8 % for seeds 0-2). Measured
+time for 1,000 kitti SIFT, one thread, round-robin on a shared machine: 0.63-0.80x k-means' (the
+network: 7.7-8.2x); quantizer_node CPU per image 7.7 ms against 55.5 ms with the network. Retrieval
+(rtabmap_samples, README "Accuracy offline"): AE-FABMAP and every verified row within noise of the
+network's, AE-BoW without verification 0.07 AP lower on each of three distillation seeds.
 ``ae_student_hidden: 0`` quantizes with the paper's network (the documented reference setting); a
 model directory without ``student.npz`` (trained before it existed) does the same.
 
