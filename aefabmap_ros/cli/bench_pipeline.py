@@ -71,6 +71,14 @@ def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[fl
     recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
                                  FabMapConfig(), model.vocabulary_id)
     stages: dict[str, list[float]] = {"decode": [], "features": [], "quantize": [], "fabmap": []}
+    # An autoencoder vocabulary quantizing with its distilled encoder: time the paper's network too.
+    network = None
+    if getattr(model.quantizer, "student", None) is not None:
+        from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer  # torch: only for this kind
+
+        assert isinstance(model.quantizer, AutoencoderQuantizer)
+        network = model.quantizer.with_student(None)
+        stages["quantize (paper's network)"] = []
     for index, image in enumerate(images):
         height, width = image.shape[:2]
         raw = image.tobytes()
@@ -83,6 +91,10 @@ def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[fl
         started = time.perf_counter()
         words = np.unique(model.quantizer.quantize(features.descriptors))
         stages["quantize"].append(_ms_since(started))
+        if network is not None:  # the reference setting on the same descriptors, for the ratio
+            started = time.perf_counter()
+            network.quantize(features.descriptors)
+            stages["quantize (paper's network)"].append(_ms_since(started))
         started = time.perf_counter()
         recognizer.process(words, index * 100_000_000)
         stages["fabmap"].append(_ms_since(started))
@@ -96,7 +108,7 @@ class Setup:
     code: str  # "this" or "baseline"
     source: Path | None
     pipeline: bool  # one aefabmap_pipeline process instead of three node processes
-    model_dir: Path | None = None  # the model its nodes load instead of the run's (--baseline-model)
+    model: Path | None = None  # the model directory its nodes load (None: the run's model)
 
     @property
     def label(self) -> str:
@@ -117,7 +129,7 @@ def _launch(setup: Setup, model_dir: Path, params: Path, log: Any) -> subprocess
     environment = dict(os.environ)
     if setup.source is not None:  # the baseline's package first on the path: its nodes, our messages
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(setup.source), environment.get("PYTHONPATH")]))
-    command = [sys.executable, "-m", "aefabmap_ros.cli.launch", "--model", str(setup.model_dir or model_dir),
+    command = [sys.executable, "-m", "aefabmap_ros.cli.launch", "--model", str(setup.model or model_dir),
                "--params", str(params),
                "--no-verify"] + (["--pipeline"] if setup.pipeline else [])
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment,
@@ -303,8 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="source tree of the code to compare with (e.g. a worktree of an older commit): its "
                         "nodes run with this tree's messages, and images/s are given as ratios against it")
     parser.add_argument("--baseline-model", type=Path, default=None,
-                        help="the model the baseline's nodes load (default: --model), for a model the baseline "
-                        "cannot read, e.g. one with a feature setting it does not know")
+                        help="model directory the baseline's nodes load (default: --model); e.g. the same "
+                        "vocabulary without its distilled encoder, for code that predates it")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each setup, interleaved (default 2)")
     parser.add_argument("--rate", type=float, default=0.0,
                         help="0 (default): replay as fast as possible, reliable QoS, images/s; > 0: a camera at "
@@ -324,6 +336,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--baseline {args.baseline} is not an aefabmap_ros source tree")
     if args.baseline_model is not None and (args.baseline is None or args.model is None):
         raise ConfigError("--baseline-model needs --baseline and --model")
+    if args.baseline_model is not None and not (args.baseline_model / "metadata.json").is_file():
+        raise ConfigError(f"--baseline-model {args.baseline_model} is not a model directory")
     if args.repeats < 1 or args.rate < 0:
         raise ConfigError("--repeats must be >= 1 and --rate >= 0")
     if args.quick:
@@ -337,7 +351,8 @@ def run(args: argparse.Namespace) -> int:
           f"{os.cpu_count()} cores, load average {_load()}")
     setups = [Setup("this", None, pipeline) for pipeline in ([False] if args.no_pipeline else [False, True])]
     if args.baseline is not None:
-        setups += [Setup("baseline", args.baseline.resolve(), setup.pipeline, args.baseline_model) for setup in setups]
+        setups += [Setup("baseline", args.baseline.resolve(), setup.pipeline, args.baseline_model)
+                   for setup in setups]
     with tempfile.TemporaryDirectory(prefix="aefabmap_bench_") as tmp:
         work = Path(tmp)
         bag = work / "bag"
@@ -354,7 +369,7 @@ def run(args: argparse.Namespace) -> int:
                 model = load_model(model_dir)
             label = f"{model.feature_config.type} / {model.quantizer.kind} {model.quantizer.size} words"
             stages = stage_latencies(model, images)
-            total = np.sum([stages[s] for s in stages], axis=0)
+            total = np.sum([stages[s] for s in ("decode", "features", "quantize", "fabmap")], axis=0)
             print(f"\n[{label}] per-stage latency, one process, {len(images)} images")
             for stage, values in stages.items():
                 print(f"  {stage:9s} {_summary(values)}")

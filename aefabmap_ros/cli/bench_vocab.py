@@ -3,6 +3,7 @@
     bench_vocab                 # ~300k SIFT descriptors (kitti00_first300) -> 1000 words, AE and k-means
     bench_vocab --quick         # a seconds-long smoke run on a few images
     bench_vocab --images DIR    # your own images (png/jpg, searched recursively)
+    bench_vocab --model M --kmeans-model K   # time trained vocabularies instead of training them
 
 Prints one figure per line, ``name: value unit``.
 """
@@ -21,7 +22,9 @@ import numpy as np
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
-from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary, word_usage
+from aefabmap_ros.model.directory import load_model
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary, word_usage
 
 DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
 
@@ -36,6 +39,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-images", type=int, default=None, help="use at most this many training images")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
     parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="a trained autoencoder model directory: time its quantization instead of training one")
+    parser.add_argument("--kmeans-model", type=Path, default=None,
+                        help="a trained k-means model directory: time it instead of training one")
     return parser
 
 
@@ -120,38 +127,77 @@ def _run(args: argparse.Namespace) -> int:
     _report("training_descriptors", descriptors.shape[0], "SIFT descriptors")
     _report("stage_extract_s", time.perf_counter() - start, "s")
 
-    overrides: dict[str, object] = {"num_threads": args.threads}
-    if args.epochs is not None:
-        overrides["ae_epochs"] = args.epochs
-    elif args.quick:
-        overrides.update(ae_epochs=1, ae_max_train_descriptors=3000)
-    ae_config = VocabularyConfig(kind="autoencoder", size=size, **overrides)  # type: ignore[arg-type]
-    start, cpu_start = time.perf_counter(), time.process_time()
-    ae = train_vocabulary(descriptors, ae_config, progress=not args.no_progress)
-    _report("train_autoencoder_total_s", time.perf_counter() - start, f"s ({size} words)")
-    # CPU seconds: on a machine shared with other jobs, wall time overstates the cost.
-    _report("train_autoencoder_cpu_s", time.process_time() - cpu_start, "CPU s (all threads)")
-    for stage, seconds in getattr(ae, "training_info", {}).items():
-        if stage.endswith("_s"):
-            _report(f"  ae_stage_{stage}", seconds, "s")
-    start = time.perf_counter()
-    km = train_vocabulary(descriptors, VocabularyConfig(kind="kmeans", size=size, seed=0))
-    _report("train_kmeans_total_s", time.perf_counter() - start, f"s ({size} words)")
+    if args.model is not None:
+        ae = _load_quantizer(args.model, "autoencoder")
+    else:
+        overrides: dict[str, object] = {"num_threads": args.threads}
+        if args.epochs is not None:
+            overrides["ae_epochs"] = args.epochs
+        elif args.quick:
+            overrides.update(ae_epochs=1, ae_max_train_descriptors=3000)
+        ae_config = VocabularyConfig(kind="autoencoder", size=size, **overrides)  # type: ignore[arg-type]
+        start, cpu_start = time.perf_counter(), time.process_time()
+        ae = train_vocabulary(descriptors, ae_config, progress=not args.no_progress)
+        _report("train_autoencoder_total_s", time.perf_counter() - start, f"s ({size} words)")
+        # CPU seconds: on a machine shared with other jobs, wall time overstates the cost.
+        _report("train_autoencoder_cpu_s", time.process_time() - cpu_start, "CPU s (all threads)")
+        for stage, seconds in getattr(ae, "training_info", {}).items():
+            if stage.endswith("_s"):
+                _report(f"  ae_stage_{stage}", seconds, "s")
+    if args.kmeans_model is not None:
+        km = _load_quantizer(args.kmeans_model, "kmeans")
+    else:
+        start = time.perf_counter()
+        km = train_vocabulary(descriptors, VocabularyConfig(kind="kmeans", size=size, seed=0))
+        _report("train_kmeans_total_s", time.perf_counter() - start, f"s ({size} words)")
 
     for name, quantizer in (("autoencoder", ae), ("kmeans", km)):
         usage = word_usage(quantizer, descriptors)
         _report(f"{name}_words_used", float(np.mean(usage > 0) * 100), "%")
         _report(f"{name}_largest_word", float(usage.max() / usage.sum() * 100), "% of descriptors")
 
+    bench_quantization(ae, km, descriptors, repeats=5 if args.quick else 100)
+    return 0
+
+
+def _load_quantizer(directory: Path, kind: str) -> Quantizer:
+    quantizer = load_model(directory).quantizer
+    if quantizer.kind != kind:
+        raise AefabmapError(f"{directory} holds a vocabulary of kind {quantizer.kind}, not {kind}")
+    return quantizer
+
+
+def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, repeats: int) -> None:
+    """Quantizing 1,000 descriptors: the distilled encoder (the default), the paper's network, k-means."""
+    if not isinstance(ae, AutoencoderQuantizer):
+        raise AefabmapError(f"expected an autoencoder vocabulary, got {ae.kind!r}")
+    info = ae.training_info
+    if "student_word_agreement" in info:
+        _report("student_word_agreement", info["student_word_agreement"] * 100,
+                f"% of {info['student_held_out_descriptors']:.0f} held-out descriptors get the network's word")
     rows = np.random.default_rng(0).choice(descriptors.shape[0], 1000, replace=descriptors.shape[0] < 1000)
     batch = descriptors[rows]
-    repeats = 5 if args.quick else 30
-    ae_ms = _median_ms(lambda: ae.quantize(batch), repeats)
-    km_ms = _median_ms(lambda: km.quantize(batch), repeats)
-    _report("quantize_1000_autoencoder_ms", ae_ms, "ms")
-    _report("quantize_1000_kmeans_ms", km_ms, "ms")
-    _report("quantize_ratio_ae_over_kmeans", ae_ms / km_ms, "x")
-    return 0
+    contenders: dict[str, Quantizer] = {"network": ae.with_student(None), "kmeans": km}
+    if ae.student is not None:
+        contenders = {"student": ae, **contenders}
+    times: dict[str, list[float]] = {name: [] for name in contenders}
+    for quantizer in contenders.values():
+        quantizer.quantize(batch)  # warm-up (lazy init, caches)
+    # Round-robin, one call of each per round, so that a change in the machine's load falls on all alike.
+    for _ in range(repeats):
+        for name, quantizer in contenders.items():
+            start = time.perf_counter()
+            quantizer.quantize(batch)
+            times[name].append(time.perf_counter() - start)
+    timed = {name: float(np.median(values) * 1000.0) for name, values in times.items()}
+    for name, ms in timed.items():
+        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, the default)"
+                                                       if name == "student" else ""))
+    for name in ("student", "network"):
+        if name in timed:
+            _report(f"quantize_ratio_{name}_over_kmeans", timed[name] / timed["kmeans"], "x")
+    if "student" in timed:
+        _report("quantize_ratio_network_over_student", timed["network"] / timed["student"], "x")
 
 
 if __name__ == "__main__":

@@ -116,5 +116,10 @@ def train_in(work_dir: Path, args: argparse.Namespace, sources: list[ImageSource
           f"descriptors: {report.num_descriptors}, self-supervision pairs: {report.num_pairs}")
     print(f"  vocabulary: {vocabulary_config.kind}, {model.quantizer.size} words, {report.words_used} used "
           f"by the training images; Chow-Liu tree: {report.tree_edges} edges")
+    info: dict[str, float] = getattr(model.quantizer, "training_info", {})  # autoencoder vocabularies
+    agreement = info.get("student_word_agreement")
+    if agreement is not None:  # how faithfully the distilled encoder that quantizes reproduces the network
+        print(f"  distilled encoder ({int(info['student_hidden'])} hidden units) gives the network's word to "
+              f"{agreement * 100:.1f} % of {int(info['student_held_out_descriptors'])} held-out descriptors")
     print("  time: " + ", ".join(f"{stage} {value:.1f} s" for stage, value in seconds.items()))
     return 0

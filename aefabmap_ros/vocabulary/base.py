@@ -122,6 +122,18 @@ class VocabularyConfig:
         default=0.5, metadata={"description": "Temperature of the match term's InfoNCE (relative to the "
                                               "batch's mean squared distance)."}
     )
+    ae_student_hidden: int = field(
+        default=128,
+        metadata={"description": "Hidden units of the small encoder distilled from the autoencoder and used to "
+                  "quantize (PCA -> hidden -> embedding, numpy; cheaper than k-means' search); 0 = quantize with "
+                  "the paper's convolutional network itself (the reference setting)."},
+    )
+    ae_student_epochs: int = field(
+        default=10, metadata={"description": "Epochs distilling the student from the network's embeddings."}
+    )
+    ae_student_learning_rate: float = field(
+        default=3e-3, metadata={"description": "Adam learning rate of the distillation (cosine-annealed to 0)."}
+    )
     refine: bool = field(
         default=False,
         metadata={"description": "DEC/IDEC refinement of encoder and centres with reconstruction + "
@@ -157,6 +169,9 @@ class VocabularyConfig:
             ("ae_max_train_descriptors", self.ae_max_train_descriptors >= 1, ">= 1"),
             ("ae_match_weight", self.ae_match_weight >= 0, ">= 0"),
             ("ae_match_temperature", self.ae_match_temperature > 0, "> 0"),
+            ("ae_student_hidden", self.ae_student_hidden >= 0, ">= 0"),
+            ("ae_student_epochs", self.ae_student_epochs >= 1, ">= 1"),
+            ("ae_student_learning_rate", self.ae_student_learning_rate > 0, "> 0"),
             ("refine_epochs", self.refine_epochs >= 0, ">= 0"),
             ("refine_learning_rate", self.refine_learning_rate > 0, "> 0"),
             ("refine_update_interval", self.refine_update_interval >= 1, ">= 1"),
@@ -190,6 +205,8 @@ class VocabularyConfig:
             match_temperature=self.ae_match_temperature, kmeans_iterations=self.kmeans_iterations,
             refine=self.refine, refine_epochs=self.refine_epochs, refine_learning_rate=self.refine_learning_rate,
             refine_update_interval=self.refine_update_interval, gamma=self.gamma, tol=self.tol, alpha=self.alpha,
+            student_hidden=self.ae_student_hidden, student_epochs=self.ae_student_epochs,
+            student_learning_rate=self.ae_student_learning_rate,
         )
 
 

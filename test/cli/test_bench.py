@@ -57,3 +57,30 @@ def test_backend_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench.main(["backend", "--quick"]) == 0
     out = capsys.readouterr().out
     assert "'added': 60" in out and "update per closure at" in out
+
+
+def test_pipeline_times_the_papers_network_beside_the_distilled_encoder() -> None:
+    import numpy as np
+    import scipy.sparse
+
+    from aefabmap_ros.cli.bench_pipeline import stage_latencies
+    from aefabmap_ros.cli.bench_vocab import _synthetic_images
+    from aefabmap_ros.features.extraction import FeatureConfig, extract_features
+    from aefabmap_ros.model.directory import Model
+    from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+    from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
+
+    images = _synthetic_images(2, (240, 320))
+    descriptors = np.concatenate([extract_features(image, FeatureConfig()).descriptors for image in images])
+    config = VocabularyConfig(size=6, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1,
+                              ae_student_hidden=8, ae_student_epochs=1)
+    quantizer = train_vocabulary(descriptors, config, progress=False)
+    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.student is not None
+    tree = np.vstack([np.arange(6) - 1.0, np.full((3, 6), 0.2)])
+    tree[0, 0] = 0
+    samples = scipy.sparse.csr_matrix(np.eye(2, 6))
+    for used, expected in ((quantizer, True), (quantizer.with_student(None), False)):
+        model = Model.create(FeatureConfig(), config, used, tree_matrix=tree, new_place_samples=samples)
+        stages = stage_latencies(model, images)
+        assert ("quantize (paper's network)" in stages) is expected
+        assert all(len(values) == 2 for values in stages.values())

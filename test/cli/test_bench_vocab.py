@@ -14,8 +14,10 @@ def test_quick_run_prints_every_figure(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["--quick", "--no-progress", "--images", str(tmp_path), "--size", "10", "--threads", "1"]) == 0
     out = capsys.readouterr().out
     for name in ("extract_sift_640x480_ms", "extract_orb_640x480_ms", "train_autoencoder_total_s",
-                 "ae_stage_pretrain_s", "train_kmeans_total_s", "quantize_1000_autoencoder_ms",
-                 "quantize_1000_kmeans_ms", "quantize_ratio_ae_over_kmeans", "autoencoder_words_used"):
+                 "ae_stage_pretrain_s", "ae_stage_distill_s", "train_kmeans_total_s", "student_word_agreement",
+                 "quantize_1000_student_ms", "quantize_1000_network_ms", "quantize_1000_kmeans_ms",
+                 "quantize_ratio_student_over_kmeans", "quantize_ratio_network_over_kmeans",
+                 "quantize_ratio_network_over_student", "autoencoder_words_used"):
         assert f"{name}: " in out
 
 
@@ -24,3 +26,30 @@ def test_missing_folder_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "ERROR: image folder" in capsys.readouterr().err
     assert main(["--quick", "--images", str(tmp_path)]) == 1
     assert "ERROR: no .png/.jpg images" in capsys.readouterr().err
+
+
+def test_trained_models_are_timed_without_training(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import numpy as np
+
+    from aefabmap_ros.features.extraction import FeatureConfig, extract_features
+    from aefabmap_ros.model.directory import Model, save_model
+    from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
+
+    images = _synthetic_images(3, (240, 320))
+    for i, image in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), image)
+    descriptors = np.concatenate([extract_features(image, FeatureConfig()).descriptors for image in images])
+    for kind, extra in (("autoencoder", {"pca_dim": 8, "ae_embedding_dim": 4, "ae_epochs": 1, "num_threads": 1}),
+                        ("kmeans", {})):
+        config = VocabularyConfig(kind=kind, size=10, **extra)  # type: ignore[arg-type]
+        save_model(tmp_path / kind, Model.create(FeatureConfig(), config,
+                                                 train_vocabulary(descriptors, config, progress=False)))
+    arguments = ["--quick", "--no-progress", "--images", str(tmp_path), "--model", str(tmp_path / "autoencoder"),
+                 "--kmeans-model", str(tmp_path / "kmeans")]
+    assert main(arguments) == 0
+    out = capsys.readouterr().out
+    assert "train_autoencoder_total_s" not in out and "train_kmeans_total_s" not in out
+    for name in ("quantize_1000_student_ms", "quantize_1000_network_ms", "quantize_1000_kmeans_ms"):
+        assert f"{name}: " in out
+    assert main([*arguments[:-1], str(tmp_path / "autoencoder")]) == 1
+    assert "holds a vocabulary of kind autoencoder, not kmeans" in capsys.readouterr().err

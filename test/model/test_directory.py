@@ -20,8 +20,9 @@ from aefabmap_ros.model.directory import (
     load_model,
     save_model,
 )
-from aefabmap_ros.vocabulary.autoencoder import AUTOENCODER, PCA_FILE, AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder import AUTOENCODER, PCA_FILE, STUDENT_FILE, AutoencoderQuantizer
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary
+from aefabmap_ros.vocabulary.distilled import StudentEncoder
 
 V = 6
 
@@ -89,6 +90,54 @@ def test_vocabulary_id_depends_on_vocabulary_only(ae_quantizer: Quantizer, km_qu
     assert _model(km_quantizer).vocabulary_id == _model(km_quantizer, tree_matrix=None).vocabulary_id
     other = train_vocabulary(_descriptors(), VocabularyConfig(kind="kmeans", size=V, seed=9))
     assert compute_vocabulary_id(other) != compute_vocabulary_id(km_quantizer)
+
+
+def test_student_is_stored_and_part_of_the_vocabulary_id(ae_quantizer: Quantizer, tmp_path: Path) -> None:
+    assert isinstance(ae_quantizer, AutoencoderQuantizer) and ae_quantizer.student is not None
+    network_only = ae_quantizer.with_student(None)
+    assert compute_vocabulary_id(network_only) != compute_vocabulary_id(ae_quantizer)
+    arrays = ae_quantizer.student.to_arrays()
+    nudged = StudentEncoder(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"] + np.float32(1e-3))
+    assert compute_vocabulary_id(ae_quantizer.with_student(nudged)) != compute_vocabulary_id(ae_quantizer)
+    save_model(tmp_path / "m", _model(ae_quantizer))
+    assert (tmp_path / "m" / STUDENT_FILE).is_file()
+    loaded = load_model(tmp_path / "m").quantizer
+    assert isinstance(loaded, AutoencoderQuantizer) and loaded.student is not None
+    for name, array in arrays.items():
+        np.testing.assert_array_equal(loaded.student.to_arrays()[name], array)
+
+
+def test_model_without_student_loads_and_quantizes_with_the_network(ae_quantizer: Quantizer,
+                                                                    tmp_path: Path) -> None:
+    """A model directory written before the distilled encoder existed: no student file, no ae_student_* keys."""
+    assert isinstance(ae_quantizer, AutoencoderQuantizer)
+    network_only = ae_quantizer.with_student(None)
+    save_model(tmp_path / "old", _model(network_only))
+    assert not (tmp_path / "old" / STUDENT_FILE).exists()
+    metadata = json.loads((tmp_path / "old" / METADATA).read_text())
+    for key in [key for key in metadata["vocabulary_config"] if key.startswith("ae_student_")]:
+        del metadata["vocabulary_config"][key]
+    (tmp_path / "old" / METADATA).write_text(json.dumps(metadata))
+    loaded = load_model(tmp_path / "old")
+    assert isinstance(loaded.quantizer, AutoencoderQuantizer) and loaded.quantizer.student is None
+    x = _descriptors(2)
+    np.testing.assert_array_equal(loaded.quantizer.quantize(x), network_only.quantize(x))
+    np.testing.assert_allclose(loaded.quantizer.embed(x), network_only.embed(x), rtol=1e-6)
+
+
+def test_student_of_other_dimensions(saved_ae: Path) -> None:
+    arrays = dict(np.load(saved_ae / STUDENT_FILE))
+    hidden = arrays["w1"].shape[1]
+    arrays["w1"] = np.zeros((arrays["w1"].shape[0] + 4, hidden), np.float32)  # a PCA of 12 dims, not 8
+    np.savez(saved_ae / STUDENT_FILE, **arrays)
+    _refresh_checksum(saved_ae, STUDENT_FILE)
+    with pytest.raises(ModelError, match=r"dimension mismatch .* student encoder maps 12 -> 4 but the PCA gives 8"):
+        load_model(saved_ae)
+    del arrays["b2"]
+    np.savez(saved_ae / STUDENT_FILE, **arrays)
+    _refresh_checksum(saved_ae, STUDENT_FILE)
+    with pytest.raises(ModelError, match=r"student encoder .*student.npz: .*lacks the array\(s\) \['b2'\]"):
+        load_model(saved_ae)
 
 
 def test_save_replaces_existing_model_atomically(ae_quantizer: Quantizer, km_quantizer: Quantizer,

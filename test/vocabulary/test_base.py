@@ -106,24 +106,26 @@ def test_soft_assignment_rows_are_distributions(ae_quantizer: Quantizer,
 
 def test_autoencoder_encodes_padded_batches_of_few_shapes(ae_quantizer: Quantizer,
                                                           blobs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
-    """Each image brings a different number of features; the encoder must see few distinct batch shapes
-    (oneDNN keeps a compiled primitive per shape: unbounded memory otherwise), with the words unchanged."""
+    """Each image brings a different number of features; the paper's encoder (the setting without the distilled
+    one) must see few distinct batch shapes (oneDNN keeps a compiled primitive per shape: unbounded memory
+    otherwise), with the words unchanged."""
     assert isinstance(ae_quantizer, AutoencoderQuantizer)
+    network = ae_quantizer.with_student(None)
     seen: list[int] = []
-    encode = ae_quantizer.model.encode
+    encode = network.model.encode
 
     def counting_encode(x: torch.Tensor) -> torch.Tensor:
         seen.append(x.shape[0])
         return encode(x)
 
-    ae_quantizer.model.encode = counting_encode  # type: ignore[method-assign]
+    network.model.encode = counting_encode  # type: ignore[method-assign]
     try:
-        words = {n: ae_quantizer.quantize(blobs[0][:n]) for n in (1, 255, 257, 600)}
+        words = {n: network.quantize(blobs[0][:n]) for n in (1, 255, 257, 600)}
     finally:
-        del ae_quantizer.model.encode
+        del network.model.encode
     assert seen == [256, 256, 512, 768]
     for n, ids in words.items():  # the unpadded soft assignment agrees row for row
-        np.testing.assert_array_equal(ids, ae_quantizer.soft_assign(blobs[0][:n]).argmax(axis=1))
+        np.testing.assert_array_equal(ids, network.soft_assign(blobs[0][:n]).argmax(axis=1))
 
 
 def test_empty_input_gives_empty_words(ae_quantizer: Quantizer) -> None:
