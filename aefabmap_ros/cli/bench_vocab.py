@@ -27,6 +27,7 @@ from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary, word_usage
 
 DEFAULT_DATASETS = Path(__file__).resolve().parents[2].parent / "shared" / "datasets"
+STUDENT_HIDDEN = 128  # the distilled encoder's size measured in vocabulary/autoencoder.py
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -130,7 +131,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.model is not None:
         ae = _load_quantizer(args.model, "autoencoder")
     else:
-        overrides: dict[str, object] = {"num_threads": args.threads}
+        # With the distilled encoder (the measured 128 units), so that one run times it, the network and k-means.
+        overrides: dict[str, object] = {"num_threads": args.threads, "ae_student_hidden": STUDENT_HIDDEN}
         if args.epochs is not None:
             overrides["ae_epochs"] = args.epochs
         elif args.quick:

@@ -39,7 +39,8 @@ def test_trained_models_are_timed_without_training(tmp_path: Path, capsys: pytes
     for i, image in enumerate(images):
         cv2.imwrite(str(tmp_path / f"{i}.png"), image)
     descriptors = np.concatenate([extract_features(image, FeatureConfig()).descriptors for image in images])
-    for kind, extra in (("autoencoder", {"pca_dim": 8, "ae_embedding_dim": 4, "ae_epochs": 1, "num_threads": 1}),
+    for kind, extra in (("autoencoder", {"pca_dim": 8, "ae_embedding_dim": 4, "ae_epochs": 1, "num_threads": 1,
+                                         "ae_student_hidden": 8}),
                         ("kmeans", {})):
         config = VocabularyConfig(kind=kind, size=10, **extra)  # type: ignore[arg-type]
         save_model(tmp_path / kind, Model.create(FeatureConfig(), config,

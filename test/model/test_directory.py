@@ -35,7 +35,8 @@ def _descriptors(seed: int = 0) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def ae_quantizer() -> Quantizer:
-    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1)
+    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1,
+                             ae_student_hidden=8)  # a model with a distilled encoder (not the default)
     return train_vocabulary(_descriptors(), config, progress=False)
 
 
