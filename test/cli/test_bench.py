@@ -84,3 +84,11 @@ def test_pipeline_times_the_papers_network_beside_the_distilled_encoder() -> Non
         stages = stage_latencies(model, images)
         assert ("quantize (paper's network)" in stages) is expected
         assert all(len(values) == 2 for values in stages.values())
+
+
+def test_the_pipeline_benchmark_runs_in_a_dds_domain_of_its_own() -> None:
+    environment: dict[str, str] = {}
+    assert bench_pipeline.isolate_ros_domain(environment, pid=4242) == "43"
+    assert environment == {"ROS_DOMAIN_ID": "43", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    chosen = {"ROS_DOMAIN_ID": "7"}  # the caller's choice stands
+    assert bench_pipeline.isolate_ros_domain(chosen, pid=4242) == "7"
