@@ -408,6 +408,7 @@ def covisibility_with_stats(
     poses: np.ndarray,
     camera_matrix: np.ndarray,
     stamps_ns: np.ndarray,
+    *,
     min_fraction: float = 0.3,
     min_gap_s: float = 5.0,
     grid_step_px: int = 8,
@@ -493,6 +494,7 @@ def covisibility_loop_matrix(
     poses: np.ndarray,
     camera_matrix: np.ndarray,
     stamps_ns: np.ndarray,
+    *,
     min_fraction: float = 0.3,
     min_gap_s: float = 5.0,
     grid_step_px: int = 8,
@@ -503,8 +505,10 @@ def covisibility_loop_matrix(
     max_view_angle_deg: float | None = None,
 ) -> np.ndarray:
     """(N, N) uint8 lower-triangular covisibility loop matrix; see ``covisibility_with_stats``."""
-    gt, _ = covisibility_with_stats(depths, poses, camera_matrix, stamps_ns, min_fraction, min_gap_s, grid_step_px,
-                                    tolerance_m, relative_tolerance, prune_voxel_m, depth_scale, max_view_angle_deg)
+    gt, _ = covisibility_with_stats(
+        depths, poses, camera_matrix, stamps_ns, min_fraction=min_fraction, min_gap_s=min_gap_s,
+        grid_step_px=grid_step_px, tolerance_m=tolerance_m, relative_tolerance=relative_tolerance,
+        prune_voxel_m=prune_voxel_m, depth_scale=depth_scale, max_view_angle_deg=max_view_angle_deg)
     return gt
 
 

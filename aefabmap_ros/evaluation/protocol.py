@@ -268,6 +268,7 @@ def evaluate_model(
     methods: Sequence[str],
     config: EvaluationConfig,
     fabmap_config: FabMapConfig,
+    *,
     exclude_samples: Sequence[int] | None = None,
     on_frame: FrameCallback | None = None,
     label: str = "",

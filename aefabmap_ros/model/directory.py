@@ -70,6 +70,7 @@ class Model:
         feature_config: FeatureConfig,
         vocabulary_config: VocabularyConfig,
         quantizer: Quantizer,
+        *,
         tree_matrix: np.ndarray | None = None,
         new_place_samples: scipy.sparse.csr_matrix | None = None,
         provenance: dict[str, object] | None = None,

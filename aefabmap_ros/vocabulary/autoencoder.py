@@ -384,7 +384,8 @@ def _torch_settings(num_threads: int) -> Iterator[None]:
 def train_quantizer(descriptors: np.ndarray, config: VocabularyConfig, *, pairs: np.ndarray | None = None,
                     progress: bool = True, work_dir: Path | None = None) -> AutoencoderQuantizer:
     """The kind's trainer for ``train_vocabulary`` (registered in ``kinds.py``)."""
-    return train_autoencoder_quantizer(descriptors, config.ae_options(), pairs, progress, work_dir)
+    return train_autoencoder_quantizer(descriptors, config.ae_options(), pairs=pairs, progress=progress,
+                                       work_dir=work_dir)
 
 
 def load_quantizer(stored: StoredVocabulary) -> AutoencoderQuantizer:
@@ -434,6 +435,7 @@ def _load_weights(path: Path, network: ConvAutoencoder) -> None:
 def train_autoencoder_quantizer(
     descriptors: np.ndarray,
     options: AETrainingOptions,
+    *,
     pairs: np.ndarray | None = None,
     progress: bool = True,
     work_dir: Path | None = None,

@@ -192,7 +192,8 @@ def small_model_and_features(seed=0, frames=24):
     quantizer = train_kmeans_quantizer(training, 30, 0, 10, 256)
     bow = sp.csr_matrix(rng.random((40, 30)) < 0.2, dtype=np.float64)
     tree = np.vstack([np.arange(30), np.full(30, 0.2), np.full(30, 0.2), np.full(30, 0.2)])
-    model = Model.create(FeatureConfig(), VocabularyConfig(kind="kmeans", size=30), quantizer, tree, bow)
+    model = Model.create(FeatureConfig(), VocabularyConfig(kind="kmeans", size=30), quantizer, tree_matrix=tree,
+                         new_place_samples=bow)
     gt = np.zeros((frames, frames), np.uint8)
     gt[np.arange(half, frames), np.arange(half)] = 1
     return model, features, gt

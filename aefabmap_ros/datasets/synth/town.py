@@ -895,7 +895,7 @@ def _dense_trajectory(
     return positions, heading + np.deg2rad(config.heading_jitter_deg) * jitter
 
 
-def dense_video_config(seed: int = 0, width: int = 320, height: int = 240, num_frames: int = 3600) -> SynthConfig:
+def dense_video_config(*, seed: int = 0, width: int = 320, height: int = 240, num_frames: int = 3600) -> SynthConfig:
     """The dense-video preset: 2 minutes of 30 Hz video along the dense-video route (about 315 m: slow,
     fast, a 4 s stop, a revisit in the same and one in the opposite direction, a street never
     revisited). 320x240 by default: see aefabmap_synth's docstring for the render times."""
