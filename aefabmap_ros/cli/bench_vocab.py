@@ -170,7 +170,8 @@ def _load_quantizer(directory: Path, kind: str) -> Quantizer:
 
 
 def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, repeats: int) -> None:
-    """Quantizing 1,000 descriptors: the distilled encoder (the default), the paper's network, k-means."""
+    """Quantizing 1,000 descriptors: the distilled encoder (when the vocabulary has one), the paper's network
+    (the default quantizer), k-means."""
     if not isinstance(ae, AutoencoderQuantizer):
         raise AefabmapError(f"expected an autoencoder vocabulary, got {ae.kind!r}")
     info = ae.training_info
@@ -193,7 +194,7 @@ def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, re
             times[name].append(time.perf_counter() - start)
     timed = {name: float(np.median(values) * 1000.0) for name, values in times.items()}
     for name, ms in timed.items():
-        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, the default)"
+        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, an option)"
                                                        if name == "student" else ""))
     for name in ("student", "network"):
         if name in timed:
