@@ -50,7 +50,7 @@ COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
 
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="aefabmap_demo", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     # Relative to the working directory, not to this file: an installed package has no checkout around it
     # (scripts/demo.sh passes the checkout's output/ and bags/ folders).
     parser.add_argument("--out", type=Path, default=Path("output") / "demo",
@@ -216,15 +216,14 @@ def _demo_params(args: argparse.Namespace, backend_dir: Path) -> Path:
     params = yaml.safe_load(shipped_config("demo.yaml").read_text())
     params.setdefault("pose_graph_node", {}).setdefault("ros__parameters", {})["trajectory_file"] = \
         str(backend_dir / "keyframes.tum")
-    path = args.out / "demo_params.yaml"
+    path: Path = args.out / "demo_params.yaml"
     path.write_text(yaml.safe_dump(params, sort_keys=False))
-    result: Path = path
-    return result
+    return path
 
 
 def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     """Replay the test bag through the nodes and the backend; returns the recording."""
-    recording = args.out / "online_recording"
+    recording: Path = args.out / "online_recording"
     shutil.rmtree(recording, ignore_errors=True)
     map_file = args.out / "map.npz"
     # Every run replays the same bag from an empty map: a map saved by the last run would make the
@@ -290,8 +289,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         if printer.backend is not None:
             print(printer.backend.errors.summary(), flush=True)
         print_backend_result(test, backend_dir)
-    result: Path = recording
-    return result
+    return recording
 
 
 def print_backend_result(test: Path, backend_dir: Path) -> None:

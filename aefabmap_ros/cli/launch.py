@@ -45,7 +45,7 @@ def default_params_file() -> Path:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="aefabmap_launch", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, required=True, help="model directory (from aefabmap_train)")
     parser.add_argument("--params", type=Path, default=None,
                         help="parameter YAML (default: the aefabmap.yaml shipped in the package)")

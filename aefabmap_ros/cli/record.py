@@ -31,7 +31,7 @@ DEFAULT_TOPICS = ("loop_closures", "loop_closure_candidates", "place_posteriors"
 
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="aefabmap_record", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("output", type=Path, help="bag directory to create")
     parser.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS),
                         help=f"topics to record (default: {' '.join(DEFAULT_TOPICS)})")

@@ -37,7 +37,7 @@ from aefabmap_ros.stamps import stamp_to_ns
 
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="aefabmap_replay", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", type=Path, help="rosbag2 bag directory (mcap or sqlite3)")
     parser.add_argument("--topic", default="/image", help="image topic in the bag (default: /image)")
     parser.add_argument("--out-topic", default="image",

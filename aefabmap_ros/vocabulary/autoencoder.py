@@ -75,6 +75,7 @@ by the next call with the same config and data.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import io
 import json
@@ -254,7 +255,6 @@ class AutoencoderQuantizer:
         self.student = student
         self.embedding_centres = np.ascontiguousarray(embedding_centres, np.float32)
         self._centres_t = torch.from_numpy(self.embedding_centres)
-        self._centre_search = CentreSearch(self.embedding_centres)  # the student path's, built once
         self._centroids = np.ascontiguousarray(descriptor_centroids, np.float32)
         self.binary = binary
         self.descriptor_dim = descriptor_dim
@@ -270,6 +270,11 @@ class AutoencoderQuantizer:
     def centroids(self) -> np.ndarray:
         """(K, D) float32: mean descriptor of each word (paper eq. 3)."""
         return self._centroids
+
+    @functools.cached_property
+    def _centre_search(self) -> CentreSearch:
+        """The student path's nearest-centre matmul, built on its first use (the network path has its own)."""
+        return CentreSearch(self.embedding_centres)
 
     def with_student(self, student: StudentEncoder | None) -> AutoencoderQuantizer:
         """The same vocabulary quantized by ``student`` (None: by the paper's network)."""
