@@ -48,7 +48,7 @@ PARAMS = """
 feature_node:
   ros__parameters: {image_qos: reliable, queue_depth: 1000}
 quantizer_node:
-  ros__parameters: {queue_depth: 1000}
+  ros__parameters: {queue_depth: 1000, drop_when_busy: false}
 fabmap_node:
   ros__parameters: {queue_depth: 1000}
 """
@@ -122,7 +122,7 @@ class RunResult:
     sent: int
     usage: list[ProcessUsage]
     latencies_ms: list[float] = field(default_factory=list)
-    dropped_busy: int | None = None
+    drops: dict[str, int] = field(default_factory=dict)  # "node reason" -> count, from the nodes' summaries
 
 
 def _launch(setup: Setup, model_dir: Path, params: Path, log: Any) -> subprocess.Popen[bytes]:
@@ -253,8 +253,18 @@ def camera_rate(setup: Setup, model_dir: Path, images: list[np.ndarray], work: P
     latencies = [(arrivals[stamp] - stamp) / 1e6 for stamp in sent if stamp in arrivals]
     answered = sorted(arrivals[stamp] for stamp in sent if stamp in arrivals)
     rate = 0.0 if len(answered) < 2 else (len(answered) - 1) / ((answered[-1] - answered[0]) / 1e9)
-    busy = re.findall(r"dropped_busy=(\d+)", (work / "launch_camera.log").read_text())
-    return RunResult(rate, len(latencies), len(sent), usage, latencies, int(busy[-1]) if busy else None)
+    drops = node_drops((work / "launch_camera.log").read_text())
+    return RunResult(rate, len(latencies), len(sent), usage, latencies, drops)
+
+
+def node_drops(log: str) -> dict[str, int]:
+    """Each node's drop counters from the summary line it logs when it stops ("<node>: a=1, dropped_b=2"):
+    where the frames that got no posterior were lost ({"feature_node busy": 48, ...})."""
+    drops: dict[str, int] = {}
+    for node, counts in re.findall(r"\b(\w+_node): ((?:\w+=\d+(?:, )?)+)$", log, flags=re.MULTILINE):
+        for reason, value in re.findall(r"dropped_(\w+)=(\d+)", counts):
+            drops[f"{node} {reason}"] = int(value)
+    return drops
 
 
 def _usage_text(result: RunResult) -> str:
@@ -277,8 +287,8 @@ def _through_nodes(setups: list[Setup], repeats: int,
                 line += (f", latency p50 {np.percentile(result.latencies_ms, 50):.0f} ms "
                          f"p95 {np.percentile(result.latencies_ms, 95):.0f} ms, "
                          f"dropped {result.sent - result.received}")
-                if result.dropped_busy is not None:
-                    line += f" (feature_node dropped_busy={result.dropped_busy})"
+                if result.drops:
+                    line += " (" + ", ".join(f"{where} {count}" for where, count in result.drops.items()) + ")"
             print(f"{line}  [load {_load()}]\n      {_usage_text(result)}", flush=True)
     return results
 

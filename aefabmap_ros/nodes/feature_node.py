@@ -13,7 +13,6 @@ processed, in order.
 
 from __future__ import annotations
 
-import threading
 from functools import partial
 from typing import Any
 
@@ -35,7 +34,7 @@ from aefabmap_ros.nodes.common import (
     pipeline_qos,
     run_node,
 )
-from aefabmap_ros.nodes.frame_gate import LatestFrameGate
+from aefabmap_ros.nodes.frame_gate import LatestFrameWorker
 from aefabmap_ros.nodes.launch_table import compressed_topic
 from aefabmap_ros.nodes.messages import features_to_message
 from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
@@ -71,11 +70,10 @@ class FeatureNode(Node):
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
         self.transports = TransportDeduplicator()
-        self.gate: LatestFrameGate[Any] = LatestFrameGate()
-        self._worker: threading.Thread | None = None
-        if qos_kind == "sensor_data":
-            self._worker = threading.Thread(target=self._process_frames, name="feature_worker", daemon=True)
-            self._worker.start()
+        # sensor_data: extraction in a worker that takes the newest frame; reliable: in the callback.
+        self.worker: LatestFrameWorker[Any] | None = (
+            LatestFrameWorker(self._on_image, "feature_worker") if qos_kind == "sensor_data" else None
+        )
         counted_subscription(self, Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth),
                              self.counter)
         if subscribe_compressed:
@@ -91,19 +89,14 @@ class FeatureNode(Node):
         if self.transports.is_duplicate(stamp_to_ns(message.header.stamp), transport):
             self.counter.ok(f"skipped_{transport}_copies")  # the other transport brought this frame already
             return
-        if self._worker is None:
+        if self.worker is None:
             self._on_image(message)
-        elif not self.gate.offer(message):
+        elif not self.worker.offer(message):
             self.counter.drop("busy", "a newer frame arrived before feature extraction took the previous one")
 
-    def _process_frames(self) -> None:
-        while (message := self.gate.take()) is not None:
-            self._on_image(message)
-
     def _stop_worker(self) -> None:
-        self.gate.close()
-        if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join(timeout=10)
+        if self.worker is not None:
+            self.worker.stop()
 
     def destroy_node(self) -> None:
         self._stop_worker()

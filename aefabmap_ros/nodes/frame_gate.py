@@ -1,14 +1,18 @@
-"""A one-frame mailbox between a camera callback and the worker that processes frames.
+"""A one-frame mailbox between a subscription callback and the worker that processes frames.
 
 A live camera does not wait for us: when frames arrive faster than the pipeline takes them, a
 queue in front of it only grows the delay from image to result. The gate holds at most one frame,
 the newest; a frame that arrives while the previous one is still waiting replaces it and is counted
 as dropped, so the worker always starts on the freshest frame and nothing queues up.
+
+Every stage that can be the slowest has one (feature_node for images, quantizer_node for features):
+a gate only at the first stage would let frames it passed queue up in front of a slower second one.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 ItemT = TypeVar("ItemT")
@@ -46,3 +50,31 @@ class LatestFrameGate(Generic[ItemT]):
         with self._condition:
             self._closed = True
             self._condition.notify_all()
+
+
+class LatestFrameWorker(Generic[ItemT]):
+    """A worker thread that processes the newest frame offered to it, through a ``LatestFrameGate``.
+
+    ``offer`` returns at once (the subscription callback is never held up); a frame still waiting
+    when a newer one is offered is dropped, and ``offer`` returns False so the node can count it.
+    """
+
+    def __init__(self, process: Callable[[ItemT], None], name: str) -> None:
+        self.gate: LatestFrameGate[ItemT] = LatestFrameGate()
+        self._process = process
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def offer(self, item: ItemT) -> bool:
+        """Hand over a frame; False when it replaced one the worker had not taken (that one is dropped)."""
+        return self.gate.offer(item)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Finish the frame in hand (one still waiting is not processed), then end the thread."""
+        self.gate.close()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=timeout_s)
+
+    def _run(self) -> None:
+        while (item := self.gate.take()) is not None:
+            self._process(item)

@@ -77,10 +77,15 @@ def parse_bool(value: str, what: str) -> bool:
 def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     """The nodes to start, in start order, with what each gets beyond the parameter file."""
     image: dict[str, str] = {"image_qos": options.image_qos} if options.image_qos else {}
+    # The quantizer follows the image QoS: a live camera's frames may be dropped at every stage, a
+    # lossless replay's at none.
+    words: dict[str, str] = (
+        {"drop_when_busy": str(options.image_qos == "sensor_data").lower()} if options.image_qos else {}
+    )
     fabmap: dict[str, str] = {"map_file": options.map_file} if options.map_file else {}
     nodes = [
         NodeLaunch("feature_node", {"model_dir": options.model_dir, **image}, {"image": options.image_topic}),
-        NodeLaunch("quantizer_node", {"model_dir": options.model_dir}),
+        NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **words}),
         NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap},
                    {} if options.verify else {CANDIDATES_TOPIC: CLOSURES_TOPIC}),
     ]

@@ -1,4 +1,12 @@
-"""quantizer_node: ``aefabmap/features`` -> ``aefabmap/words`` with the model's vocabulary."""
+"""quantizer_node: ``aefabmap/features`` -> ``aefabmap/words`` with the model's vocabulary.
+
+With ``drop_when_busy`` (the default, for a live camera) quantization runs in a worker that takes the
+newest features message: one that arrives while the previous one still waits replaces it (counted
+as ``dropped_busy``). feature_node drops camera frames at its door too, but when quantization is
+the slower stage (the paper's autoencoder network behind a fast feature extractor) the frames
+feature_node passes would otherwise queue here and the delay from image to posterior would grow
+without bound. With it off (bag replay without lockstep) every message is quantized, in order.
+"""
 
 from __future__ import annotations
 
@@ -19,6 +27,7 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.frame_gate import LatestFrameWorker
 from aefabmap_ros.nodes.messages import bag_of_words_to_message, message_to_features
 from aefabmap_ros.vocabulary.autoencoder import limit_torch_threads
 from aefabmap_ros.vocabulary.base import bag_of_words
@@ -34,6 +43,11 @@ class QuantizerNode(Node):
             "Threads of torch's CPU pool for the autoencoder quantizer (0 = torch's default, which follows "
             "OMP_NUM_THREADS; aefabmap_launch sets that to this process's share of the cores).",
         )
+        drop_when_busy = declare_parameter(
+            self, "drop_when_busy", True,
+            "Quantize only the newest features message: one arriving while quantization is busy replaces "
+            "the one waiting (counted, never queued; a live camera). false: every message, in order (bag replay).",
+        )
         if torch_threads < 0:
             raise ConfigError(f"quantizer_node: parameter torch_threads={torch_threads} must be >= 0")
         if torch_threads > 0:
@@ -46,6 +60,9 @@ class QuantizerNode(Node):
         self.descriptor_type = model.feature_config.type
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))
+        self.worker: LatestFrameWorker[Any] | None = (
+            LatestFrameWorker(self._quantize, "quantizer_worker") if drop_when_busy else None
+        )
         features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
                                         self.counter)
         report_when_connected(self, features, "features")
@@ -56,6 +73,14 @@ class QuantizerNode(Node):
 
     @node_callback
     def _on_features(self, message: Features) -> None:
+        """Quantize now, or hand over to the worker, replacing -- and dropping -- a message still waiting."""
+        if self.worker is None:
+            self._quantize(message)
+        elif not self.worker.offer(message):
+            self.counter.drop("busy", "a newer features message arrived before quantization took the previous one")
+
+    @node_callback
+    def _quantize(self, message: Features) -> None:
         if message.descriptor_type != self.descriptor_type:
             self.counter.drop(
                 "wrong_descriptor_type",
@@ -75,7 +100,14 @@ class QuantizerNode(Node):
         ))
         self.counter.ok()
 
+    def destroy_node(self) -> None:
+        if self.worker is not None:
+            self.worker.stop()
+        super().destroy_node()
+
     def close(self) -> bool:
+        if self.worker is not None:
+            self.worker.stop()  # the message in hand is finished first, so the counts are final
         self.get_logger().info(f"quantizer_node: {self.counter.summary()}")
         return True
 

@@ -92,3 +92,18 @@ def test_the_pipeline_benchmark_runs_in_a_dds_domain_of_its_own() -> None:
     assert environment == {"ROS_DOMAIN_ID": "43", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     chosen = {"ROS_DOMAIN_ID": "7"}  # the caller's choice stands
     assert bench_pipeline.isolate_ros_domain(chosen, pid=4242) == "7"
+
+
+def test_camera_runs_report_where_each_node_dropped_frames() -> None:
+    """The nodes' stop summaries, as aefabmap_launch's log interleaves them with other lines."""
+    log = "\n".join([
+        "[INFO] [1795474683.96] [feature_node]: feature_node: dropped_busy=48, processed=102",
+        "[WARN] [1795474684.01] [quantizer_node]: dropped input (busy, 3 so far): a newer features message arrived",
+        "[INFO] [1795474684.10] [quantizer_node]: quantizer_node: dropped_before_callback=2, dropped_busy=26, "
+        "processed=74",
+        "[INFO] [1795474684.20] [fabmap_node]: fabmap_node: processed=74",
+        "[INFO] [1795474684.30] [fabmap_node]: saved the map: 74 places",
+    ])
+    assert bench_pipeline.node_drops(log) == {"feature_node busy": 48, "quantizer_node before_callback": 2,
+                               "quantizer_node busy": 26}
+    assert bench_pipeline.node_drops("") == {}

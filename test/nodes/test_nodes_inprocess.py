@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -92,33 +93,81 @@ def test_feature_node_publishes_and_drops_bad_images(revisit_data: RevisitData, 
         node.destroy_node()
 
 
-def test_feature_node_drops_camera_frames_at_the_door_while_busy(revisit_data: RevisitData) -> None:
+class SlowStage:
+    """Stands in for a node's processing: records each frame's stamp and holds the first until released."""
+
+    def __init__(self) -> None:
+        self.started, self.release, self.second = threading.Event(), threading.Event(), threading.Event()
+        self.processed: list[int] = []
+
+    def __call__(self, message: Any) -> None:
+        self.processed.append(message.header.stamp.sec)
+        (self.second if self.started.is_set() else self.started).set()
+        self.release.wait()
+
+
+def _assert_only_the_newest_waits(node: Any, on_message: Any, stage: SlowStage, make: Any) -> None:
+    """Frame 1 is in hand, 2 3 4 arrive: 2 and 3 are dropped (counted), 4 is processed next, nothing queues."""
+    try:
+        on_message(make(1))
+        assert stage.started.wait(timeout=30)  # the worker holds frame 1
+        for sec in (2, 3, 4):
+            on_message(make(sec))
+        assert node.counter.counts["dropped_busy"] == 2  # 2 and 3 were replaced before being taken
+        stage.release.set()
+        assert stage.second.wait(timeout=30)
+        assert stage.processed == [1, 4]
+        assert node.worker.gate.take(timeout_s=0) is None  # nothing left queued
+    finally:
+        stage.release.set()
+        node.destroy_node()
+
+
+def test_feature_node_drops_camera_frames_at_the_door_while_busy(revisit_data: RevisitData,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """sensor_data: a frame that arrives while the worker is busy waits in a one-frame gate; a newer
     one replaces it (counted), so the worker's next frame is the newest and nothing queues."""
-    import threading
-
+    stage = SlowStage()
+    monkeypatch.setattr(FeatureNode, "_on_image", lambda _node, message: stage(message))
     node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), image_qos="sensor_data"))
-    started, release, second = threading.Event(), threading.Event(), threading.Event()
-    processed: list[int] = []
+    _assert_only_the_newest_waits(node, node._on_frame, stage, lambda sec: _image(b"", "mono8", 0, 0, 0, sec=sec))
 
-    def slow_extraction(message: Any) -> None:
-        processed.append(message.header.stamp.sec)
-        (second if started.is_set() else started).set()
-        release.wait()
 
-    node._on_image = slow_extraction  # type: ignore[method-assign]
+def _empty_features(sec: int) -> Any:
+    message = msg.Features(descriptor_type="sift")
+    message.header.stamp = Time(sec=sec)
+    return message
+
+
+def test_quantizer_drops_features_it_cannot_take_instead_of_queuing_them(revisit_data: RevisitData,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The slowest stage drops, not only the first: features arriving while quantization is busy do
+    not queue up behind it (the delay from image to posterior would grow without bound)."""
+    stage = SlowStage()
+    monkeypatch.setattr(QuantizerNode, "_quantize", lambda _node, message: stage(message))
+    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    _assert_only_the_newest_waits(node, node._on_features, stage, _empty_features)
+
+
+def _in_order_quantizer(data: RevisitData) -> QuantizerNode:
+    """Quantizing in the callback (no worker thread): a test sees the words as soon as it hands over features."""
+    return QuantizerNode(parameter_overrides=_params(model_dir=str(data.model_dir), drop_when_busy=False))
+
+
+def test_quantizer_takes_every_message_in_order_for_a_lossless_replay(revisit_data: RevisitData) -> None:
+    from aefabmap_ros.features.extraction import extract_features
+    from aefabmap_ros.model.directory import load_model
+
+    features = extract_features(_first_frames(revisit_data, 1)[0], load_model(revisit_data.model_dir).feature_config)
+    node = _in_order_quantizer(revisit_data)
     try:
-        node._on_frame(_image(b"", "mono8", 0, 0, 0, sec=1))
-        assert started.wait(timeout=30)  # the worker holds frame 1
-        for sec in (2, 3, 4):
-            node._on_frame(_image(b"", "mono8", 0, 0, 0, sec=sec))
-        assert node.counter.counts["dropped_busy"] == 2  # 2 and 3 were replaced before being taken
-        release.set()
-        assert second.wait(timeout=30)
-        assert processed == [1, 4]
-        assert node.gate.take(timeout_s=0) is None  # nothing left queued
+        out = Captured(node.publisher)
+        assert node.worker is None
+        for sec in (1, 2, 3):
+            node._on_features(_features_message(features, sec))
+        assert [message.header.stamp.sec for message in out.messages] == [1, 2, 3]
+        assert "dropped_busy" not in node.counter.counts
     finally:
-        release.set()
         node.destroy_node()
 
 
@@ -147,7 +196,7 @@ def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revis
 @pytest.mark.reliability
 def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData, reliability: Recorder) -> None:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
-    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    node = _in_order_quantizer(revisit_data)
     try:
         features_out, words_out = Captured(feature_node.publisher), Captured(node.publisher)
         gray = _first_frames(revisit_data, 1)[0]
@@ -179,7 +228,7 @@ def test_quantizer_node_words_and_bad_features(revisit_data: RevisitData, reliab
 
 def test_quantizer_node_words_are_the_same_from_byte_and_float_sift(revisit_data: RevisitData) -> None:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
-    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    node = _in_order_quantizer(revisit_data)
     try:
         features_out, words_out = Captured(feature_node.publisher), Captured(node.publisher)
         gray = _first_frames(revisit_data, 1)[0]
@@ -639,7 +688,7 @@ def test_feature_node_refuses_oversized_images_before_decoding(revisit_data: Rev
 def test_quantizer_node_survives_any_exception_and_refuses_non_finite_descriptors(revisit_data: RevisitData,
                                                                                   reliability: Recorder) -> None:
     features = _features_of(revisit_data)
-    node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    node = _in_order_quantizer(revisit_data)
     try:
         words_out = Captured(node.publisher)
         with_nan = copy.deepcopy(features)
@@ -857,7 +906,7 @@ def test_quantizer_and_verifier_nodes_refuse_huge_finite_descriptors(revisit_dat
     values[7] = 3e38
     huge.binary_descriptors = np.zeros(0, np.uint8)
     huge.float_descriptors = values
-    quantizer = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
+    quantizer = _in_order_quantizer(revisit_data)
     try:
         words_out = Captured(quantizer.publisher)
         quantizer._on_features(huge)
