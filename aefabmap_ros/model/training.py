@@ -218,9 +218,17 @@ def train_model(
         quantizer=quantizer,
         tree_matrix=tree.to_matrix(),
         new_place_samples=sp.csr_matrix(samples),
-        provenance={**provenance, "training": asdict(training_config)},
+        provenance={**provenance, "training": asdict(training_config), **vocabulary_training(quantizer)},
     )
     return model, report
+
+
+def vocabulary_training(quantizer: Quantizer) -> dict[str, dict[str, float]]:
+    """What the vocabulary's training measured (an autoencoder's stage times, its distilled encoder's
+    word agreement with the network on held-out descriptors), kept in the model's provenance so the
+    figure travels with the directory instead of one line of aefabmap_train's output."""
+    info: dict[str, float] = getattr(quantizer, "training_info", {})
+    return {"vocabulary_training": {name: float(value) for name, value in info.items()}} if info else {}
 
 
 def sampled_centres_model(
