@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import array
+import contextlib
 import functools
 import os
 import re
@@ -24,12 +25,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
@@ -43,6 +45,7 @@ from aefabmap_ros.features.images import image_to_gray
 from aefabmap_ros.io.bags import read_messages, write_image_bag
 from aefabmap_ros.model.directory import Model, load_model, save_model
 from aefabmap_ros.model.training import sampled_centres_model
+from aefabmap_ros.nodes.launch_table import DETECTION_NODES, threads_per_process
 
 PARAMS = """
 feature_node:
@@ -64,6 +67,25 @@ def _ms_since(started: float) -> float:
 
 def _summary(values_ms: list[float]) -> str:
     return f"median {np.median(values_ms):7.2f} ms  p95 {np.percentile(values_ms, 95):7.2f} ms"
+
+
+@contextlib.contextmanager
+def thread_pools_of_a_node_process() -> Iterator[int]:
+    """Cap BLAS/OpenMP pools (numpy, scipy, faiss) and torch's to what each node process gets under
+    aefabmap_launch (its share of the cores), so the one-process stage timings are the nodes' own:
+    uncapped, torch's pool spun against everything else on a shared machine (a 29 ms quantization
+    measured 232 ms)."""
+    share = threads_per_process(len(DETECTION_NODES))
+    torch = sys.modules.get("torch")  # only an autoencoder model has imported it
+    torch_threads = torch.get_num_threads() if torch is not None else 0
+    with threadpool_limits(limits=share):
+        if torch is not None:
+            torch.set_num_threads(share)
+        try:
+            yield share
+        finally:
+            if torch is not None:
+                torch.set_num_threads(torch_threads)
 
 
 def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[float]]:
@@ -388,9 +410,11 @@ def run(args: argparse.Namespace) -> int:
             else:
                 model = load_model(model_dir)
             label = f"{model.feature_config.type} / {model.quantizer.kind} {model.quantizer.size} words"
-            stages = stage_latencies(model, images)
+            with thread_pools_of_a_node_process() as threads:
+                stages = stage_latencies(model, images)
             total = np.sum([stages[s] for s in ("decode", "features", "quantize", "fabmap")], axis=0)
-            print(f"\n[{label}] per-stage latency, one process, {len(images)} images")
+            print(f"\n[{label}] per-stage latency, one process, {len(images)} images, "
+                  f"{threads}-thread BLAS/torch pools (a node process's share under aefabmap_launch)")
             for stage, values in stages.items():
                 print(f"  {stage:9s} {_summary(values)}")
             print(f"  {'total':9s} {_summary(list(total))}  -> {1e3 / np.median(total):.1f} images/s on one core")

@@ -107,3 +107,21 @@ def test_camera_runs_report_where_each_node_dropped_frames() -> None:
     assert bench_pipeline.node_drops(log) == {"feature_node busy": 48, "quantizer_node before_callback": 2,
                                "quantizer_node busy": 26}
     assert bench_pipeline.node_drops("") == {}
+
+
+def test_stage_timings_run_with_the_thread_pools_of_one_node_process() -> None:
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from aefabmap_ros.nodes.launch_table import DETECTION_NODES, threads_per_process
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(4)
+    try:
+        with bench_pipeline.thread_pools_of_a_node_process() as threads:
+            assert threads == threads_per_process(len(DETECTION_NODES))
+            assert torch.get_num_threads() == threads
+            assert all(pool["num_threads"] <= threads for pool in threadpool_info())
+        assert torch.get_num_threads() == 4  # restored for whatever runs next
+    finally:
+        torch.set_num_threads(before)
