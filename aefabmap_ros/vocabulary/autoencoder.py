@@ -206,6 +206,8 @@ class AETrainingOptions:
     student_hidden: int = 0
     student_epochs: int = 0
     student_learning_rate: float = 1e-3
+    student_word_weight: float = 0.0
+    student_word_temperature: float = 1.0
 
 
 class AutoencoderQuantizer:
@@ -521,9 +523,10 @@ def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray,
     held_count = min(STUDENT_HELD_OUT_MAX, max(1, int(n * STUDENT_HELD_OUT_FRACTION))) if n > 1 else 0
     order = np.random.default_rng([options.seed, 6]).permutation(n)
     held, fit = np.sort(order[:held_count]), np.sort(order[held_count:])
-    student = distill_student(x_all[fit], z_all[fit], DistillOptions(
+    student = distill_student(x_all[fit], z_all[fit], centres, DistillOptions(
         hidden_dim=options.student_hidden, epochs=options.student_epochs, batch_size=options.batch_size,
-        learning_rate=options.student_learning_rate, seed=options.seed))
+        learning_rate=options.student_learning_rate, seed=options.seed, word_weight=options.student_word_weight,
+        word_temperature=options.student_word_temperature))
     info = {"student_hidden": float(options.student_hidden), "student_held_out_descriptors": float(held.size)}
     if held.size:
         teacher_words, _ = nearest(centres, z_all[held])
