@@ -4,10 +4,12 @@ The paper's encoder (conv 32/64/128 + dense, ``autoencoder.py``) costs about fiv
 nearest-centre search per descriptor in multiply-adds, so no leaner forward pass of it can quantize
 as cheaply as k-means. The student is a one-hidden-layer MLP, PCA vector (P) -> H (ReLU) -> embedding
 (E), trained after the teacher to reproduce the teacher's embeddings (mean squared error) on the
-same PCA-scaled training vectors. The words stay the teacher's: the same K centres in the same
-embedding space, nearest centre = word. Per descriptor it costs P*H + H*E + K*E multiply-adds against
-k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k against 128k), in float32 numpy: two
-matmuls and the centre search as one matmul (``CentreSearch``).
+same PCA-scaled training vectors, plus (``word_weight`` > 0) a word term: the teacher's soft assignment
+to the fixed centres, matched by the student's (``word_assignment_loss``). The words stay the
+teacher's: the same K centres in the same embedding space, nearest centre = word. Per descriptor it
+costs P*H + H*E + K*E multiply-adds against k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k
+against 128k; H = 256: 97k), in float32 numpy: two matmuls and the centre search as one matmul
+(``CentreSearch``).
 
 Only training needs torch (``distill_student``); ``StudentEncoder`` is numpy alone.
 """
