@@ -135,6 +135,16 @@ class VocabularyConfig:
     ae_student_learning_rate: float = field(
         default=3e-3, metadata={"description": "Adam learning rate of the distillation (cosine-annealed to 0)."}
     )
+    ae_student_word_weight: float = field(
+        default=1.0,
+        metadata={"description": "Weight of the distillation's word term (KL between the network's and the "
+                  "student's soft word assignments) against the embedding MSE; 0 = MSE alone."},
+    )
+    ae_student_word_temperature: float = field(
+        default=8.0,
+        metadata={"description": "Temperature of the word term's soft assignment, exp(-|z - c|^2 / T), in the "
+                  "embedding space normalised to unit variance per dimension."},
+    )
     refine: bool = field(
         default=False,
         metadata={"description": "DEC/IDEC refinement of encoder and centres with reconstruction + "
@@ -173,6 +183,8 @@ class VocabularyConfig:
             ("ae_student_hidden", self.ae_student_hidden >= 0, ">= 0"),
             ("ae_student_epochs", self.ae_student_epochs >= 1, ">= 1"),
             ("ae_student_learning_rate", self.ae_student_learning_rate > 0, "> 0"),
+            ("ae_student_word_weight", self.ae_student_word_weight >= 0, ">= 0"),
+            ("ae_student_word_temperature", self.ae_student_word_temperature > 0, "> 0"),
             ("refine_epochs", self.refine_epochs >= 0, ">= 0"),
             ("refine_learning_rate", self.refine_learning_rate > 0, "> 0"),
             ("refine_update_interval", self.refine_update_interval >= 1, ">= 1"),
@@ -207,7 +219,8 @@ class VocabularyConfig:
             refine=self.refine, refine_epochs=self.refine_epochs, refine_learning_rate=self.refine_learning_rate,
             refine_update_interval=self.refine_update_interval, gamma=self.gamma, tol=self.tol, alpha=self.alpha,
             student_hidden=self.ae_student_hidden, student_epochs=self.ae_student_epochs,
-            student_learning_rate=self.ae_student_learning_rate,
+            student_learning_rate=self.ae_student_learning_rate, student_word_weight=self.ae_student_word_weight,
+            student_word_temperature=self.ae_student_word_temperature,
         )
 
 

@@ -4,10 +4,12 @@ The paper's encoder (conv 32/64/128 + dense, ``autoencoder.py``) costs about fiv
 nearest-centre search per descriptor in multiply-adds, so no leaner forward pass of it can quantize
 as cheaply as k-means. The student is a one-hidden-layer MLP, PCA vector (P) -> H (ReLU) -> embedding
 (E), trained after the teacher to reproduce the teacher's embeddings (mean squared error) on the
-same PCA-scaled training vectors. The words stay the teacher's: the same K centres in the same
-embedding space, nearest centre = word. Per descriptor it costs P*H + H*E + K*E multiply-adds against
-k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k against 128k), in float32 numpy: two
-matmuls and the centre search as one matmul (``CentreSearch``).
+same PCA-scaled training vectors, plus (``word_weight`` > 0) a word term: the teacher's soft assignment
+to the fixed centres, matched by the student's (``word_assignment_loss``). The words stay the
+teacher's: the same K centres in the same embedding space, nearest centre = word. Per descriptor it
+costs P*H + H*E + K*E multiply-adds against k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k
+against 128k; H = 256: 97k), in float32 numpy: two matmuls and the centre search as one matmul
+(``CentreSearch``).
 
 Only training needs torch (``distill_student``); ``StudentEncoder`` is numpy alone.
 """
@@ -134,6 +136,31 @@ class DistillOptions:
     batch_size: int
     learning_rate: float
     seed: int
+    # The word term (``word_assignment_loss``): its weight against the embedding MSE (0 = MSE alone) and its
+    # temperature, in the normalised embedding space (unit variance per dimension, see ``distill_student``).
+    word_weight: float = 0.0
+    word_temperature: float = 1.0
+
+
+def word_assignment_loss(student_z: torch.Tensor, teacher_z: torch.Tensor, centres: torch.Tensor,
+                         temperature: float) -> torch.Tensor:
+    """KL(teacher's soft word assignment || student's), batch mean; logits -|z - c_k|^2 / temperature.
+
+    The words are the nearest centres, so what the student must get right is the side of each boundary
+    between two words, not the embedding as a whole (the MSE's aim). The logits' differences are
+    2 z.(c_j - c_k) + const: matching the softened assignment matches the embedding along the directions
+    between the centres near the teacher's point, weighted by how near they are, and leaves the rest
+    to the MSE. A soft target rather than the teacher's hard word: cross-entropy on the hard word grows
+    without bound as the student pushes its point away from every other centre, off the teacher's
+    embedding (measured on kitti00: 90.5 % agreement against 92.8 % for the MSE alone).
+    """
+    squared_norms = (centres * centres).sum(dim=1)
+
+    def logits(z: torch.Tensor) -> torch.Tensor:
+        return (2.0 * z @ centres.T - squared_norms - (z * z).sum(dim=1, keepdim=True)) / temperature
+
+    target = torch.softmax(logits(teacher_z), dim=1)
+    return nn.functional.kl_div(torch.log_softmax(logits(student_z), dim=1), target, reduction="batchmean")
 
 
 # Small training sets still get this many optimizer steps (epochs are repeated): a few thousand descriptors
@@ -141,20 +168,27 @@ class DistillOptions:
 MIN_DISTILL_STEPS = 2000
 
 
-def distill_student(x: np.ndarray, teacher_z: np.ndarray, options: DistillOptions) -> StudentEncoder:
+def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
+                    options: DistillOptions) -> StudentEncoder:
     """Fit a student to the teacher's embeddings ``teacher_z`` (N, E) of PCA vectors ``x`` (N, P).
 
     Mean squared error on the embeddings, centred and divided by one overall scale (so that the
     learning rate suits any embedding scale while the loss still weighs every dimension as the
-    distance to the centres does); the scaling is folded back into the last layer afterwards. Adam,
-    the learning rate cosine-annealed to 0. Deterministic given ``options.seed`` (the caller holds
-    torch's deterministic settings).
+    distance to the centres does); the scaling is folded back into the last layer afterwards. With
+    ``options.word_weight`` > 0, plus that weight times ``word_assignment_loss`` against the word
+    ``centres`` (K, E), fixed, in the same normalised space (so the temperature does not depend on the
+    embedding's scale either). Adam, the learning rate cosine-annealed to 0. Deterministic given
+    ``options.seed`` (the caller holds torch's deterministic settings).
     """
     if x.shape[0] != teacher_z.shape[0] or x.shape[0] == 0:
         raise DataError(f"distillation needs as many embeddings as vectors, got {x.shape} and {teacher_z.shape}")
+    if centres.ndim != 2 or centres.shape[1] != teacher_z.shape[1]:
+        raise DataError(f"distillation needs centres in the embedding space ({teacher_z.shape[1]}-d), "
+                        f"got {centres.shape}")
     mean = teacher_z.mean(axis=0, dtype=np.float64)
     scale = float(np.sqrt(np.mean((teacher_z - mean) ** 2))) or 1.0
     targets = torch.from_numpy(((teacher_z - mean) / scale).astype(np.float32))
+    normalised_centres = torch.from_numpy(((centres - mean) / scale).astype(np.float32))
     inputs = torch.from_numpy(np.ascontiguousarray(x, np.float32))
     torch.manual_seed(options.seed)
     network = student_network(x.shape[1], options.hidden_dim, teacher_z.shape[1])
@@ -169,7 +203,11 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, options: DistillOption
         order = torch.from_numpy(np.random.default_rng([options.seed, 7, epoch]).permutation(x.shape[0]))
         for b in range(n_batches):
             idx = order[b * batch:(b + 1) * batch]
-            loss = mse(network(inputs[idx]), targets[idx])
+            prediction = network(inputs[idx])
+            loss = mse(prediction, targets[idx])
+            if options.word_weight > 0:
+                loss = loss + options.word_weight * word_assignment_loss(
+                    prediction, targets[idx], normalised_centres, options.word_temperature)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -189,4 +227,5 @@ __all__ = [
     "StudentEncoder",
     "distill_student",
     "student_network",
+    "word_assignment_loss",
 ]

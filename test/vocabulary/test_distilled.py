@@ -1,6 +1,8 @@
 """Tests for the encoder distilled from the autoencoder (aefabmap_ros/vocabulary/distilled.py) and its use by
 the autoencoder quantizer (vocabulary/autoencoder.py)."""
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +10,14 @@ import torch
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
-from aefabmap_ros.vocabulary.distilled import CentreSearch, StudentEncoder, student_network
+from aefabmap_ros.vocabulary.distilled import (
+    CentreSearch,
+    DistillOptions,
+    StudentEncoder,
+    distill_student,
+    student_network,
+    word_assignment_loss,
+)
 
 K = 8
 DIM = 128
@@ -126,8 +135,89 @@ def test_student_that_does_not_fit_is_refused(trained: AutoencoderQuantizer) -> 
         StudentEncoder(np.zeros((16, 4)), np.zeros(4), np.zeros((4, 8)), np.full(8, np.nan))
 
 
+def _word_loss(student: np.ndarray, teacher: np.ndarray, centres: np.ndarray, temperature: float) -> float:
+    return float(word_assignment_loss(torch.from_numpy(student), torch.from_numpy(teacher), torch.from_numpy(centres),
+                                      temperature))
+
+
+def test_word_assignment_loss_is_kl_of_softened_nearest_centre_assignments() -> None:
+    rng = np.random.default_rng(4)
+    student, teacher, centres = rng.normal(size=(5, 3)), rng.normal(size=(5, 3)), rng.normal(size=(7, 3))
+    temperature = 0.7
+
+    def soft(z: np.ndarray) -> np.ndarray:  # exp(-|z - c|^2 / T), normalised per row, straight from the definition
+        weights = np.exp(-((z[:, None, :] - centres[None]) ** 2).sum(axis=2) / temperature)
+        result: np.ndarray = weights / weights.sum(axis=1, keepdims=True)
+        return result
+
+    p, q = soft(teacher), soft(student)
+    expected = float(np.mean(np.sum(p * np.log(p / q), axis=1)))
+    assert _word_loss(student, teacher, centres, temperature) == pytest.approx(expected, rel=1e-9)
+    assert _word_loss(teacher, teacher, centres, temperature) == pytest.approx(0.0, abs=1e-12)
+    # Along a direction in which every centre is the same, the assignment (hence the loss) does not move.
+    centres[:, 2] = 0.5
+    moved = student.copy()
+    moved[:, 2] += 3.0
+    a, b = (_word_loss(z, teacher, centres, temperature) for z in (student, moved))
+    assert a == pytest.approx(b, rel=1e-9) and a > 0.01
+
+
+def _nuisance_teacher(x: np.ndarray) -> np.ndarray:
+    """Embeddings whose first 2 dimensions decide the words and whose other 4 vary 6x more, words aside."""
+    word_dims = np.stack([np.sin(3 * x[:, 0]) + x[:, 1], np.cos(3 * x[:, 1]) - x[:, 2]], axis=1)
+    nuisance = 6 * np.sin(4 * x[:, 3:7] * x[:, 4:8])
+    return np.concatenate([word_dims, nuisance], axis=1).astype(np.float32)
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """As training holds it (``num_threads: 1``): thousands of tiny steps on two threads of a loaded machine
+    spend their time waiting for each other."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_word_term_raises_agreement_where_the_mse_spends_capacity_on_what_does_not_decide_words() -> None:
+    """16 centres on a grid in the 2 dimensions that decide the words (equal in the others); an 8-unit
+    student cannot fit all 6 dimensions. The MSE, dominated by the large nuisance dimensions, fits them
+    and barely beats chance (1/16) on the words; the word term aims the same capacity at the words."""
+    rng = np.random.default_rng(0)
+    x_fit, x_held = (rng.uniform(-1, 1, (4000, 8)).astype(np.float32) for _ in range(2))
+    grid = np.array([-1.2, -0.4, 0.4, 1.2])
+    centres = np.zeros((16, 6), np.float32)
+    centres[:, :2] = np.array([(a, b) for a in grid for b in grid])
+
+    def words(z: np.ndarray) -> np.ndarray:
+        result: np.ndarray = ((z[:, None, :] - centres[None]) ** 2).sum(axis=2).argmin(axis=1)
+        return result
+
+    teacher_words = words(_nuisance_teacher(x_held))
+    assert np.bincount(teacher_words, minlength=16).min() >= 100  # every word is used: chance is 1/16
+
+    def agreement(word_weight: float) -> float:
+        student = distill_student(x_fit, _nuisance_teacher(x_fit), centres, DistillOptions(
+            hidden_dim=8, epochs=1, batch_size=64, learning_rate=3e-3, seed=0, word_weight=word_weight,
+            word_temperature=0.1))
+        return float(np.mean(words(student.embed(x_held)) == teacher_words))
+
+    mse_alone, with_word_term = agreement(0.0), agreement(1.0)
+    assert mse_alone < 0.3
+    assert with_word_term > 0.55
+
+
+def test_distillation_refuses_centres_of_another_space() -> None:
+    x = np.zeros((10, 4), np.float32)
+    with pytest.raises(DataError, match="centres in the embedding space"):
+        distill_student(x, np.zeros((10, 3), np.float32), np.zeros((5, 2), np.float32),
+                        DistillOptions(hidden_dim=4, epochs=1, batch_size=4, learning_rate=1e-3, seed=0))
+
+
 @pytest.mark.parametrize(("field", "value"), [("ae_student_hidden", -1), ("ae_student_epochs", 0),
-                                              ("ae_student_learning_rate", 0.0)])
+                                              ("ae_student_learning_rate", 0.0), ("ae_student_word_weight", -1.0),
+                                              ("ae_student_word_temperature", 0.0)])
 def test_config_validation(field: str, value: object) -> None:
     with pytest.raises(ConfigError, match=f"{field}={value}"):
         VocabularyConfig(**{field: value})  # type: ignore[arg-type]
