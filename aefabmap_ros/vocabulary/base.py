@@ -136,9 +136,10 @@ class VocabularyConfig:
         default=3e-3, metadata={"description": "Adam learning rate of the distillation (cosine-annealed to 0)."}
     )
     ae_student_word_weight: float = field(
-        default=1.0,
+        default=0.0,
         metadata={"description": "Weight of the distillation's word term (KL between the network's and the "
-                  "student's soft word assignments) against the embedding MSE; 0 = MSE alone."},
+                  "student's soft word assignments) against the embedding MSE; 0 (default) = MSE alone: "
+                  "1 raised agreement 0.2-0.6 points but closed no more loops, at 2-4x the distillation time."},
     )
     ae_student_word_temperature: float = field(
         default=8.0,
