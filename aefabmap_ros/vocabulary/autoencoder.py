@@ -89,7 +89,7 @@ import hashlib
 import io
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -217,6 +217,8 @@ class AETrainingOptions:
     student_learning_rate: float = 1e-3
     student_word_weight: float = 0.0
     student_word_temperature: float = 1.0
+    student_noise_rows: int = 0
+    student_noise_scale: float = 0.5
 
 
 class AutoencoderQuantizer:
@@ -497,7 +499,8 @@ def train_autoencoder_quantizer(
         student_info: dict[str, float] = {}
         student = None
         if options.student_hidden > 0:
-            student, student_info = _distill(x_all, z_all, centres, options)
+            student, student_info = _distill(x_all, z_all, centres, options,
+                                             teacher=functools.partial(_embed, model))
             z_all = student.embed(x_all)  # the words of the vocabulary are the ones the student gives
             clock.lap("distill_s")
         labels, _ = nearest(centres, z_all)
@@ -525,14 +528,19 @@ STUDENT_HELD_OUT_FRACTION = 0.05
 STUDENT_HELD_OUT_MAX = 20_000
 
 
-def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray,
-             options: AETrainingOptions) -> tuple[StudentEncoder, dict[str, float]]:
-    """Distil the student from the network's embeddings ``z_all``; its word agreement on held-out rows."""
+def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray, options: AETrainingOptions, *,
+             teacher: Callable[[np.ndarray], np.ndarray]) -> tuple[StudentEncoder, dict[str, float]]:
+    """Distil the student from the network's embeddings ``z_all`` (plus ``options.student_noise_rows``
+    noisy copies of the fit rows, embedded by ``teacher``); its word agreement on held-out rows."""
     n = x_all.shape[0]
     held_count = min(STUDENT_HELD_OUT_MAX, max(1, int(n * STUDENT_HELD_OUT_FRACTION))) if n > 1 else 0
     order = np.random.default_rng([options.seed, 6]).permutation(n)
     held, fit = np.sort(order[:held_count]), np.sort(order[held_count:])
-    student = distill_student(x_all[fit], z_all[fit], centres, DistillOptions(
+    x_fit, z_fit = x_all[fit], z_all[fit]
+    if options.student_noise_rows > 0:
+        noisy = noisy_copies(x_fit, options.student_noise_rows, options.student_noise_scale, options.seed)
+        x_fit, z_fit = np.concatenate([x_fit, noisy]), np.concatenate([z_fit, teacher(noisy)])
+    student = distill_student(x_fit, z_fit, centres, DistillOptions(
         hidden_dim=options.student_hidden, epochs=options.student_epochs, batch_size=options.batch_size,
         learning_rate=options.student_learning_rate, seed=options.seed, word_weight=options.student_word_weight,
         word_temperature=options.student_word_temperature))
@@ -542,6 +550,19 @@ def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray,
         student_words, _ = nearest(centres, student.embed(x_all[held]))
         info["student_word_agreement"] = float(np.mean(teacher_words == student_words))
     return student, info
+
+
+def noisy_copies(x: np.ndarray, rows: int, scale: float, seed: int) -> np.ndarray:
+    """``rows`` rows of ``x`` (PCA-scaled, in [0, 1]) drawn with replacement, plus Gaussian noise of
+    ``scale`` times each dimension's spread, clipped back to [0, 1]. The training descriptors alone
+    teach the student the network only where they lie; a robot's own descriptors fall around them,
+    and there a student fitted to them alone gave other words (92 % agreement on other data against
+    95 % held-out)."""
+    rng = np.random.default_rng([seed, 8])
+    picked = x[rng.integers(0, x.shape[0], rows)]
+    noise = rng.standard_normal(picked.shape).astype(np.float32) * (np.float32(scale) * x.std(axis=0))
+    result: np.ndarray = np.clip(picked + noise, 0.0, 1.0).astype(np.float32)
+    return result
 
 
 class _StageClock:

@@ -146,6 +146,16 @@ class VocabularyConfig:
         metadata={"description": "Temperature of the word term's soft assignment, exp(-|z - c|^2 / T), in the "
                   "embedding space normalised to unit variance per dimension."},
     )
+    ae_student_noise_rows: int = field(
+        default=0,
+        metadata={"description": "Noisy copies of training rows added to the distillation, labelled by the network "
+                  "(0 = none): the student also learns the network around the training descriptors, where another "
+                  "environment's descriptors fall."},
+    )
+    ae_student_noise_scale: float = field(
+        default=0.5,
+        metadata={"description": "Std of that noise, as a fraction of each PCA dimension's spread."},
+    )
     refine: bool = field(
         default=False,
         metadata={"description": "DEC/IDEC refinement of encoder and centres with reconstruction + "
@@ -186,6 +196,8 @@ class VocabularyConfig:
             ("ae_student_learning_rate", self.ae_student_learning_rate > 0, "> 0"),
             ("ae_student_word_weight", self.ae_student_word_weight >= 0, ">= 0"),
             ("ae_student_word_temperature", self.ae_student_word_temperature > 0, "> 0"),
+            ("ae_student_noise_rows", self.ae_student_noise_rows >= 0, ">= 0"),
+            ("ae_student_noise_scale", self.ae_student_noise_scale > 0, "> 0"),
             ("refine_epochs", self.refine_epochs >= 0, ">= 0"),
             ("refine_learning_rate", self.refine_learning_rate > 0, "> 0"),
             ("refine_update_interval", self.refine_update_interval >= 1, ">= 1"),
@@ -222,6 +234,7 @@ class VocabularyConfig:
             student_hidden=self.ae_student_hidden, student_epochs=self.ae_student_epochs,
             student_learning_rate=self.ae_student_learning_rate, student_word_weight=self.ae_student_word_weight,
             student_word_temperature=self.ae_student_word_temperature,
+            student_noise_rows=self.ae_student_noise_rows, student_noise_scale=self.ae_student_noise_scale,
         )
 
 
