@@ -34,7 +34,7 @@ from aefabmap_ros.nodes.common import (
     pipeline_qos,
     run_node,
 )
-from aefabmap_ros.nodes.frame_gate import LatestFrameWorker
+from aefabmap_ros.nodes.frame_gate import FrameHandOff
 from aefabmap_ros.nodes.launch_table import compressed_topic
 from aefabmap_ros.nodes.messages import features_to_message
 from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
@@ -71,9 +71,8 @@ class FeatureNode(Node):
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
         self.transports = TransportDeduplicator()
         # sensor_data: extraction in a worker that takes the newest frame; reliable: in the callback.
-        self.worker: LatestFrameWorker[Any] | None = (
-            LatestFrameWorker(self._on_image, "feature_worker") if qos_kind == "sensor_data" else None
-        )
+        self.frames: FrameHandOff[Any] = FrameHandOff(self._on_image, "feature_worker",
+                                                      newest_only=qos_kind == "sensor_data")
         counted_subscription(self, Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth),
                              self.counter)
         if subscribe_compressed:
@@ -89,17 +88,11 @@ class FeatureNode(Node):
         if self.transports.is_duplicate(stamp_to_ns(message.header.stamp), transport):
             self.counter.ok(f"skipped_{transport}_copies")  # the other transport brought this frame already
             return
-        if self.worker is None:
-            self._on_image(message)
-        elif not self.worker.offer(message):
+        if not self.frames.submit(message):
             self.counter.drop("busy", "a newer frame arrived before feature extraction took the previous one")
 
-    def _stop_worker(self) -> None:
-        if self.worker is not None:
-            self.worker.stop()
-
     def destroy_node(self) -> None:
-        self._stop_worker()
+        self.frames.stop()
         super().destroy_node()
 
     @node_callback
@@ -119,7 +112,7 @@ class FeatureNode(Node):
         self.counter.ok()
 
     def close(self) -> bool:
-        self._stop_worker()  # the frame in hand is finished first (one still waiting is not), so counts are final
+        self.frames.stop()  # the frame in hand is finished first (one still waiting is not), so counts are final
         self.get_logger().info(f"feature_node: {self.counter.summary()}")
         return True
 

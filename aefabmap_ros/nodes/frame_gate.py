@@ -78,3 +78,25 @@ class LatestFrameWorker(Generic[ItemT]):
     def _run(self) -> None:
         while (item := self.gate.take()) is not None:
             self._process(item)
+
+
+class FrameHandOff(Generic[ItemT]):
+    """How a node's subscription callback passes each message on: processed in the callback itself
+    (every message, in order: bag replay), or, with ``newest_only``, through a ``LatestFrameWorker``
+    (a live camera: a message still waiting when a newer one arrives is dropped)."""
+
+    def __init__(self, process: Callable[[ItemT], None], name: str, *, newest_only: bool) -> None:
+        self._process = process
+        self.worker: LatestFrameWorker[ItemT] | None = LatestFrameWorker(process, name) if newest_only else None
+
+    def submit(self, item: ItemT) -> bool:
+        """Process or hand over ``item``; False when it replaced one still waiting (that one is dropped)."""
+        if self.worker is None:
+            self._process(item)
+            return True
+        return self.worker.offer(item)
+
+    def stop(self) -> None:
+        """Finish the frame in hand (one still waiting is not processed); nothing to do without a worker."""
+        if self.worker is not None:
+            self.worker.stop()

@@ -27,7 +27,7 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
-from aefabmap_ros.nodes.frame_gate import LatestFrameWorker
+from aefabmap_ros.nodes.frame_gate import FrameHandOff
 from aefabmap_ros.nodes.messages import bag_of_words_to_message, message_to_features
 from aefabmap_ros.vocabulary.autoencoder import limit_torch_threads
 from aefabmap_ros.vocabulary.base import bag_of_words
@@ -60,9 +60,7 @@ class QuantizerNode(Node):
         self.descriptor_type = model.feature_config.type
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(depth))
-        self.worker: LatestFrameWorker[Any] | None = (
-            LatestFrameWorker(self._quantize, "quantizer_worker") if drop_when_busy else None
-        )
+        self.frames: FrameHandOff[Any] = FrameHandOff(self._quantize, "quantizer_worker", newest_only=drop_when_busy)
         features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
                                         self.counter)
         report_when_connected(self, features, "features")
@@ -74,9 +72,7 @@ class QuantizerNode(Node):
     @node_callback
     def _on_features(self, message: Features) -> None:
         """Quantize now, or hand over to the worker, replacing -- and dropping -- a message still waiting."""
-        if self.worker is None:
-            self._quantize(message)
-        elif not self.worker.offer(message):
+        if not self.frames.submit(message):
             self.counter.drop("busy", "a newer features message arrived before quantization took the previous one")
 
     @node_callback
@@ -101,13 +97,11 @@ class QuantizerNode(Node):
         self.counter.ok()
 
     def destroy_node(self) -> None:
-        if self.worker is not None:
-            self.worker.stop()
+        self.frames.stop()
         super().destroy_node()
 
     def close(self) -> bool:
-        if self.worker is not None:
-            self.worker.stop()  # the message in hand is finished first, so the counts are final
+        self.frames.stop()  # the message in hand is finished first, so the counts are final
         self.get_logger().info(f"quantizer_node: {self.counter.summary()}")
         return True
 

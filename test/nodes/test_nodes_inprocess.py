@@ -117,7 +117,7 @@ def _assert_only_the_newest_waits(node: Any, on_message: Any, stage: SlowStage, 
         stage.release.set()
         assert stage.second.wait(timeout=30)
         assert stage.processed == [1, 4]
-        assert node.worker.gate.take(timeout_s=0) is None  # nothing left queued
+        assert node.frames.worker.gate.take(timeout_s=0) is None  # nothing left queued
     finally:
         stage.release.set()
         node.destroy_node()
@@ -162,7 +162,7 @@ def test_quantizer_takes_every_message_in_order_for_a_lossless_replay(revisit_da
     node = _in_order_quantizer(revisit_data)
     try:
         out = Captured(node.publisher)
-        assert node.worker is None
+        assert node.frames.worker is None
         for sec in (1, 2, 3):
             node._on_features(_features_message(features, sec))
         assert [message.header.stamp.sec for message in out.messages] == [1, 2, 3]
