@@ -50,7 +50,6 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.features.extraction import Features as CoreFeatures
-from aefabmap_ros.features.matching import match_indices
 from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.nodes.common import (
@@ -226,8 +225,7 @@ class VerifierNode(Node):
                      verification: Verification) -> None:
         """Fill the closure's relative pose from the matches verification accepted (or say why there is none)."""
         rows = verification.matched_rows
-        if rows is None:  # verify_pair always keeps them; a caller that dropped them pays one more matching
-            rows = match_indices(query, place, ratio=self.config.ratio)
+        assert rows is not None, "verify_pair keeps the matched rows of every verification it returns"
         query_points, place_points = matched_points(query, place, rows)
         keypoint_depths = None if self.depths is None else self.depths.get(stamp_to_ns(closure.matched_stamp))
         # The depth store samples the stored keypoints in their order: a place row is its depth's index.
