@@ -5,7 +5,8 @@ node's own config (places from dense video, recent places excluded by time, the 
 posterior, temporal consistency) and publishes each consistent match as a candidate; verifier_node
 verifies the candidate's matched place and, once accepted, re-ranks the query's top candidates by
 inliers (``rerank_by_inliers(..., require_best=True)``); for a while after a verified closure it
-tracks the loop through frames without a candidate (verification/loop_tracking.py). This module does exactly
+tracks the loop through frames without a candidate, by their top candidates near the last verified place
+and then by the frames nearest it in time (verification/loop_tracking.py). This module does exactly
 that on recorded features and words, with the sequence's own stamps, so the online figures (closures published,
 false ones, revisits closed) can be measured and tuned in seconds instead of a replay through ROS.
 """
@@ -23,7 +24,7 @@ from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import Candidate, PlaceRecognizer
 from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, rerank_by_inliers
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,9 @@ class ChainClosure:
     probability: float  # FAB-MAP posterior of the detection (kept when verification re-ranks)
     inliers: int = -1  # geometric verification's inliers; -1 = not verified
     tracked: bool = False  # published by loop tracking (no candidate of its own; see verification/loop_tracking.py)
+    # Loop tracking matched one of the frames nearest the last verified place in time (not one of the query's top
+    # candidates; ``probability`` is its place's posterior when that place is among them, else 0).
+    nearby_frame: bool = False
 
 
 @dataclass
@@ -75,11 +79,14 @@ def run_online_chain(
     result = ChainResult([], [], 0)
     track = None if verification is None else LoopTrack(verification[0].track_seconds,
                                                          verification[0].track_island_seconds)
+    timeline = FrameTimeline(max(num_frames, 1))  # as verifier_node's: each frame's place, from its posterior
     for frame in range(num_frames):
         words = matrix.indices[matrix.indptr[frame] : matrix.indptr[frame + 1]].astype(np.int64)
         recognition = recognizer.process(words, int(stamps[frame]))
         if recognition.added_place_id >= 0:
             place_frames.append(frame)
+        if recognition.current_place_id >= 0:
+            timeline.add(int(stamps[frame]), recognition.current_place_id)
         if recognition.candidates:
             top = recognition.candidates[0]
             result.best.append(ChainClosure(frame, place_frames[top.place_id], top.probability))
@@ -93,7 +100,7 @@ def run_online_chain(
             else:
                 published = _verified(frame, closure, recognition.candidates, place_frames, *verification)
         if published is None and track is not None and verification is not None and recognition.informative:
-            published = _tracked(frame, int(stamps[frame]), recognition.candidates, place_frames, track,
+            published = _tracked(frame, stamps, recognition.candidates, place_frames, track, timeline,
                                  *verification)
         if published is not None:
             result.published.append(published)
@@ -124,18 +131,33 @@ def _verified(
 
 def _tracked(
     frame: int,
-    stamp_ns: int,
+    stamps: np.ndarray,
     candidates: Sequence[Candidate],
     place_frames: list[int],
     track: LoopTrack,
+    timeline: FrameTimeline,
     config: VerificationConfig,
     verify: PairVerifier,
 ) -> ChainClosure | None:
-    """verifier_node's loop tracking: the query's top candidates near the tracked place, best verified wins."""
+    """verifier_node's loop tracking: the query's top candidates near the tracked place, then the frames
+    nearest that place in time not tried yet; the best verified of the first group that has one wins."""
+    stamp_ns = int(stamps[frame])
     near = track.near(stamp_ns, candidates, lambda candidate: candidate.stamp_ns)[: config.candidates]
     frames = [place_frames[c.place_id] for c in near]
     outcome = rerank_by_inliers(frames, lambda place: verify(frame, place))
+    if outcome is not None:
+        winner = near[outcome.winner]
+        return ChainClosure(frame, frames[outcome.winner], winner.probability, outcome.verification.inliers,
+                            tracked=True)
+    tried = {int(stamps[place]) for place in frames}
+    nearby = track.nearby_frames(stamp_ns, timeline, config.track_frames,
+                                 round(config.track_min_age_seconds * 1e9))
+    others = [int(np.searchsorted(stamps, nearby_ns)) for nearby_ns in nearby if nearby_ns not in tried]
+    outcome = rerank_by_inliers(others, lambda place: verify(frame, place))
     if outcome is None:
         return None
-    winner = near[outcome.winner]
-    return ChainClosure(frame, frames[outcome.winner], winner.probability, outcome.verification.inliers, tracked=True)
+    matched = others[outcome.winner]
+    place_id = timeline.place_of(int(stamps[matched]))
+    ranked = [c.probability for c in candidates if c.place_id == place_id]
+    return ChainClosure(frame, matched, ranked[0] if ranked else 0.0, outcome.verification.inliers, tracked=True,
+                        nearby_frame=True)

@@ -15,7 +15,12 @@ Loop tracking (``track_seconds`` > 0, see verification/loop_tracking.py): for a 
 verified closure, a frame with no candidate of its own (or whose candidate failed) is verified
 against its top candidates from ``place_posteriors`` that lie near the last verified place in map
 time; the accepted one with the most inliers is published like any other closure (``probability``
-is that place's posterior). Every message on ``loop_closures`` passed the same geometric check.
+is that place's posterior). When none passes, the ``track_frames`` stored frames nearest the last
+verified place in time (at least ``track_min_age_seconds`` older than the query) are verified the
+same way: ``matched_stamp`` is then that frame's stamp, ``matched_place_id`` the place it belongs to
+(from its ``place_posteriors`` message), and ``probability`` that place's posterior, 0 when the
+query's top candidates do not include it (``log_likelihood`` NaN). Every message on
+``loop_closures`` passed the same geometric check.
 
 A closure can arrive before its query's features or posterior (separate topics): it waits, up to
 ``max_pending`` closures, until they come. A closure whose place is older than the store
@@ -66,7 +71,7 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
-from aefabmap_ros.nodes.messages import camera_info_to_model, fill_relative_pose, message_to_features
+from aefabmap_ros.nodes.messages import camera_info_to_model, fill_relative_pose, message_to_features, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
@@ -77,7 +82,7 @@ from aefabmap_ros.verification.geometric import (
     rerank_by_inliers,
     verify_pair,
 )
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
     KeypointDepthFolder,
@@ -102,6 +107,15 @@ class PlaceToVerify(NamedTuple):
     place_id: int
     stamp: Any  # builtin_interfaces/Time, as republished in matched_stamp
     features: CoreFeatures
+
+
+class TrackedMatch(NamedTuple):
+    """A loop-tracking closure before it is published."""
+
+    place: PlaceToVerify
+    probability: float
+    log_likelihood: float
+    verification: Verification
 
 
 class VerifierNode(Node):
@@ -160,6 +174,7 @@ class VerifierNode(Node):
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.rerank = self.config.candidates > 1
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
+        self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
@@ -237,6 +252,8 @@ class VerifierNode(Node):
     @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
+        if message.query_id >= 0 and message.current_place_id >= 0:
+            self.timeline.add(stamp_ns, int(message.current_place_id))
         self.posteriors[stamp_ns] = message
         self.posteriors.move_to_end(stamp_ns)
         while len(self.posteriors) > POSTERIOR_HISTORY:
@@ -296,37 +313,73 @@ class VerifierNode(Node):
         return candidates
 
     def _track(self, posterior: PlacePosterior) -> None:
-        """Loop tracking: verify the frame's top candidates near the last verified place; publish the best."""
+        """Loop tracking: verify the frame's top candidates near the last verified place, then the stored
+        frames nearest that place; publish the accepted one with the most inliers."""
         query_ns = stamp_to_ns(posterior.header.stamp)
         query = self.store.get(query_ns)
         if query is None or not self.track.is_active(query_ns):
             return
-        near = self.track.near(query_ns, self._posterior_places(posterior),
-                               lambda ranked: stamp_to_ns(ranked[1].stamp))[: self.config.candidates]
-        if not near:
-            return
         try:
-            outcome = rerank_by_inliers(near, lambda ranked: verify_pair(query, ranked[1].features, self.config))
+            tried: set[int] = set()
+            match = self._track_candidates(query_ns, query, posterior, tried)
+            if match is None:
+                match = self._track_nearby_frames(query_ns, query, posterior, tried)
         except AefabmapError as exc:
             self.counter.drop("unverifiable", str(exc))
             return
-        if outcome is None:
+        if not tried:
+            return
+        if match is None:
             self.counter.ok("track_rejected")
             return
-        rank, place = near[outcome.winner]
+        place = match.place
         closure = LoopClosure(
             header=posterior.header, query_id=posterior.query_id, query_place_id=posterior.assigned_place_id,
-            matched_place_id=place.place_id, matched_stamp=place.stamp,
-            probability=float(posterior.probabilities[rank]), log_likelihood=float(posterior.log_likelihoods[rank]),
-            inliers=outcome.verification.inliers,
+            matched_place_id=place.place_id, matched_stamp=place.stamp, probability=match.probability,
+            log_likelihood=match.log_likelihood, inliers=match.verification.inliers,
         )
-        self._attach_pose(closure, query, place.features, outcome.verification)
+        self._attach_pose(closure, query, place.features, match.verification)
         self.track.accept(query_ns, stamp_to_ns(place.stamp))
         self.counter.ok("accepted_by_tracking")
         self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
-                               f"{outcome.verification.inliers} inliers of {outcome.verification.matches} matches",
+                               f"{match.verification.inliers} inliers of {match.verification.matches} matches",
                                throttle_duration_sec=LOG_THROTTLE_S)
         self.publisher.publish(closure)
+
+    def _track_candidates(self, query_ns: int, query: CoreFeatures, posterior: PlacePosterior,
+                          tried: set[int]) -> TrackedMatch | None:
+        """The query's top candidates near the tracked place, best verified wins (their stamps go to ``tried``)."""
+        near = self.track.near(query_ns, self._posterior_places(posterior),
+                               lambda ranked: stamp_to_ns(ranked[1].stamp))[: self.config.candidates]
+        tried.update(stamp_to_ns(place.stamp) for _, place in near)
+        outcome = rerank_by_inliers(near, lambda ranked: verify_pair(query, ranked[1].features, self.config))
+        if outcome is None:
+            return None
+        rank, place = near[outcome.winner]
+        return TrackedMatch(place, float(posterior.probabilities[rank]), float(posterior.log_likelihoods[rank]),
+                            outcome.verification)
+
+    def _track_nearby_frames(self, query_ns: int, query: CoreFeatures, posterior: PlacePosterior,
+                             tried: set[int]) -> TrackedMatch | None:
+        """The stored frames nearest the tracked place in time, not tried yet; best verified wins."""
+        min_age_ns = round(self.config.track_min_age_seconds * 1e9)
+        places = []
+        for stamp_ns in self.track.nearby_frames(query_ns, self.timeline, self.config.track_frames, min_age_ns):
+            features = self.store.get(stamp_ns)
+            place_id = self.timeline.place_of(stamp_ns)
+            if stamp_ns not in tried and features is not None and place_id is not None:
+                places.append(PlaceToVerify(place_id, time_from_ns(stamp_ns), features))
+        tried.update(stamp_to_ns(place.stamp) for place in places)
+        outcome = rerank_by_inliers(places, lambda place: verify_pair(query, place.features, self.config))
+        if outcome is None:
+            return None
+        place = places[outcome.winner]
+        # The place's posterior when it is among the query's top candidates; FAB-MAP did not rank it otherwise.
+        ranks = [rank for rank, place_id in enumerate(posterior.place_ids) if place_id == place.place_id]
+        if ranks:
+            return TrackedMatch(place, float(posterior.probabilities[ranks[0]]),
+                                float(posterior.log_likelihoods[ranks[0]]), outcome.verification)
+        return TrackedMatch(place, 0.0, float("nan"), outcome.verification)
 
     def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
         query = self.store.get(stamp_to_ns(message.header.stamp))

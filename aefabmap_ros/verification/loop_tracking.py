@@ -16,10 +16,22 @@ frame with no such candidate, or whose candidates all fail, publishes nothing; `
 after the last verified closure the track ends, and only a new temporally consistent detection
 starts another. So tracking adds closures only inside revisits that appearance and geometry have
 already confirmed; it cannot open one.
+
+When none of those candidates passes, the frames of the map nearest the last verified place in
+time (``FrameTimeline``, ``LoopTrack.nearby_frames``) are verified next: along a revisit the
+place the robot is at now lies next to the one it was verified at a moment ago, whether or not
+FAB-MAP ranks it. They must be at least ``min_age`` older than the query, as FAB-MAP's own
+hypotheses are, so that a track can never close a loop onto the frames just seen. Measured (5 such
+frames, the kitti00 autoencoder vocabulary): on the dense synthetic video the recall over revisiting
+frames went from 0.519 to 0.551 with no false closure; on a second town rendered the same way (seed
+7) from 0.560 to 0.592, and the 22 false closures there (perceptual aliasing: an identical corner
+elsewhere in the town, which passes every geometric check) became 33, all inside the same two
+aliased runs. Tracking extends whatever run it follows; it does not open a new one.
 """
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Sequence
 from typing import TypeVar
 
@@ -59,5 +71,71 @@ class LoopTrack:
         tracked_ns = self._last[1]
         return [candidate for candidate in candidates if abs(place_ns(candidate) - tracked_ns) <= self._island_ns]
 
+    def nearby_frames(self, query_ns: int, timeline: FrameTimeline, count: int, min_age_ns: int) -> list[int]:
+        """Stamps of up to ``count`` timeline frames within ``island_seconds`` of the tracked place and at
+        least ``min_age_ns`` before the query, nearest the tracked place first; [] when inactive."""
+        if self._last is None or not self.is_active(query_ns) or count < 1:
+            return []
+        tracked_ns = self._last[1]
+        newest_ns = min(int(tracked_ns + self._island_ns), query_ns - min_age_ns)
+        return timeline.nearest(tracked_ns, int(tracked_ns - self._island_ns), newest_ns, count)
+
     def reset(self) -> None:
         self._last = None
+
+
+class FrameTimeline:
+    """The frames seen, in stamp order, each with the place of the map it belongs to (the newest
+    ``max_frames``): where loop tracking looks for the frames next to a verified place."""
+
+    def __init__(self, max_frames: int) -> None:
+        if max_frames < 1:
+            raise ConfigError(f"FrameTimeline needs max_frames >= 1, got {max_frames}")
+        self.max_frames = max_frames
+        # Parallel lists with a moving start: forgetting the oldest frame is O(1), lookups bisect.
+        self._stamps: list[int] = []
+        self._places: list[int] = []
+        self._start = 0
+
+    def __len__(self) -> int:
+        return len(self._stamps) - self._start
+
+    def add(self, stamp_ns: int, place_id: int) -> bool:
+        """Append a frame; False (ignored) unless it is newer than every frame already there."""
+        if len(self) and stamp_ns <= self._stamps[-1]:
+            return False
+        self._stamps.append(stamp_ns)
+        self._places.append(place_id)
+        if len(self) > self.max_frames:
+            self._start += 1
+            if self._start > self.max_frames:  # compact once the forgotten prefix outgrows the kept frames
+                del self._stamps[: self._start], self._places[: self._start]
+                self._start = 0
+        return True
+
+    def place_of(self, stamp_ns: int) -> int | None:
+        """The place of the frame stamped ``stamp_ns``; None when it is not (or no longer) there."""
+        index = bisect_left(self._stamps, stamp_ns, lo=self._start)
+        if index < len(self._stamps) and self._stamps[index] == stamp_ns:
+            return self._places[index]
+        return None
+
+    def nearest(self, centre_ns: int, oldest_ns: int, newest_ns: int, count: int) -> list[int]:
+        """Stamps of up to ``count`` frames stamped in [oldest_ns, newest_ns], nearest ``centre_ns``
+        first (of two equally near, the older)."""
+        first = bisect_left(self._stamps, oldest_ns, lo=self._start)
+        end = bisect_right(self._stamps, newest_ns, lo=first)
+        # Merge outwards from the centre: the two sides are each sorted by distance already.
+        right = max(first, min(bisect_left(self._stamps, centre_ns, lo=first, hi=end), end))
+        left = right - 1
+        chosen: list[int] = []
+        while len(chosen) < count and (left >= first or right < end):
+            take_left = right >= end or (left >= first and
+                                         centre_ns - self._stamps[left] <= self._stamps[right] - centre_ns)
+            if take_left:
+                chosen.append(self._stamps[left])
+                left -= 1
+            else:
+                chosen.append(self._stamps[right])
+                right += 1
+        return chosen

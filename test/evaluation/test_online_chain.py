@@ -1,5 +1,7 @@
 """The nodes' decision chain offline: consistency holds back single matches, verification gates what is published."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -100,3 +102,22 @@ def test_loop_tracking_closes_a_weak_frame_of_a_verified_revisit(track_seconds, 
     assert published == [(8, 2, False), (9, 3, True)] if tracked else published == [(8, 2, False)]
     if tracked:
         assert result.published[1].inliers >= VerificationConfig().min_inliers
+
+
+@pytest.mark.parametrize(("track_frames", "min_age_s", "matched"), [(5, 5.0, 3), (0, 5.0, None), (5, 6.0, None)])
+def test_loop_tracking_verifies_the_frames_next_to_the_tracked_place_that_fabmap_does_not_rank(
+        track_frames, min_age_s, matched):
+    observations, features, stamps = _weak_revisit(0.5)
+    # Frame 9 (8.5 s) now looks like scene 5 to FAB-MAP, and only its single best place is a candidate:
+    # place 5, 3 s from the verified place 2 in map time, outside the 2.5 s island: none lies near the track.
+    observations = sp.vstack([observations[:9], sp.csr_matrix(np.isin(np.arange(V), _scene_words(5)).astype(float))])
+    config = replace(CONFIG, top_k=1)
+    verification = VerificationConfig(track_seconds=1.0, track_island_seconds=2.5, track_frames=track_frames,
+                                      track_min_age_seconds=min_age_s)
+    result = run_online_chain(sp.csr_matrix(observations), stamps, _tree(), SAMPLES, config,
+                              (verification, cached_pair_verifier(features, verification)))
+    assert result.best[-1].matched_frame == 5
+    # The frames next to place 2 (2 s) at least min_age before 8.5 s, nearest first: 2, 1, 3, 0. Frame 3
+    # sees scene 3, as frame 9 does from the other pose: geometry accepts it. At 6 s it is too recent.
+    tracked = [(c.query_frame, c.matched_frame, c.nearby_frame, c.probability) for c in result.published if c.tracked]
+    assert tracked == ([] if matched is None else [(9, matched, True, 0.0)])

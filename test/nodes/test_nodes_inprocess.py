@@ -613,6 +613,50 @@ def test_verifier_node_tracks_a_verified_loop_through_frames_without_a_candidate
         node.destroy_node()
 
 
+def test_verifier_node_tracks_a_loop_through_the_stored_frames_next_to_the_verified_place() -> None:
+    from test.verification.test_geometric import _two_views
+
+    query_a, place_a, _ = _two_views(seed=26)
+    query_b, place_b, _ = _two_views(seed=28)
+    _, unrelated, _ = _two_views(seed=27)
+    node = VerifierNode(parameter_overrides=_params(track_seconds=2.0, track_island_seconds=3.0, track_frames=5,
+                                                    track_min_age_seconds=5.0))
+    try:
+        verified = Captured(node.publisher)
+        # The map: scene A at 1 s (place 1), scene B at 2 s (a frame that joined place 1), at 7 s scene B
+        # again (too recent for a query at 11 s), an unrelated place at 9 s.
+        for sec, features, place_id in ((1, place_a, 1), (2, place_b, 1), (7, place_b, 4), (9, unrelated, 9)):
+            node._on_features(_features_message(features, sec))
+            posterior = _posterior(sec, [], candidate=False)
+            posterior.current_place_id = place_id
+            node._on_posterior(posterior)
+        for sec, features in ((10, query_a), (11, query_b)):
+            node._on_features(_features_message(features, sec))
+        node._on_loop_closure(_closure(10, 1, query_id=100))
+        node._on_posterior(_posterior(10, [1, 9]))  # verified: the track starts at place 1 (1 s)
+        # 11 s sees scene B, but FAB-MAP ranks only the unrelated place, 8 s from the track: the stored frames
+        # nearest 1 s and at least 5 s old are verified next (1 s fails, 2 s passes; 7 s is too recent).
+        node._on_posterior(_posterior(11, [9], candidate=False))
+        (tracked,) = verified.messages[1:]
+        assert (tracked.header.stamp.sec, tracked.matched_stamp.sec, tracked.matched_place_id) == (11, 2, 1)
+        assert tracked.probability == 0.0 and np.isnan(tracked.log_likelihood) and tracked.inliers >= 100
+        assert node.counter.counts["accepted_by_tracking"] == 1
+    finally:
+        node.destroy_node()
+    off = VerifierNode(parameter_overrides=_params(track_seconds=2.0, track_frames=0))
+    try:
+        verified = Captured(off.publisher)
+        for sec, features in ((1, place_a), (2, place_b), (10, query_a), (11, query_b)):
+            off._on_features(_features_message(features, sec))
+            off._on_posterior(_posterior(sec, [], candidate=False))
+        off._on_loop_closure(_closure(10, 1, query_id=100))
+        off._on_posterior(_posterior(10, [1]))
+        off._on_posterior(_posterior(11, [], candidate=False))
+        assert len(verified.messages) == 1 and "accepted_by_tracking" not in off.counter.counts
+    finally:
+        off.destroy_node()
+
+
 def test_verifier_node_refuses_bad_parameters() -> None:
     with pytest.raises(ConfigError, match="min_inliers"):
         VerifierNode(parameter_overrides=_params(min_inliers=3))

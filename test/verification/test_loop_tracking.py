@@ -1,9 +1,11 @@
 """Loop tracking's window: after a verified closure, candidates near its place in map time, for a while."""
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
 
 SECOND = 10**9
 
@@ -63,3 +65,49 @@ def test_off_and_reset():
 def test_bad_windows(track_seconds, island_seconds):
     with pytest.raises(ConfigError, match="must be >= 0"):
         LoopTrack(track_seconds, island_seconds)
+
+
+def _timeline(stamps: list[int], max_frames: int = 1000) -> FrameTimeline:
+    timeline = FrameTimeline(max_frames)
+    for place, stamp in enumerate(stamps):
+        assert timeline.add(stamp, place)
+    return timeline
+
+
+@settings(max_examples=200, deadline=None)
+@given(stamps=st.lists(st.integers(0, 200), unique=True, max_size=40).map(sorted),
+       max_frames=st.integers(1, 50), centre=st.integers(-10, 210), oldest=st.integers(-10, 210),
+       width=st.integers(0, 120), count=st.integers(0, 12))
+def test_nearest_frames_are_those_a_full_sort_by_distance_picks(stamps, max_frames, centre, oldest, width, count):
+    timeline = _timeline(stamps, max_frames)
+    kept = stamps[-max_frames:]
+    newest = oldest + width
+    # Reference: every kept frame in the window, sorted by (distance to the centre, stamp).
+    expected = sorted((s for s in kept if oldest <= s <= newest), key=lambda s: (abs(s - centre), s))[:count]
+    assert timeline.nearest(centre, oldest, newest, count) == expected
+    assert len(timeline) == len(kept)
+    assert [timeline.place_of(s) for s in kept] == [stamps.index(s) for s in kept]
+    assert all(timeline.place_of(s) is None for s in stamps[: len(stamps) - len(kept)])
+
+
+def test_a_frame_not_newer_than_the_last_is_ignored():
+    timeline = _timeline([10, 20])
+    assert not timeline.add(20, 7) and not timeline.add(15, 7)
+    assert len(timeline) == 2 and timeline.place_of(20) == 1 and timeline.place_of(15) is None
+    with pytest.raises(ConfigError, match="max_frames >= 1"):
+        FrameTimeline(0)
+
+
+def test_nearby_frames_lie_in_the_island_and_never_in_the_recent_past():
+    timeline = _timeline([s * SECOND // 2 for s in range(0, 220)])  # 2 Hz for 110 s
+    track = LoopTrack(track_seconds=1.0, island_seconds=3.0)
+    assert track.nearby_frames(100 * SECOND, timeline, 4, 5 * SECOND) == []  # no track yet
+    track.accept(100 * SECOND, 50 * SECOND)
+    nearby = track.nearby_frames(100 * SECOND + SECOND // 2, timeline, 4, 5 * SECOND)
+    assert nearby == [50 * SECOND, 49 * SECOND + SECOND // 2, 50 * SECOND + SECOND // 2, 49 * SECOND]
+    assert len(track.nearby_frames(101 * SECOND, timeline, 100, 5 * SECOND)) == 13  # 47 .. 53 s
+    assert track.nearby_frames(101 * SECOND + 1, timeline, 4, 5 * SECOND) == []  # the track ended
+    # A revisit of a place only 6 s old: the island reaches into the last 5 s, which stay out.
+    track.accept(105 * SECOND, 99 * SECOND)
+    nearby = track.nearby_frames(105 * SECOND + SECOND // 2, timeline, 100, 5 * SECOND)
+    assert max(nearby) == 100 * SECOND + SECOND // 2 and min(nearby) == 96 * SECOND
