@@ -176,6 +176,27 @@ def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, b
     return pose, moved[np.ix_(back, back)]
 
 
+def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
+    """Odometry error covariance (gtsam order: rot, trans) after travelling ``distance_m``."""
+    sigma_t = max(config.odometry_translation_drift * distance_m, config.odometry_min_sigma)
+    sigma_r = max(config.odometry_rotation_drift_rad_per_m * distance_m, config.odometry_min_sigma)
+    return np.diag([sigma_r ** 2] * 3 + [sigma_t ** 2] * 3)
+
+
+def loop_factor_covariance(config: PoseGraphConfig, covariance_ros: np.ndarray) -> np.ndarray:
+    """A closure's covariance (ROS order x y z rot) in gtsam order, with the configured floor added."""
+    return _ros_to_gtsam_covariance(np.asarray(covariance_ros, dtype=np.float64)) + np.diag(
+        [config.loop_min_sigma_rad ** 2] * 3 + [config.loop_min_sigma_m ** 2] * 3)
+
+
+def odometry_disagreement(query_to_place: gtsam.Pose3, loop_covariance: np.ndarray, predicted: gtsam.Pose3,
+                          drift: np.ndarray) -> float:
+    """Mahalanobis distance squared (6 dof) between a closure's ``query_to_place`` and the ``predicted``
+    relative pose (odometry's, or the graph's), under the closure's and the drift's covariances (gtsam order)."""
+    residual = gtsam.Pose3.Logmap(query_to_place.between(predicted))
+    return float(residual @ np.linalg.solve(loop_covariance + drift, residual))
+
+
 class PoseGraph:
     """Keyframes at closure endpoints, odometry and robust loop factors, optimised by iSAM2 on every closure."""
 
@@ -230,14 +251,13 @@ class PoseGraph:
         if any(self._find_keyframe(stamp_ns) is None and self.odometry.pose_at(stamp_ns) is None
                for stamp_ns in endpoints):
             return ClosureResult.UNKNOWN_STAMP  # checked first: a dropped closure leaves the graph as it was
-        loop_covariance = _ros_to_gtsam_covariance(covariance) + np.diag(
-            [self.config.loop_min_sigma_rad ** 2] * 3 + [self.config.loop_min_sigma_m ** 2] * 3)
+        loop_covariance = loop_factor_covariance(self.config, covariance)
         (query_pose, query_path), (place_pose, place_path) = (self._predicted(stamp_ns) for stamp_ns in endpoints)
         # What odometry drift alone can explain between the two: the whole path travelled between them (an
         # upper bound once other closures tie them closer).
-        drift = self._drift_covariance(abs(query_path - place_path))
-        residual = gtsam.Pose3.Logmap(closure.query_to_place.between(query_pose.between(place_pose)))
-        if float(residual @ np.linalg.solve(loop_covariance + drift, residual)) > self.config.gate_chi2:
+        drift = drift_covariance(self.config, abs(query_path - place_path))
+        if odometry_disagreement(closure.query_to_place, loop_covariance, query_pose.between(place_pose),
+                                 drift) > self.config.gate_chi2:
             return ClosureResult.INCONSISTENT
         # The Cauchy kernel's scale: the loop-whitened disagreement drift can explain. A true closure after
         # long drift keeps most of its weight; one the graph later contradicts (other closures) loses it.
@@ -319,16 +339,9 @@ class PoseGraph:
     def _odometry_factor(self, first: Keyframe, second: Keyframe) -> gtsam.BetweenFactorPose3:
         relative = first.odometry.between(second.odometry)
         # Travelled, not the straight line: a loop ends near its start.
-        covariance = self._drift_covariance(abs(second.path_m - first.path_m))
+        covariance = drift_covariance(self.config, abs(second.path_m - first.path_m))
         return gtsam.BetweenFactorPose3(first.key, second.key, relative,
                                         gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(covariance))))
-
-    def _drift_covariance(self, distance_m: float) -> np.ndarray:
-        """Odometry error covariance (gtsam order: rot, trans) after travelling that far."""
-        config = self.config
-        sigma_t = max(config.odometry_translation_drift * distance_m, config.odometry_min_sigma)
-        sigma_r = max(config.odometry_rotation_drift_rad_per_m * distance_m, config.odometry_min_sigma)
-        return np.diag([sigma_r ** 2] * 3 + [sigma_t ** 2] * 3)
 
     def _predicted(self, stamp_ns: int) -> tuple[gtsam.Pose3, float]:
         """Current estimate of the pose at a stamp (a keyframe's, else odometry moved with its nearest

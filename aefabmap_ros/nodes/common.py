@@ -67,13 +67,17 @@ def declare_parameter(node: Node, name: str, default: Any, description: str) -> 
     return coerce_like(node.get_parameter(name).value, default)
 
 
-def declare_config(node: Node, config_type: type[ConfigT], prefix: str = "") -> ConfigT:
-    """Declare every field of a frozen config dataclass as a parameter and build the config from them."""
+def declare_config(node: Node, config_type: type[ConfigT], prefix: str = "",
+                   only: Collection[str] | None = None) -> ConfigT:
+    """Declare the fields of a frozen config dataclass as parameters (every field, or ``only`` those; the
+    others keep their defaults) and build the config from them."""
     if not dataclasses.is_dataclass(config_type):
         raise TypeError(f"{config_type!r} is not a dataclass")
     defaults: Any = config_type()
     values = {}
     for field in dataclasses.fields(config_type):
+        if only is not None and field.name not in only:
+            continue
         values[field.name] = declare_parameter(
             node, prefix + field.name, getattr(defaults, field.name), field.metadata.get("description", "")
         )

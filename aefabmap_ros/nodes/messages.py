@@ -10,13 +10,14 @@ from __future__ import annotations
 import array
 from typing import Any
 
+import gtsam
 import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features, LoopClosure, PlacePosterior
 from builtin_interfaces.msg import Time
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
-from aefabmap_ros.errors import DataError, VocabularyMismatchError
+from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
 from aefabmap_ros.verification.relative_pose import CameraModel, PoseOutcome
@@ -218,3 +219,17 @@ def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
     message.pose.position.x, message.pose.position.y, message.pose.position.z = tx, ty, tz
     message.pose_covariance = [float(value) for value in outcome.pose.covariance.reshape(36)]
     message.translation_metric = outcome.pose.metric
+
+
+def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
+    """A geometry_msgs/Pose as a gtsam Pose3."""
+    return gtsam.Pose3(pose_to_matrix(pose))
+
+
+def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:
+    """[x, y, z, qx, qy, qz, qw] -> Pose3; ConfigError unless 7 finite numbers with a non-zero quaternion."""
+    array = np.asarray(values, dtype=np.float64)
+    if array.shape != (7,) or not np.isfinite(array).all() or np.linalg.norm(array[3:]) < 1e-9:
+        raise ConfigError(f"base_to_camera must be [x, y, z, qx, qy, qz, qw] with a non-zero quaternion, got {values}")
+    rotation = Rotation.from_quat(array[3:] / np.linalg.norm(array[3:])).as_matrix()
+    return gtsam.Pose3(gtsam.Rot3(rotation), array[:3])

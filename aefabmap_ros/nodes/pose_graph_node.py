@@ -37,13 +37,11 @@ from aefabmap_ros.backend.pose_graph import (
     PoseGraph,
     PoseGraphConfig,
     closure_in_base_frame,
-    pose_from_matrix,
     trajectory_arrays,
 )
-from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
-from aefabmap_ros.nodes.messages import pose_to_matrix, time_from_ns
+from aefabmap_ros.nodes.messages import extrinsic_to_gtsam, pose_to_gtsam, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
@@ -53,19 +51,6 @@ except ImportError:  # pragma: no cover - depends on the installation
 
 _DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureResult.INCONSISTENT,
             ClosureResult.NO_POSE}
-
-
-def pose_to_gtsam(pose: Pose) -> gtsam.Pose3:
-    return pose_from_matrix(pose_to_matrix(pose))
-
-
-def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:
-    """[x, y, z, qx, qy, qz, qw] -> Pose3; ConfigError unless 7 finite numbers with a non-zero quaternion."""
-    array = np.asarray(values, dtype=np.float64)
-    if array.shape != (7,) or not np.isfinite(array).all() or np.linalg.norm(array[3:]) < 1e-9:
-        raise ConfigError(f"base_to_camera must be [x, y, z, qx, qy, qz, qw] with a non-zero quaternion, got {values}")
-    rotation = Rotation.from_quat(array[3:] / np.linalg.norm(array[3:])).as_matrix()
-    return gtsam.Pose3(gtsam.Rot3(rotation), array[:3])
 
 
 def gtsam_to_pose(pose3: gtsam.Pose3) -> Pose:

@@ -29,6 +29,14 @@ to that folder (every ``save_period_s`` the frames added since the last save, as
 file, and on shutdown) and reloaded on start, so after a restart the places seen before it can
 still be verified.
 
+Odometry gate (``odometry_gate``, backend/odometry_gate.py): once odometry arrives on ``odom``
+(``nav_msgs/Odometry``), a verified closure is published only when its relative pose agrees with
+odometry's between the two stamps within what odometry drift explains over the distance travelled
+between them (the example backend's test, same parameters). Perceptual aliasing -- an identical
+corner elsewhere -- passes every appearance and geometric check, not this one. A closure without a
+relative pose, or with a stamp the odometry does not cover, is dropped too (counted) while the gate
+is active; a robot without odometry gets every verified closure.
+
 Relative pose (verification/relative_pose.py): every published closure carries the matched place's camera
 pose in the query camera's frame, computed from the matches, or ``pose_available`` false and the
 reason in ``pose_status`` (counted). Intrinsics come from ``camera_info`` (``sensor_msgs/CameraInfo``)
@@ -50,9 +58,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
+from aefabmap_ros.backend.odometry_gate import GateResult, OdometryGate
+from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.features.extraction import Features as CoreFeatures
 from aefabmap_ros.io.atomic import remove_stale_temporaries
@@ -71,7 +82,14 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
-from aefabmap_ros.nodes.messages import camera_info_to_model, fill_relative_pose, message_to_features, time_from_ns
+from aefabmap_ros.nodes.messages import (
+    camera_info_to_model,
+    extrinsic_to_gtsam,
+    fill_relative_pose,
+    message_to_features,
+    pose_to_gtsam,
+    time_from_ns,
+)
 from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
@@ -97,6 +115,11 @@ POSTERIOR_HISTORY = 1000
 
 # The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
 # next closure on. The others size the store or the subscriptions at start-up and are refused.
+# The example backend's drift model and gate (pose_graph_node's parameters of the same names).
+ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rotation_drift_rad_per_m",
+                                    "odometry_min_sigma", "loop_min_sigma_m", "loop_min_sigma_rad", "gate_chi2",
+                                    "max_odometry"})
+
 RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
                               "max_iterations"})
 
@@ -150,6 +173,17 @@ class VerifierNode(Node):
             self, "depth_topic", "",
             "Aligned depth image topic (16UC1 mm or 32FC1 m) for metric relative poses ('' = monocular).",
         )
+        odometry_gate = declare_parameter(
+            self, "odometry_gate", True,
+            "Refuse verified closures that odometry on 'odom' contradicts beyond its drift (active once odometry "
+            "arrives; see backend/odometry_gate.py).",
+        )
+        base_to_camera = extrinsic_to_gtsam(declare_parameter(
+            self, "base_to_camera", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            "The camera's pose in the odometry's child (base) frame, [x, y, z, qx, qy, qz, qw] (identity: the "
+            "camera is the base frame), for the odometry gate.",
+        ))
+        drift_model = declare_config(self, PoseGraphConfig, only=ODOMETRY_GATE_SETTINGS)
         if max_frames < 1 or max_features < 0 or self.max_pending < 1:
             raise ConfigError(f"verifier_node: max_stored_frames ({max_frames}) and max_pending "
                               f"({self.max_pending}) must be >= 1, max_stored_features ({max_features}) >= 0")
@@ -175,6 +209,7 @@ class VerifierNode(Node):
         self.rerank = self.config.candidates > 1
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
         self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
+        self.odometry_gate = OdometryGate(drift_model, base_to_camera) if odometry_gate else None
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
@@ -187,6 +222,8 @@ class VerifierNode(Node):
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
         if depth_topic:
             counted_subscription(self, Image, depth_topic, self._on_depth, pipeline_qos(depth), self.counter)
+        if self.odometry_gate is not None:
+            counted_subscription(self, Odometry, "odom", self._on_odometry, RESULT_QOS, self.counter)
         if self.rerank or self.track.enabled:
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS,
                                  self.counter)
@@ -199,7 +236,8 @@ class VerifierNode(Node):
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
             f"{self.config.min_inlier_ratio:.0%} of the keypoints, "
             f"re-ranking the best {self.config.candidates} candidates, "
-            f"tracking loops for {self.config.track_seconds:g} s, features of the last {max_frames} frames"
+            f"tracking loops for {self.config.track_seconds:g} s, features of the last {max_frames} frames, "
+            + ("closures checked against odometry on odom once it arrives" if odometry_gate else "no odometry gate")
         )
 
     @node_callback
@@ -235,6 +273,31 @@ class VerifierNode(Node):
             self.counter.drop("bad_depth", str(exc))
             return
         self.store_saver.mark_changed()  # a frame's depths may come after its features were saved
+
+    @node_callback
+    def _on_odometry(self, message: Odometry) -> None:
+        if self.odometry_gate is None:
+            return
+        if not self.odometry_gate.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
+            self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+
+    def _agrees_with_odometry(self, closure: LoopClosure) -> bool:
+        """The odometry gate: True when it is off or inactive, or the closure's pose agrees (else counted)."""
+        gate = self.odometry_gate
+        if gate is None or not gate.active:
+            return True
+        text = f"loop closure query {closure.query_id} -> place {closure.matched_place_id}"
+        if not closure.pose_available:
+            self.counter.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")
+            return False
+        result, distance = gate.check(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp),
+                                      pose_to_gtsam(closure.pose),
+                                      np.asarray(closure.pose_covariance, dtype=np.float64).reshape(6, 6))
+        if result is GateResult.CONSISTENT:
+            return True
+        self.counter.drop(result.value, f"{text} refused: {result.value} (Mahalanobis distance squared {distance:.1f},"
+                                        f" gate {gate.config.gate_chi2:g})")
+        return False
 
     def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures,
                      verification: Verification) -> None:
@@ -339,6 +402,8 @@ class VerifierNode(Node):
             log_likelihood=match.log_likelihood, inliers=match.verification.inliers,
         )
         self._attach_pose(closure, query, place.features, match.verification)
+        if not self._agrees_with_odometry(closure):
+            return
         self.track.accept(query_ns, stamp_to_ns(place.stamp))
         self.counter.ok("accepted_by_tracking")
         self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
@@ -416,6 +481,8 @@ class VerifierNode(Node):
                                f"{outcome.verification.matches} matches")
         message.inliers = outcome.verification.inliers
         self._attach_pose(message, query, winner.features, outcome.verification)
+        if not self._agrees_with_odometry(message):
+            return
         self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
         self.publisher.publish(message)
 

@@ -58,7 +58,8 @@ class RelativePoseConfig:
         "description": "RANSAC inlier threshold of the essential matrix / PnP, pixels."})
     confidence: float = field(default=0.999, metadata={"description": "RANSAC confidence of the relative pose."})
     min_inliers: int = field(default=15, metadata={
-        "description": "Fewer RANSAC inliers than this: no relative pose (the closure is still published)."})
+        "description": "Fewer RANSAC inliers than this: no relative pose (the closure is still published, "
+                       "unless verifier_node's odometry gate is active)."})
     min_parallax_deg: float = field(default=1.0, metadata={
         "description": "Median parallax below which a monocular pose is refused (pure rotation), degrees."})
 

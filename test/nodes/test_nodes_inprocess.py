@@ -397,8 +397,9 @@ def test_verifier_node_passes_true_closures_and_holds_back_the_rest() -> None:
 
     query, place, _ = _two_views(seed=21)
     _, unrelated, _ = _two_views(seed=22)
-    # No re-ranking, no loop tracking: no posteriors.
-    node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1, track_seconds=0.0))
+    # No re-ranking, no loop tracking: no posteriors. No odometry gate: no odometry.
+    node = VerifierNode(parameter_overrides=_params(max_pending=1, candidates=1, track_seconds=0.0,
+                                                    odometry_gate=False))
     try:
         assert node.publisher.topic_name == "/loop_closures"
         assert [s.topic_name for s in node.subscriptions] == ["/aefabmap/features", "/loop_closure_candidates",
@@ -655,6 +656,48 @@ def test_verifier_node_tracks_a_loop_through_the_stored_frames_next_to_the_verif
         assert len(verified.messages) == 1 and "accepted_by_tracking" not in off.counter.counts
     finally:
         off.destroy_node()
+
+
+def _odometry(sec: int, pose: Any) -> Any:
+    """nav_msgs/Odometry of the camera (its own base frame) at ``sec``; ``pose`` a gtsam Pose3."""
+    from nav_msgs.msg import Odometry
+
+    from aefabmap_ros.nodes.pose_graph_node import gtsam_to_pose
+
+    message = Odometry()
+    message.header.stamp = Time(sec=sec)
+    message.pose.pose = gtsam_to_pose(pose)
+    return message
+
+
+def test_verifier_node_refuses_a_closure_that_odometry_contradicts() -> None:
+    import gtsam
+
+    from test.verification.test_geometric import _rotation_y, _two_views
+
+    query, place, _ = _two_views(seed=21)
+    # _two_views' place camera sees X_place = R X_query + t: in the query camera's frame it is at (R^T, -R^T t).
+    rotation, translation = _rotation_y(0.15), np.array([0.8, 0.1, 0.3])
+    place_in_query = gtsam.Pose3(gtsam.Rot3(rotation.T), -rotation.T @ translation)
+    aliased = gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.array([20.0, 0.0, 0.0]))  # another corner, 20 m away
+    for odometry_at_place, published in ((place_in_query, True), (aliased, False)):
+        node = VerifierNode(parameter_overrides=_params(candidates=1, track_seconds=0.0))
+        try:
+            verified = Captured(node.publisher)
+            node._on_camera_info(_camera_info())
+            for sec, features in ((1, place), (3, query), (5, query)):
+                node._on_features(_features_message(features, sec))
+            node._on_loop_closure(_closure(3, 1, query_id=30))  # no odometry yet: the gate is not active
+            for sec, pose in ((1, odometry_at_place), (2, odometry_at_place), (3, gtsam.Pose3())):
+                node._on_odometry(_odometry(sec, pose))
+            node._on_loop_closure(_closure(3, 1, query_id=31))
+            node._on_loop_closure(_closure(5, 1, query_id=50))  # odometry does not reach 5 s yet
+            assert [m.query_id for m in verified.messages] == ([30, 31] if published else [30])
+            counts = node.counter.counts
+            assert counts["accepted"] == 3 and counts["dropped_no_odometry_at_stamps"] == 1
+            assert counts.get("dropped_inconsistent_with_odometry", 0) == (0 if published else 1)
+        finally:
+            node.destroy_node()
 
 
 def test_verifier_node_refuses_bad_parameters() -> None:
