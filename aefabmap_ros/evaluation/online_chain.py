@@ -9,6 +9,8 @@ tracks the loop through frames without a candidate, by their top candidates near
 and then by the frames nearest it in time (verification/loop_tracking.py). This module does exactly
 that on recorded features and words, with the sequence's own stamps, so the online figures (closures published,
 false ones, revisits closed) can be measured and tuned in seconds instead of a replay through ROS.
+verifier_node's odometry gate (backend/odometry_gate.py) is not modelled: it needs relative poses and
+odometry, so these figures are the nodes' without odometry (or with ``odometry_gate: false``).
 """
 
 from __future__ import annotations
