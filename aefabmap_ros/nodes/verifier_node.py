@@ -113,13 +113,13 @@ from aefabmap_ros.verification.relative_pose import (
 # only the last few are ever looked up; the rest bounds memory when no closures come.
 POSTERIOR_HISTORY = 1000
 
-# The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
-# next closure on. The others size the store or the subscriptions at start-up and are refused.
 # The example backend's drift model and gate (pose_graph_node's parameters of the same names).
 ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rotation_drift_rad_per_m",
                                     "odometry_min_sigma", "loop_min_sigma_m", "loop_min_sigma_rad", "gate_chi2",
                                     "max_odometry"})
 
+# The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
+# next closure on. The others size the store or the subscriptions at start-up and are refused.
 RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
                               "max_iterations"})
 
