@@ -32,7 +32,8 @@ from aefabmap_ros.backend.pose_graph import (
 class GateResult(Enum):
     CONSISTENT = "consistent_with_odometry"
     INCONSISTENT = "inconsistent_with_odometry"  # further from odometry than its drift can explain
-    NO_ODOMETRY = "no_odometry_at_stamps"  # a stamp the odometry buffer does not cover (yet, or any more)
+    NOT_YET = "waiting_for_odometry"  # a stamp after the newest odometry: ask again when more has come
+    NO_ODOMETRY = "no_odometry_at_stamps"  # a stamp before the oldest odometry kept: it will never be covered
 
 
 class OdometryGate:
@@ -56,6 +57,9 @@ class OdometryGate:
               covariance: np.ndarray) -> tuple[GateResult, float]:
         """The closure (the place camera in the query camera's frame, its covariance in ROS order x y z rot)
         against odometry: the result and the Mahalanobis distance squared (NaN without odometry)."""
+        last_ns = self.odometry.last_ns
+        if last_ns is None or max(query_ns, place_ns) > last_ns:
+            return GateResult.NOT_YET, float("nan")
         query = self.odometry.pose_at(query_ns)
         place = self.odometry.pose_at(place_ns)
         if query is None or place is None:

@@ -266,9 +266,9 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images with "
                   f"{', '.join(COMPANION_TOPICS)}", flush=True)
-            # Both backends must hear the odometry from its first message on.
+            # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
             companions = [argument for topic in COMPANION_TOPICS
-                          for argument in ("--with", f"{topic}=2" if topic == "/odom" else topic)]
+                          for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
                             *companions, "--lockstep", "place_posteriors", "--quiet"], check=True)
             time.sleep(1.0)  # the last closure's delivery to the printer and the backends

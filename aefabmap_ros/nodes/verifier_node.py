@@ -33,9 +33,11 @@ Odometry gate (``odometry_gate``, backend/odometry_gate.py): once odometry arriv
 (``nav_msgs/Odometry``), a verified closure is published only when its relative pose agrees with
 odometry's between the two stamps within what odometry drift explains over the distance travelled
 between them (the example backend's test, same parameters). Perceptual aliasing -- an identical
-corner elsewhere -- passes every appearance and geometric check, not this one. A closure without a
-relative pose, or with a stamp the odometry does not cover, is dropped too (counted) while the gate
-is active; a robot without odometry gets every verified closure.
+corner elsewhere -- passes every appearance and geometric check, not this one. A closure whose query
+is newer than the newest odometry waits for it (up to ``max_pending`` closures; odometry is often
+processed after the images it belongs to). A closure without a relative pose, or to a place older
+than the oldest odometry kept, is dropped (counted) while the gate is active; a robot without
+odometry gets every verified closure.
 
 Relative pose (verification/relative_pose.py): every published closure carries the matched place's camera
 pose in the query camera's frame, computed from the matches, or ``pose_available`` false and the
@@ -206,6 +208,7 @@ class VerifierNode(Node):
             if len(self.depths):
                 self.get_logger().info(f"reloaded the keypoint depths of {len(self.depths)} frames")
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
+        self.awaiting_odometry: list[LoopClosure] = []  # verified, until odometry reaches their stamps (in order)
         self.rerank = self.config.candidates > 1
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
         self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
@@ -280,24 +283,48 @@ class VerifierNode(Node):
             return
         if not self.odometry_gate.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+            return
+        waiting, self.awaiting_odometry = self.awaiting_odometry, []
+        for closure in waiting:
+            self._publish_if_consistent(closure)
 
-    def _agrees_with_odometry(self, closure: LoopClosure) -> bool:
-        """The odometry gate: True when it is off or inactive, or the closure's pose agrees (else counted)."""
+    def _publish_if_consistent(self, closure: LoopClosure) -> None:
+        """Publish a verified closure once the odometry gate agrees; hold it while odometry is behind its stamps."""
+        verdict = self._odometry_verdict(closure)
+        if verdict is GateResult.NOT_YET:
+            self.awaiting_odometry.append(closure)
+            if len(self.awaiting_odometry) > self.max_pending:
+                oldest = self.awaiting_odometry.pop(0)
+                self.counter.drop("odometry_never_came", f"loop closure query {oldest.query_id}: no odometry up "
+                                                         f"to its stamp while {self.max_pending} newer ones waited")
+            return
+        if verdict is GateResult.CONSISTENT:
+            self.track.accept(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))
+            self.publisher.publish(closure)
+
+    def _odometry_verdict(self, closure: LoopClosure) -> GateResult:
+        """The odometry gate's verdict: CONSISTENT when it is off or inactive; refusals are counted."""
         gate = self.odometry_gate
         if gate is None or not gate.active:
-            return True
+            return GateResult.CONSISTENT
         text = f"loop closure query {closure.query_id} -> place {closure.matched_place_id}"
         if not closure.pose_available:
             self.counter.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")
-            return False
+            return GateResult.NO_ODOMETRY
         result, distance = gate.check(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp),
                                       pose_to_gtsam(closure.pose),
                                       np.asarray(closure.pose_covariance, dtype=np.float64).reshape(6, 6))
-        if result is GateResult.CONSISTENT:
-            return True
-        self.counter.drop(result.value, f"{text} refused: {result.value} (Mahalanobis distance squared {distance:.1f},"
-                                        f" gate {gate.config.gate_chi2:g})")
-        return False
+        if result in (GateResult.CONSISTENT, GateResult.NOT_YET):
+            return result
+        if result is GateResult.NO_ODOMETRY:
+            first_ns, last_ns = gate.odometry.first_ns, gate.odometry.last_ns
+            self.counter.drop(result.value, f"{text} refused: stamps {stamp_to_ns(closure.header.stamp)} and "
+                                            f"{stamp_to_ns(closure.matched_stamp)} ns, odometry covers {first_ns}.."
+                                            f"{last_ns} ns")
+        else:
+            self.counter.drop(result.value, f"{text} refused: Mahalanobis distance squared {distance:.1f} > gate "
+                                            f"{gate.config.gate_chi2:g}")
+        return result
 
     def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures,
                      verification: Verification) -> None:
@@ -402,14 +429,11 @@ class VerifierNode(Node):
             log_likelihood=match.log_likelihood, inliers=match.verification.inliers,
         )
         self._attach_pose(closure, query, place.features, match.verification)
-        if not self._agrees_with_odometry(closure):
-            return
-        self.track.accept(query_ns, stamp_to_ns(place.stamp))
         self.counter.ok("accepted_by_tracking")
         self.get_logger().info(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
                                f"{match.verification.inliers} inliers of {match.verification.matches} matches",
                                throttle_duration_sec=LOG_THROTTLE_S)
-        self.publisher.publish(closure)
+        self._publish_if_consistent(closure)
 
     def _track_candidates(self, query_ns: int, query: CoreFeatures, posterior: PlacePosterior,
                           tried: set[int]) -> TrackedMatch | None:
@@ -481,10 +505,7 @@ class VerifierNode(Node):
                                f"{outcome.verification.matches} matches")
         message.inliers = outcome.verification.inliers
         self._attach_pose(message, query, winner.features, outcome.verification)
-        if not self._agrees_with_odometry(message):
-            return
-        self.track.accept(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
-        self.publisher.publish(message)
+        self._publish_if_consistent(message)
 
     def _reconfigure(self, changes: dict[str, Any]) -> None:
         self.config = replace(self.config, **changes)  # validated as a whole: ConfigError refuses the change

@@ -47,7 +47,9 @@ def test_a_look_alike_place_is_refused_and_the_true_one_passes():
 def test_stamps_outside_the_odometry_are_not_judged():
     gate = _straight_gate()
     closure = gtsam.Pose3(gtsam.Rot3(), np.array([-11.0, 0.0, 0.0]))
-    result, distance = gate.check(11 * SECOND, 0, closure, CLOSURE_COVARIANCE)  # odometry ends at 10 s
+    result, distance = gate.check(11 * SECOND, 0, closure, CLOSURE_COVARIANCE)  # odometry ends at 10 s: not yet
+    assert result is GateResult.NOT_YET and np.isnan(distance)
+    result, distance = gate.check(10 * SECOND, -SECOND, closure, CLOSURE_COVARIANCE)  # before it began: never
     assert result is GateResult.NO_ODOMETRY and np.isnan(distance)
     assert not OdometryGate(CONFIG, gtsam.Pose3()).active and gate.active
     assert not gate.add_odometry(10 * SECOND, gtsam.Pose3())  # not after the last sample: ignored

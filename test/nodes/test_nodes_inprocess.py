@@ -685,17 +685,23 @@ def test_verifier_node_refuses_a_closure_that_odometry_contradicts() -> None:
         try:
             verified = Captured(node.publisher)
             node._on_camera_info(_camera_info())
-            for sec, features in ((1, place), (3, query), (5, query)):
+            for sec, features in ((0, place), (1, place), (3, query), (5, query)):
                 node._on_features(_features_message(features, sec))
             node._on_loop_closure(_closure(3, 1, query_id=30))  # no odometry yet: the gate is not active
             for sec, pose in ((1, odometry_at_place), (2, odometry_at_place), (3, gtsam.Pose3())):
                 node._on_odometry(_odometry(sec, pose))
             node._on_loop_closure(_closure(3, 1, query_id=31))
-            node._on_loop_closure(_closure(5, 1, query_id=50))  # odometry does not reach 5 s yet
+            node._on_loop_closure(_closure(5, 1, query_id=50))  # odometry has not reached 5 s yet: it waits
             assert [m.query_id for m in verified.messages] == ([30, 31] if published else [30])
+            assert [m.query_id for m in node.awaiting_odometry] == [50]
+            for sec in (4, 5):  # the robot stands still at the query's pose
+                node._on_odometry(_odometry(sec, gtsam.Pose3()))
+            assert [m.query_id for m in verified.messages] == ([30, 31, 50] if published else [30])
+            assert not node.awaiting_odometry
+            node._on_loop_closure(_closure(3, 0, query_id=32))  # place 0 s: before the first odometry, never judged
             counts = node.counter.counts
-            assert counts["accepted"] == 3 and counts["dropped_no_odometry_at_stamps"] == 1
-            assert counts.get("dropped_inconsistent_with_odometry", 0) == (0 if published else 1)
+            assert counts["accepted"] == 4 and counts["dropped_no_odometry_at_stamps"] == 1
+            assert counts.get("dropped_inconsistent_with_odometry", 0) == (0 if published else 2)
         finally:
             node.destroy_node()
 
