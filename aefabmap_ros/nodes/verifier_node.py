@@ -35,9 +35,10 @@ odometry's between the two stamps within what odometry drift explains over the d
 between them (the example backend's test, same parameters). Perceptual aliasing -- an identical
 corner elsewhere -- passes every appearance and geometric check, not this one. A closure whose query
 is newer than the newest odometry waits for it (up to ``max_pending`` closures; odometry is often
-processed after the images it belongs to). A closure without a relative pose, or to a place older
-than the oldest odometry kept, is dropped (counted) while the gate is active; a robot without
-odometry gets every verified closure.
+processed after the images it belongs to). A closure without a relative pose is dropped (counted)
+while the gate is active. Where odometry has nothing to say -- a robot without odometry, a place
+mapped before this odometry began (a map reloaded after a restart) -- verified closures are
+published unchecked (the latter counted).
 
 Relative pose (verification/relative_pose.py): every published closure carries the matched place's camera
 pose in the query camera's frame, computed from the matches, or ``pose_available`` false and the
@@ -55,6 +56,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import replace
+from enum import Enum
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -132,6 +134,14 @@ class PlaceToVerify(NamedTuple):
     place_id: int
     stamp: Any  # builtin_interfaces/Time, as republished in matched_stamp
     features: CoreFeatures
+
+
+class GateDecision(Enum):
+    """What happens to a verified closure at the odometry gate."""
+
+    PUBLISH = "publish"
+    WAIT = "wait"  # for odometry to reach its stamps
+    REFUSE = "refuse"
 
 
 class TrackedMatch(NamedTuple):
@@ -290,41 +300,46 @@ class VerifierNode(Node):
 
     def _publish_if_consistent(self, closure: LoopClosure) -> None:
         """Publish a verified closure once the odometry gate agrees; hold it while odometry is behind its stamps."""
-        verdict = self._odometry_verdict(closure)
-        if verdict is GateResult.NOT_YET:
+        decision = self._odometry_decision(closure)
+        if decision is GateDecision.WAIT:
+            # Tracking goes on from it meanwhile, as it would without the gate: every closure tracked from it is
+            # verified and judged by the gate itself.
+            self.track.accept(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))
             self.awaiting_odometry.append(closure)
             if len(self.awaiting_odometry) > self.max_pending:
                 oldest = self.awaiting_odometry.pop(0)
                 self.counter.drop("odometry_never_came", f"loop closure query {oldest.query_id}: no odometry up "
                                                          f"to its stamp while {self.max_pending} newer ones waited")
             return
-        if verdict is GateResult.CONSISTENT:
-            self.track.accept(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))
+        if decision is GateDecision.PUBLISH:
+            self.track.accept(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))  # idempotent
             self.publisher.publish(closure)
 
-    def _odometry_verdict(self, closure: LoopClosure) -> GateResult:
-        """The odometry gate's verdict: CONSISTENT when it is off or inactive; refusals are counted."""
+    def _odometry_decision(self, closure: LoopClosure) -> GateDecision:
+        """The odometry gate on one verified closure (always PUBLISH when it is off or inactive); refusals are
+        counted and logged."""
         gate = self.odometry_gate
         if gate is None or not gate.active:
-            return GateResult.CONSISTENT
+            return GateDecision.PUBLISH
         text = f"loop closure query {closure.query_id} -> place {closure.matched_place_id}"
         if not closure.pose_available:
             self.counter.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")
-            return GateResult.NO_ODOMETRY
+            return GateDecision.REFUSE
         result, distance = gate.check(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp),
                                       pose_to_gtsam(closure.pose),
                                       np.asarray(closure.pose_covariance, dtype=np.float64).reshape(6, 6))
-        if result in (GateResult.CONSISTENT, GateResult.NOT_YET):
-            return result
+        if result is GateResult.CONSISTENT:
+            return GateDecision.PUBLISH
+        if result is GateResult.NOT_YET:
+            return GateDecision.WAIT
         if result is GateResult.NO_ODOMETRY:
-            first_ns, last_ns = gate.odometry.first_ns, gate.odometry.last_ns
-            self.counter.drop(result.value, f"{text} refused: stamps {stamp_to_ns(closure.header.stamp)} and "
-                                            f"{stamp_to_ns(closure.matched_stamp)} ns, odometry covers {first_ns}.."
-                                            f"{last_ns} ns")
-        else:
-            self.counter.drop(result.value, f"{text} refused: Mahalanobis distance squared {distance:.1f} > gate "
-                                            f"{gate.config.gate_chi2:g}")
-        return result
+            # A place mapped before this odometry began (a map reloaded after a restart): odometry has nothing to
+            # say about it, as for a robot without odometry.
+            self.counter.ok("unchecked_place_before_odometry")
+            return GateDecision.PUBLISH
+        self.counter.drop(result.value, f"{text} refused: Mahalanobis distance squared {distance:.1f} > gate "
+                                        f"{gate.config.gate_chi2:g}")
+        return GateDecision.REFUSE
 
     def _attach_pose(self, closure: LoopClosure, query: CoreFeatures, place: CoreFeatures,
                      verification: Verification) -> None:
