@@ -17,6 +17,7 @@ from builtin_interfaces.msg import Time
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
+from aefabmap_ros.backend.pose_graph import pose_from_matrix
 from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
@@ -223,7 +224,13 @@ def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
 
 def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
     """A geometry_msgs/Pose as a gtsam Pose3."""
-    return gtsam.Pose3(pose_to_matrix(pose))
+    return pose_from_matrix(pose_to_matrix(pose))
+
+
+def loop_closure_pose(message: LoopClosure) -> tuple[gtsam.Pose3, np.ndarray]:
+    """A LoopClosure's relative pose (the place camera in the query camera's frame) and its 6x6 covariance
+    (ROS order x y z rot), as the backend and the odometry gate take them; meaningful when pose_available."""
+    return pose_to_gtsam(message.pose), np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6)
 
 
 def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:

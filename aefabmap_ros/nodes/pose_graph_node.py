@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import gtsam
-import numpy as np
 from aefabmap_msgs.msg import LoopClosure
 from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
@@ -41,7 +40,7 @@ from aefabmap_ros.backend.pose_graph import (
 )
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
-from aefabmap_ros.nodes.messages import extrinsic_to_gtsam, pose_to_gtsam, time_from_ns
+from aefabmap_ros.nodes.messages import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
@@ -97,9 +96,7 @@ class PoseGraphNode(Node):
             self.counter.drop(ClosureResult.NO_POSE.value, f"closure of query {message.query_id} has no pose "
                               f"(pose_status {message.pose_status})")
             return
-        pose, covariance = closure_in_base_frame(
-            pose_to_gtsam(message.pose), np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6),
-            self.base_to_camera)
+        pose, covariance = closure_in_base_frame(*loop_closure_pose(message), self.base_to_camera)
         closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp), pose, covariance)
         self._report([self.graph.add_closure(closure)], closure.query_ns)
 

@@ -90,6 +90,7 @@ from aefabmap_ros.nodes.messages import (
     camera_info_to_model,
     extrinsic_to_gtsam,
     fill_relative_pose,
+    loop_closure_pose,
     message_to_features,
     pose_to_gtsam,
     time_from_ns,
@@ -326,8 +327,7 @@ class VerifierNode(Node):
             self.counter.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")
             return GateDecision.REFUSE
         result, distance = gate.check(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp),
-                                      pose_to_gtsam(closure.pose),
-                                      np.asarray(closure.pose_covariance, dtype=np.float64).reshape(6, 6))
+                                      *loop_closure_pose(closure))
         if result is GateResult.CONSISTENT:
             return GateDecision.PUBLISH
         if result is GateResult.NOT_YET:
