@@ -96,7 +96,7 @@ def test_first_octave_zero_finds_the_same_points_as_doubling() -> None:
     # Up to resampling it is the same scale space from its second octave on: keypoints matched between
     # the two settings land on the same image points (within a pixel) at the same sizes.
     image = _textured(3, (480, 640))
-    doubled = extract_features(image, FeatureConfig(max_features=0, sift_first_octave=-1))
+    doubled = extract_features(image, FeatureConfig(max_features=0, sift_double_below_pixels=0))
     octave_zero = extract_features(image, FeatureConfig(max_features=0, sift_first_octave=0))
     assert 0.2 * len(doubled) < len(octave_zero) < len(doubled)  # the doubled octave's fine keypoints are gone
     matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(octave_zero.descriptors, doubled.descriptors)
@@ -108,6 +108,26 @@ def test_first_octave_zero_finds_the_same_points_as_doubling() -> None:
     np.testing.assert_allclose(np.median(shift[same_point], axis=0), -0.25, atol=0.1)
     size_ratio = octave_zero.keypoints[pairs[same_point, 0], 2] / doubled.keypoints[pairs[same_point, 1], 2]
     assert np.median(size_ratio) == pytest.approx(1.0, abs=0.05)
+
+
+@pytest.mark.parametrize("kind", ["sift", "rootsift"])
+def test_only_images_under_640x480_are_doubled_by_default(kind: str) -> None:
+    # 480 x 640 has exactly sift_double_below_pixels (307,200): it starts at octave 0, as an explicit
+    # first octave 0 does; one row fewer is doubled, as OpenCV's SIFT does every image.
+    vga = _textured(5, (480, 640))
+    assert FeatureConfig().sift_double_below_pixels == 640 * 480
+    expected_zero = extract_features(vga, FeatureConfig(type=kind, sift_first_octave=0))
+    default = extract_features(vga, FeatureConfig(type=kind))
+    np.testing.assert_array_equal(default.keypoints, expected_zero.keypoints)
+    np.testing.assert_array_equal(default.descriptors, expected_zero.descriptors)
+    smaller = vga[:479]
+    always_doubled = extract_features(smaller, FeatureConfig(type=kind, sift_double_below_pixels=0))
+    np.testing.assert_array_equal(extract_features(smaller, FeatureConfig(type=kind)).keypoints,
+                                  always_doubled.keypoints)
+    assert not np.array_equal(always_doubled.keypoints[:50], expected_zero.keypoints[:50])
+    # the limit only widens what -1 doubles: first octave 0 never doubles, ORB ignores both
+    assert FeatureConfig(sift_first_octave=0, sift_double_below_pixels=10**9).starts_at_octave_zero((10, 10))
+    assert not FeatureConfig(type="orb").starts_at_octave_zero((4000, 4000))
 
 
 @pytest.mark.parametrize("shape", [(241, 321), (1, 50), (3, 3)])
@@ -155,6 +175,9 @@ def test_bad_images_are_refused(bad: object) -> None:
     ("sift_first_octave", -2, "sift_first_octave=-2"),
     ("sift_first_octave", 0.0, "sift_first_octave=0.0"),
     ("sift_first_octave", False, "sift_first_octave=False"),
+    ("sift_double_below_pixels", -1, r"sift_double_below_pixels=-1 must be an int >= 0"),
+    ("sift_double_below_pixels", 1.5, "sift_double_below_pixels=1.5"),
+    ("sift_double_below_pixels", True, "sift_double_below_pixels=True"),
 ])
 def test_config_validation_names_field(field: str, value: object, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -168,6 +191,10 @@ def test_config_round_trip_and_unknown_fields() -> None:
     assert FeatureConfig.from_dict(octave_zero.to_dict()) == octave_zero
     older = {k: v for k, v in FeatureConfig().to_dict().items() if k != "sift_first_octave"}
     assert FeatureConfig.from_dict(older).sift_first_octave == -1  # settings saved before it: OpenCV's doubling
+    # saved before the pixel limit: the model's vocabulary was made from every image doubled, so stay so
+    before_limit = {k: v for k, v in FeatureConfig().to_dict().items() if k != "sift_double_below_pixels"}
+    assert FeatureConfig.from_dict(before_limit).sift_double_below_pixels == 0
+    assert not FeatureConfig.from_dict(before_limit).starts_at_octave_zero((2000, 2000))
     with pytest.raises(ConfigError, match="unknown field"):
         FeatureConfig.from_dict({"typ": "sift"})
     with pytest.raises(ConfigError, match="unknown feature type 'akaze'"):
