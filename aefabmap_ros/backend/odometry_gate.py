@@ -53,12 +53,16 @@ class OdometryGate:
         """Buffer ``T_odom_base`` at that stamp; False (ignored) unless it is after the last one."""
         return self.odometry.add(stamp_ns, pose)
 
+    def reaches(self, query_ns: int, place_ns: int) -> bool:
+        """Whether odometry has come up to both stamps (else ``check`` says NOT_YET)."""
+        last_ns = self.odometry.last_ns
+        return last_ns is not None and max(query_ns, place_ns) <= last_ns
+
     def check(self, query_ns: int, place_ns: int, query_to_place: gtsam.Pose3,
               covariance: np.ndarray) -> tuple[GateResult, float]:
         """The closure (the place camera in the query camera's frame, its covariance in ROS order x y z rot)
         against odometry: the result and the Mahalanobis distance squared (NaN without odometry)."""
-        last_ns = self.odometry.last_ns
-        if last_ns is None or max(query_ns, place_ns) > last_ns:
+        if not self.reaches(query_ns, place_ns):
             return GateResult.NOT_YET, float("nan")
         query = self.odometry.pose_at(query_ns)
         place = self.odometry.pose_at(place_ns)

@@ -295,8 +295,15 @@ class VerifierNode(Node):
         if not self.odometry_gate.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
             return
-        waiting, self.awaiting_odometry = self.awaiting_odometry, []
-        for closure in waiting:
+        # Only the closures this odometry reaches can be judged now; the others keep waiting, in order, without
+        # their poses converted again for every odometry message.
+        reached: list[LoopClosure] = []
+        still_waiting: list[LoopClosure] = []
+        for closure in self.awaiting_odometry:
+            reaches = self.odometry_gate.reaches(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))
+            (reached if reaches else still_waiting).append(closure)
+        self.awaiting_odometry = still_waiting
+        for closure in reached:
             self._publish_if_consistent(closure)
 
     def _publish_if_consistent(self, closure: LoopClosure) -> None:

@@ -51,6 +51,7 @@ def test_stamps_outside_the_odometry_are_not_judged():
     assert result is GateResult.NOT_YET and np.isnan(distance)
     result, distance = gate.check(10 * SECOND, -SECOND, closure, CLOSURE_COVARIANCE)  # before it began: never
     assert result is GateResult.NO_ODOMETRY and np.isnan(distance)
+    assert not gate.reaches(11 * SECOND, 0) and gate.reaches(10 * SECOND, -SECOND)  # what NOT_YET is decided by
     assert not OdometryGate(CONFIG, gtsam.Pose3()).active and gate.active
     assert not gate.add_odometry(10 * SECOND, gtsam.Pose3())  # not after the last sample: ignored
 
