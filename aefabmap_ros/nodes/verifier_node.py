@@ -27,7 +27,8 @@ A closure can arrive before its query's features or posterior (separate topics):
 (``max_stored_frames``) cannot be verified and is dropped. With ``store_dir`` the store is saved
 to that folder (every ``save_period_s`` the frames added since the last save, as one more chunk
 file, and on shutdown) and reloaded on start, so after a restart the places seen before it can
-still be verified.
+still be verified; so is each frame's place (``timeline-*.npz``), so that loop tracking still
+reaches the frames stored before the restart.
 
 Odometry gate (``odometry_gate``, backend/odometry_gate.py): once odometry arrives on ``odom``
 (``nav_msgs/Odometry``), a verified closure is published only when its relative pose agrees with
@@ -105,7 +106,7 @@ from aefabmap_ros.verification.geometric import (
     rerank_by_inliers,
     verify_pair,
 )
-from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
     KeypointDepthFolder,
@@ -170,7 +171,9 @@ class VerifierNode(Node):
             self, "max_pending", 100, "Loop closures waiting for their query's features (and posterior) at most."
         )
         store_dir = declare_parameter(
-            self, "store_dir", "", "Folder the feature store is saved to and reloaded from ('' = memory only)."
+            self, "store_dir", "",
+            "Folder the feature store (with each frame's place, for loop tracking) is saved to and reloaded from "
+            "('' = memory only).",
         )
         save_period_s = declare_parameter(
             self, "save_period_s", 10.0,
@@ -204,25 +207,16 @@ class VerifierNode(Node):
         self.camera = _camera_from_parameter(camera_matrix)
         self.camera_fixed = self.camera is not None
         self.depths = KeypointDepthStore(max_frames) if depth_topic else None
+        self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
         self.depth_folder = KeypointDepthFolder(Path(store_dir)) if store_dir and self.depths is not None else None
-        if self.store_folder is not None:
-            for pattern in ("chunk-*.npz", "depth-*.npz"):
-                for leftover in remove_stale_temporaries(self.store_folder.folder, pattern):
-                    self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
-            self.store_folder.load_into(self.store)  # a corrupt chunk stops start-up (ERROR), is not overwritten
-            if len(self.store):
-                self.get_logger().info(
-                    f"reloaded the features of {len(self.store)} frames from {self.store_folder.folder}")
-        if self.depth_folder is not None and self.depths is not None:
-            self.depth_folder.load_into(self.depths)
-            if len(self.depths):
-                self.get_logger().info(f"reloaded the keypoint depths of {len(self.depths)} frames")
+        self.timeline_folder = FrameTimelineFolder(Path(store_dir)) if store_dir else None
+        if store_dir:
+            self._reload_stores(Path(store_dir))
         self.pending: OrderedDict[int, LoopClosure] = OrderedDict()  # query stamp -> closure, oldest first
         self.awaiting_odometry: list[LoopClosure] = []  # verified, until odometry reaches their stamps (in order)
         self.rerank = self.config.candidates > 1
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
-        self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
         self.odometry_gate = OdometryGate(drift_model, base_to_camera) if odometry_gate else None
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
         self.counter = DropCounter(self)
@@ -532,11 +526,32 @@ class VerifierNode(Node):
     def _reconfigure(self, changes: dict[str, Any]) -> None:
         self.config = replace(self.config, **changes)  # validated as a whole: ConfigError refuses the change
 
+    def _reload_stores(self, folder: Path) -> None:
+        """What ``store_dir`` holds: a corrupt chunk stops start-up (ERROR) and is not overwritten."""
+        for pattern in ("chunk-*.npz", "depth-*.npz", "timeline-*.npz"):
+            for leftover in remove_stale_temporaries(folder, pattern):
+                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
+        if self.store_folder is not None:
+            self.store_folder.load_into(self.store)
+            if len(self.store):
+                self.get_logger().info(f"reloaded the features of {len(self.store)} frames from {folder}")
+        if self.depth_folder is not None and self.depths is not None:
+            self.depth_folder.load_into(self.depths)
+            if len(self.depths):
+                self.get_logger().info(f"reloaded the keypoint depths of {len(self.depths)} frames")
+        if self.timeline_folder is not None:
+            # Without it, loop tracking after a restart would never reach the frames stored before it.
+            self.timeline_folder.load_into(self.timeline)
+            if len(self.timeline):
+                self.get_logger().info(f"reloaded the places of {len(self.timeline)} frames for loop tracking")
+
     def _save_store(self, _folder: Path) -> None:
         if self.store_folder is not None:
             self.store_folder.save(self.store)
         if self.depth_folder is not None and self.depths is not None:
             self.depth_folder.save(self.depths)
+        if self.timeline_folder is not None:
+            self.timeline_folder.save(self.timeline)
 
     def close(self) -> bool:
         """The final store save; False when it failed (the process then exits 1)."""

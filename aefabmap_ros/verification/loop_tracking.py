@@ -33,11 +33,18 @@ from __future__ import annotations
 
 from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import TypeVar
 
-from aefabmap_ros.errors import ConfigError
+import numpy as np
+
+from aefabmap_ros.errors import ConfigError, ModelError
+from aefabmap_ros.io.chunk_folder import ChunkFolder
+from aefabmap_ros.io.npz_files import read_versioned_npz
 
 PlaceT = TypeVar("PlaceT")
+
+TIMELINE_FORMAT_VERSION = 1
 
 
 class LoopTrack:
@@ -96,9 +103,13 @@ class FrameTimeline:
         self._stamps: list[int] = []
         self._places: list[int] = []
         self._start = 0
+        self._newest_saved: int | None = None  # frames stamped after it were added since the last save
 
     def __len__(self) -> int:
         return len(self._stamps) - self._start
+
+    def __contains__(self, stamp_ns: object) -> bool:
+        return isinstance(stamp_ns, int) and self.place_of(stamp_ns) is not None
 
     def add(self, stamp_ns: int, place_id: int) -> bool:
         """Append a frame; False (ignored) unless it is newer than every frame already there."""
@@ -112,6 +123,25 @@ class FrameTimeline:
                 del self._stamps[: self._start], self._places[: self._start]
                 self._start = 0
         return True
+
+    def unsaved(self) -> list[tuple[int, int]]:
+        """(stamp, place) of the frames kept that were added since the last save, oldest first."""
+        first = self._start if self._newest_saved is None else \
+            bisect_right(self._stamps, self._newest_saved, lo=self._start)
+        return list(zip(self._stamps[first:], self._places[first:], strict=True))
+
+    def mark_saved(self) -> None:
+        if len(self):
+            self._newest_saved = self._stamps[-1]
+
+    def restore(self, frames: Sequence[tuple[int, int]]) -> None:
+        """Replace the frames by saved (stamp, place) ones (the newest ``max_frames`` of them, in stamp
+        order; of two copies of a stamp the later one); they count as saved."""
+        latest = dict(frames)
+        self._stamps, self._places, self._start, self._newest_saved = [], [], 0, None
+        for stamp_ns in sorted(latest)[-self.max_frames:]:
+            self.add(stamp_ns, latest[stamp_ns])
+        self.mark_saved()
 
     def place_of(self, stamp_ns: int) -> int | None:
         """The place of the frame stamped ``stamp_ns``; None when it is not (or no longer) there."""
@@ -139,3 +169,47 @@ class FrameTimeline:
                 chosen.append(self._stamps[right])
                 right += 1
         return chosen
+
+
+class FrameTimelineFolder:
+    """A FrameTimeline on disk beside the verifier's feature store (verifier_node's ``store_dir``), so
+    that after a restart loop tracking still reaches the frames seen before it.
+
+    Append-only like the feature store's chunks (:mod:`aefabmap_ros.io.chunk_folder`): each ``save``
+    writes the frames added since the last one as ``timeline-<n>.npz`` (stamps and places, 16 bytes
+    a frame).
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self._chunks: ChunkFolder[int] = ChunkFolder(folder, "timeline", "frame timeline",
+                                                     _timeline_arrays, _read_timeline_chunk)
+
+    @property
+    def folder(self) -> Path:
+        return self._chunks.folder
+
+    def load_into(self, timeline: FrameTimeline) -> None:
+        """Replace ``timeline``'s frames by the saved ones; ModelError naming a bad chunk (timeline unchanged)."""
+        timeline.restore(self._chunks.read())
+
+    def save(self, timeline: FrameTimeline) -> None:
+        """Append the frames added since the last save as one chunk, then drop fully forgotten chunks."""
+        self._chunks.save(timeline)
+
+
+def _timeline_arrays(frames: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+    return {
+        "format_version": np.array(TIMELINE_FORMAT_VERSION, dtype=np.int64),
+        "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
+        "place_ids": np.array([place for _, place in frames], dtype=np.int64),
+    }
+
+
+def _read_timeline_chunk(chunk: Path) -> list[tuple[int, int]]:
+    arrays = read_versioned_npz(chunk, "frame timeline chunk", "frame timeline chunk", ("stamps_ns", "place_ids"),
+                                TIMELINE_FORMAT_VERSION)
+    stamps, places = arrays["stamps_ns"], arrays["place_ids"]
+    if stamps.ndim != 1 or places.shape != stamps.shape or not np.issubdtype(stamps.dtype, np.integer) \
+            or not np.issubdtype(places.dtype, np.integer) or (places.size and places.min() < 0):
+        raise ModelError(f"frame timeline chunk {chunk}: stamps and places do not agree")
+    return list(zip((int(stamp) for stamp in stamps), (int(place) for place in places), strict=True))

@@ -747,6 +747,45 @@ def test_verifier_node_keeps_its_store_across_a_restart(tmp_path: Path, reliabil
     reliability.fault("corrupt feature store chunk at start (verifier)", injected=1, survived=1, places_lost=0)
 
 
+@pytest.mark.parametrize("timeline_kept", [True, False])
+def test_verifier_node_tracks_into_frames_stored_before_a_restart(tmp_path: Path, timeline_kept: bool) -> None:
+    from test.verification.test_geometric import _two_views
+
+    query_a, place_a, _ = _two_views(seed=26)
+    query_b, place_b, _ = _two_views(seed=28)
+    _, unrelated, _ = _two_views(seed=27)
+    tracking = {"track_seconds": 2.0, "track_island_seconds": 3.0, "track_frames": 5, "track_min_age_seconds": 5.0}
+    store_dir = tmp_path / "store"
+    first = VerifierNode(parameter_overrides=_params(store_dir=str(store_dir), save_period_s=0.0, **tracking))
+    try:  # the map before the restart: scene A at 1 s and scene B at 2 s (both place 1), unrelated at 9 s
+        for sec, features, place_id in ((1, place_a, 1), (2, place_b, 1), (9, unrelated, 9)):
+            first._on_features(_features_message(features, sec))
+            posterior = _posterior(sec, [], candidate=False)
+            posterior.current_place_id = place_id
+            first._on_posterior(posterior)
+        first.close()  # saves on shutdown
+    finally:
+        first.destroy_node()
+    assert len(list(store_dir.glob("timeline-*.npz"))) == 1
+    if not timeline_kept:  # what a restart was before the timeline was saved: the features alone
+        for chunk in store_dir.glob("timeline-*.npz"):
+            chunk.unlink()
+    second = VerifierNode(parameter_overrides=_params(store_dir=str(store_dir), **tracking))
+    try:
+        verified = Captured(second.publisher)
+        for sec, features in ((10, query_a), (11, query_b)):
+            second._on_features(_features_message(features, sec))
+        second._on_loop_closure(_closure(10, 1, query_id=100))
+        second._on_posterior(_posterior(10, [1, 9]))  # verified: the track starts at place 1 (1 s)
+        # 11 s sees scene B; FAB-MAP ranks only the unrelated place: the stored frame at 2 s is found by its
+        # place in the reloaded timeline, as it would have been without the restart.
+        second._on_posterior(_posterior(11, [9], candidate=False))
+        tracked = [(m.header.stamp.sec, m.matched_stamp.sec, m.matched_place_id) for m in verified.messages[1:]]
+        assert tracked == ([(11, 2, 1)] if timeline_kept else [])
+    finally:
+        second.destroy_node()
+
+
 def _features_of(revisit_data: RevisitData) -> Any:
     feature_node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir)))
     try:

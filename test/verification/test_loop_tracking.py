@@ -1,11 +1,12 @@
 """Loop tracking's window: after a verified closure, candidates near its place in map time, for a while."""
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
+from aefabmap_ros.errors import ConfigError, ModelError
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack
 
 SECOND = 10**9
 
@@ -111,3 +112,55 @@ def test_nearby_frames_lie_in_the_island_and_never_in_the_recent_past():
     track.accept(105 * SECOND, 99 * SECOND)
     nearby = track.nearby_frames(105 * SECOND + SECOND // 2, timeline, 100, 5 * SECOND)
     assert max(nearby) == 100 * SECOND + SECOND // 2 and min(nearby) == 96 * SECOND
+
+
+def test_a_saved_timeline_reloads_the_frames_and_places_it_kept(tmp_path):
+    folder = FrameTimelineFolder(tmp_path)
+    timeline = FrameTimeline(max_frames=4)
+    for stamp, place in ((10, 0), (20, 0), (30, 1)):
+        timeline.add(stamp, place)
+    folder.save(timeline)
+    assert timeline.unsaved() == []  # a second save writes nothing new
+    folder.save(timeline)
+    assert len(list(tmp_path.glob("timeline-*.npz"))) == 1
+    for stamp, place in ((40, 2), (50, 2), (60, 3)):  # 10 and 20 are forgotten (4 kept)
+        timeline.add(stamp, place)
+    assert timeline.unsaved() == [(40, 2), (50, 2), (60, 3)]
+    folder.save(timeline)
+    reloaded = FrameTimeline(max_frames=4)
+    FrameTimelineFolder(tmp_path).load_into(reloaded)
+    assert [(s, reloaded.place_of(s)) for s in (30, 40, 50, 60)] == [(30, 1), (40, 2), (50, 2), (60, 3)]
+    assert len(reloaded) == 4 and reloaded.place_of(20) is None and reloaded.unsaved() == []
+    assert reloaded.nearest(45, 0, 100, 2) == [40, 50]
+    smaller = FrameTimeline(max_frames=2)  # a restart with a smaller store keeps the newest frames
+    FrameTimelineFolder(tmp_path).load_into(smaller)
+    assert [s for s in (30, 40, 50, 60) if s in smaller] == [50, 60]
+    # Only new frames are written after a reload, and a chunk whose frames are all forgotten is deleted.
+    reloaded.add(70, 4)
+    reloaded.add(80, 4)
+    folder = FrameTimelineFolder(tmp_path)
+    folder.load_into(FrameTimeline(max_frames=4))  # learns the chunks on disk, as a node's start does
+    folder.save(reloaded)
+    chunks = sorted(tmp_path.glob("timeline-*.npz"))
+    assert [c.name for c in chunks] == ["timeline-000000001.npz", "timeline-000000002.npz"]
+    with np.load(chunks[-1]) as chunk:
+        assert chunk["stamps_ns"].tolist() == [70, 80] and chunk["place_ids"].tolist() == [4, 4]
+
+
+@pytest.mark.parametrize("arrays, message", [
+    ({"stamps_ns": np.array([1, 2]), "place_ids": np.array([0])}, "do not agree"),
+    ({"stamps_ns": np.array([1, 2]), "place_ids": np.array([0, -1])}, "do not agree"),
+    ({"stamps_ns": np.array([1, 2])}, "not a frame timeline chunk"),
+])
+def test_a_bad_timeline_chunk_is_refused_by_name(tmp_path, arrays, message):
+    chunk = tmp_path / "timeline-000000000.npz"
+    np.savez(chunk, format_version=np.array(1), **arrays)
+    timeline = FrameTimeline(max_frames=4)
+    timeline.add(5, 0)
+    with pytest.raises(ModelError, match=message) as error:
+        FrameTimelineFolder(tmp_path).load_into(timeline)
+    assert str(chunk) in str(error.value)
+    assert timeline.place_of(5) == 0  # unchanged
+    chunk.write_bytes(b"corrupt")
+    with pytest.raises(ModelError, match="cannot read frame timeline chunk"):
+        FrameTimelineFolder(tmp_path).load_into(timeline)
