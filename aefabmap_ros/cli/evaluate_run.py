@@ -410,7 +410,10 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
     }
     extra = ("\nLoop closures per topic. A closure (i, j) is false when gt[i, j] = 0. A revisit event is a run "
              "of revisiting frames (a ground-truth loop at least min_gap frames back), gaps of up to "
-             f"{DEFAULT_EVENT_GAP} frames bridged; it is closed by one true closure from one of its frames.\n\n"
+             f"{DEFAULT_EVENT_GAP} frames bridged; it is closed by one true closure from one of its frames. Of the "
+             "revisiting frames a topic missed, the last column counts those whose recorded posterior ranked a "
+             "true place (temporal consistency or verification missed them); the rest were never ranked right "
+             "(the vocabulary and FAB-MAP).\n\n"
              + (closure_scores_markdown(rows) if rows else "No loop-closure topic in the recording.\n")
              + recording.note)
     return [result], gt, header, extra, {"closures": [closure_scores_to_dict(row) for row in rows]}

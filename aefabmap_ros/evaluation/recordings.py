@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, event_scores
+from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, eligible_mask, event_scores
 from aefabmap_ros.evaluation.reports import events_to_dict, fmt, jsonable_float, recall_cell
 from aefabmap_ros.stamps import stamp_to_ns
 
@@ -115,36 +115,62 @@ class TopicClosureScores:
     num_verified: int  # closures with inliers > 0 (passed geometric verification)
     precision: float  # true closures / closures (nan without closures)
     events: EventScores
+    # Revisiting frames without a true closure whose recorded posterior ranked a true place: the decision
+    # (consistency, verification) missed them; the other missed frames the ranking (vocabulary, FAB-MAP) did.
+    num_missed_ranked: int
 
 
 def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any], posteriors: Sequence[Any],
                             gt: np.ndarray, min_gap: int, event_gap: int = DEFAULT_EVENT_GAP) -> TopicClosureScores:
     """Score the ``LoopClosure`` messages of one recorded topic (frames as in :func:`scores_from_recording`):
     precision, and per revisit event and revisiting frame (:func:`evaluation.metrics.event_scores`)."""
-    closures = scores_from_recording(posteriors, loop_closures, gt.shape[0]).closures
+    recorded = scores_from_recording(posteriors, loop_closures, gt.shape[0])
+    closures = recorded.closures
     precision, _ = closure_precision_recall(closures, gt, min_gap)
     events = event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap, event_gap)
     verified = sum(1 for message in loop_closures if int(message.inliers) > 0)
-    return TopicClosureScores(role, topic, verified, precision, events)
+    return TopicClosureScores(role, topic, verified, precision, events,
+                              missed_with_a_true_place_ranked(closures, recorded.scores, gt, min_gap))
+
+
+def missed_with_a_true_place_ranked(closures: Sequence[RecordedClosure], scores: np.ndarray, gt: np.ndarray,
+                                    min_gap: int) -> int:
+    """Revisiting frames (a ground-truth loop at least ``min_gap`` frames back) that no true closure
+    came from, although a true place of theirs was ranked (``scores[i, j] > 0``: among the places
+    their recorded posterior reported).
+
+    What limits recall: these frames were missed by the decision after the ranking (temporal
+    consistency, geometric verification); the other missed frames were never ranked right, a matter
+    of the vocabulary and FAB-MAP.
+    """
+    truth = np.asarray(gt).astype(bool)
+    revisiting = (truth & eligible_mask(truth.shape[0], min_gap)).any(axis=1)
+    queries, places = np.nonzero(np.asarray(scores) > 0)  # sparse: a posterior reports a few places
+    ranked_true = queries[truth[queries, places] & (places <= queries - min_gap)]
+    closed = {c.query_frame for c in closures if truth[c.query_frame, c.matched_frame]}
+    return sum(1 for query in np.unique(ranked_true).tolist() if revisiting[query] and query not in closed)
 
 
 def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
     """A markdown table: one row per recorded closure topic."""
     lines = [
         "| closures | topic | closures | verified (inliers > 0) | false | precision | revisit events "
-        "| events closed | fraction of events closed | recall (revisiting frames) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| events closed | fraction of events closed | recall (revisiting frames) "
+        "| missed frames with a true place ranked |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         e = row.events
+        missed = e.num_revisiting_frames - e.num_revisiting_frames_closed
         lines.append(
             f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
             f"| {fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {fmt(e.fraction_closed)} "
-            f"| {recall_cell(e)} |"
+            f"| {recall_cell(e)} | {row.num_missed_ranked} / {missed} |"
         )
     return "\n".join(lines) + "\n"
 
 
 def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
     return {"role": row.role, "topic": row.topic, "verified": row.num_verified,
-            "precision": jsonable_float(row.precision), **events_to_dict(row.events)}
+            "precision": jsonable_float(row.precision), **events_to_dict(row.events),
+            "missed_revisiting_frames_with_a_true_place_ranked": row.num_missed_ranked}

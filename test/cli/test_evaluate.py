@@ -358,14 +358,15 @@ def test_recording_metrics(tmp_path, capsys):
     assert raw == {"role": "FAB-MAP candidates", "topic": "loop_closure_candidates", "closures": 3, "verified": 0,
                    "false_closures": 1, "precision": pytest.approx(2 / 3), "revisit_events": 1, "events_closed": 1,
                    "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 2,
-                   "recall_revisiting_frames": 0.25}
+                   "recall_revisiting_frames": 0.25, "missed_revisiting_frames_with_a_true_place_ranked": 6}
     assert verified == {"role": "published", "topic": "loop_closures", "closures": 1, "verified": 1,
                         "false_closures": 0, "precision": 1.0, "revisit_events": 1, "events_closed": 1,
                         "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 1,
-                        "recall_revisiting_frames": 0.125}
-    assert "| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) |" in printed
-    assert "| FAB-MAP candidates | `loop_closure_candidates` | 3 | 0 | 1 | 0.667 | 1 | 1 | 1.000 | 0.250 (2/8) |" \
-        in (tmp_path / "out" / "results.md").read_text()
+                        "recall_revisiting_frames": 0.125, "missed_revisiting_frames_with_a_true_place_ranked": 7}
+    # Every revisiting frame had its true place among its recorded top places: each miss is the decision's.
+    assert "| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) | 7 / 7 |" in printed
+    row = "| FAB-MAP candidates | `loop_closure_candidates` | 3 | 0 | 1 | 0.667 | 1 | 1 | 1.000 | 0.250 (2/8) | 6 / 6 |"
+    assert row in (tmp_path / "out" / "results.md").read_text()
     assert (tmp_path / "out" / "scores_recording.png").is_file()
 
 
@@ -402,6 +403,8 @@ def test_recording_events_and_an_older_recording(tmp_path, capsys):
     assert (published["closures"], published["verified"], published["false_closures"]) == (2, 2, 0)
     assert (published["events_closed"], published["fraction_of_events_closed"]) == (2, pytest.approx(2 / 3))
     assert published["recall_revisiting_frames"] == pytest.approx(0.2)
+    # No posterior ranked anything: every missed frame is the ranking's.
+    assert published["missed_revisiting_frames_with_a_true_place_ranked"] == 0
 
     # Verification off (aefabmap_launch --no-verify): only loop_closures, FAB-MAP's own, inliers -1.
     write_recording(tmp_path / "raw", [(i, [], []) for i in range(40)], {"/loop_closures": raw})

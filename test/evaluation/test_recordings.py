@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.recordings import RecordedClosure, closure_precision_recall, scores_from_recording
+from aefabmap_ros.evaluation.recordings import (
+    RecordedClosure,
+    closure_precision_recall,
+    closure_scores_markdown,
+    closure_scores_to_dict,
+    missed_with_a_true_place_ranked,
+    score_recorded_closures,
+    scores_from_recording,
+)
 
 
 def stamp(ns):
@@ -59,3 +67,29 @@ def test_closure_precision_recall():
     assert precision == 0.5 and recall == pytest.approx(1 / 3)
     precision, recall = closure_precision_recall([], gt, 10)
     assert np.isnan(precision) and recall == 0.0
+
+
+def test_missed_frames_are_split_by_whether_a_true_place_was_ranked():
+    # Frames 20-23 revisit frames 0-3 (gt by hand); 24 revisits too but only within the min gap.
+    gt = np.zeros((30, 30), np.uint8)
+    for query in range(20, 24):
+        gt[query, query - 20] = 1
+    gt[24, 20] = 1
+    posteriors = [posterior(20, [0, 7], [0.6, 0.1]),  # true place ranked, and closed below
+                  posterior(21, [9, 1], [0.5, 0.2]),  # true place ranked second, never closed: a decision miss
+                  posterior(22, [9], [0.9]),          # only a wrong place ranked: a ranking miss
+                  posterior(23, [], []),              # nothing ranked: a ranking miss
+                  posterior(24, [20], [0.9])]         # not a revisiting frame (gap), ignored
+    closures = [closure(20, 0, 0.99, 1000), closure(22, 9, 0.99, 1009)]  # 22 -> 9 is false
+    recorded = scores_from_recording(posteriors, closures, 30)
+    assert missed_with_a_true_place_ranked(recorded.closures, recorded.scores, gt, 10) == 1
+    # Every revisiting frame closed: nothing is missed, whatever was ranked.
+    every = [RecordedClosure(q, q - 20, 1.0) for q in range(20, 24)]
+    assert missed_with_a_true_place_ranked(every, recorded.scores, gt, 10) == 0
+    # Through the per-topic scores and their table: 3 revisiting frames missed, 1 of them with a true place ranked.
+    row = score_recorded_closures("published", "loop_closures",
+                                  [SimpleNamespace(inliers=30, **vars(c)) for c in closures], posteriors, gt, 10)
+    assert row.num_missed_ranked == 1
+    assert row.events.num_revisiting_frames - row.events.num_revisiting_frames_closed == 3
+    assert closure_scores_markdown([row]).splitlines()[-1].endswith("| 1 / 3 |")
+    assert closure_scores_to_dict(row)["missed_revisiting_frames_with_a_true_place_ranked"] == 1
