@@ -36,7 +36,16 @@ LOG_THROTTLE_S = 5.0
 
 # Results are few and must not be lost: reliable, and deep enough for a slow backend to catch up.
 RESULT_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
+# Odometry comes at 50-200 Hz on a robot while a node may spend 0.1-1 s on one loop closure (verification
+# of 5 candidates, an iSAM2 update): 100 messages would cover half a second of it. The odometry gate and the
+# backend interpolate between consecutive messages, so each lost one widens a gap; they are ~700 bytes.
+ODOMETRY_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
 

@@ -39,7 +39,7 @@ from aefabmap_ros.backend.pose_graph import (
     trajectory_arrays,
 )
 from aefabmap_ros.io.atomic import atomic_write_text
-from aefabmap_ros.nodes.common import RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
+from aefabmap_ros.nodes.common import ODOMETRY_QOS, RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
 from aefabmap_ros.nodes.messages import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 
@@ -80,7 +80,7 @@ class PoseGraphNode(Node):
             self.tf_publisher = self.create_publisher(TFMessage, "/tf", RESULT_QOS)
         else:
             self.tf_publisher = self.create_publisher(TransformStamped, "pose_graph/map_to_odom", RESULT_QOS)
-        self.create_subscription(Odometry, "odom", self._on_odometry, RESULT_QOS)
+        self.create_subscription(Odometry, "odom", self._on_odometry, ODOMETRY_QOS)
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
         self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
 

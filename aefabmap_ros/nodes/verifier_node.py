@@ -75,6 +75,7 @@ from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
+    ODOMETRY_QOS,
     RESULT_QOS,
     DropCounter,
     PeriodicSave,
@@ -231,7 +232,7 @@ class VerifierNode(Node):
         if depth_topic:
             counted_subscription(self, Image, depth_topic, self._on_depth, pipeline_qos(depth), self.counter)
         if self.odometry_gate is not None:
-            counted_subscription(self, Odometry, "odom", self._on_odometry, RESULT_QOS, self.counter)
+            counted_subscription(self, Odometry, "odom", self._on_odometry, ODOMETRY_QOS, self.counter)
         if self.rerank or self.track.enabled:
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS,
                                  self.counter)

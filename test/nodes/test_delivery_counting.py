@@ -86,3 +86,39 @@ def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str, re
         executor.shutdown()
         node.destroy_node()
         camera.destroy_node()
+
+
+ODOMETRY_BURST = 1000  # 10 s of 100 Hz odometry
+
+
+@pytest.mark.reliability
+def test_verifier_node_keeps_a_burst_of_odometry_it_was_too_busy_to_take(reliability: Recorder) -> None:
+    """A verifier busy for seconds (a long verification, a store being saved) still gets every odometry
+    message sent meanwhile: the odometry gate interpolates between them, so a lost one widens its gaps."""
+    from nav_msgs.msg import Odometry
+
+    from aefabmap_ros.nodes.verifier_node import VerifierNode
+
+    node = VerifierNode(parameter_overrides=[Parameter("odometry_gate", value=True)])
+    robot = rclpy.create_node("test_robot")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        publisher = robot.create_publisher(Odometry, "odom", ODOMETRY_BURST)
+        _spin_until(executor, lambda: publisher.get_subscription_count() > 0)
+        for index in range(ODOMETRY_BURST):  # the node takes nothing meanwhile
+            message = Odometry()
+            message.header.stamp = Time(sec=1 + index // 100, nanosec=(index % 100) * 10_000_000)  # 100 Hz
+            message.pose.pose.orientation.w = 1.0
+            message.pose.pose.position.x = 0.01 * index
+            publisher.publish(message)
+        gate = node.odometry_gate
+        assert gate is not None
+        _spin_until(executor, lambda: len(gate.odometry) == ODOMETRY_BURST, attempts=400)
+        assert node.counter.counts.get("dropped_before_callback", 0) == 0
+        reliability.drops(f"verifier_node, {ODOMETRY_BURST} odometry messages sent while it took none",
+                          node.counter.counts)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        robot.destroy_node()
