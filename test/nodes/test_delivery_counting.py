@@ -114,7 +114,7 @@ def test_verifier_node_keeps_a_burst_of_odometry_it_was_too_busy_to_take(reliabi
             publisher.publish(message)
         gate = node.odometry_gate
         assert gate is not None
-        _spin_until(executor, lambda: len(gate.odometry) == ODOMETRY_BURST, attempts=400)
+        _spin_until(executor, lambda: len(gate.odometry) == ODOMETRY_BURST, attempts=ODOMETRY_BURST + 400)
         assert node.counter.counts.get("dropped_before_callback", 0) == 0
         reliability.drops(f"verifier_node, {ODOMETRY_BURST} odometry messages sent while it took none",
                           node.counter.counts)
