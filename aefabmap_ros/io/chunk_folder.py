@@ -31,6 +31,8 @@ class StampedFrames(Protocol[FrameT]):
 
     def __contains__(self, stamp_ns: object) -> bool: ...
 
+    def restore(self, frames: list[tuple[int, FrameT]]) -> None: ...
+
 
 class ChunkFolder(Generic[FrameT]):
     """``folder/<prefix>-<n>.npz`` chunks, n counting up from 0 across saves and restarts."""
@@ -62,6 +64,11 @@ class ChunkFolder(Generic[FrameT]):
         self._chunk_stamps = chunk_stamps
         self._next_chunk = 1 + max(numbers, default=-1)
         return frames
+
+    def load_into(self, store: StampedFrames[FrameT]) -> None:
+        """Replace ``store``'s frames by the saved ones (``read``); ModelError naming a bad chunk, and then
+        the store is unchanged."""
+        store.restore(self.read())
 
     def save(self, store: StampedFrames[FrameT]) -> None:
         """Append the frames added since the last save as one chunk, then delete fully forgotten chunks."""

@@ -365,7 +365,7 @@ class FeatureStore:
     def mark_saved(self) -> None:
         self._unsaved.clear()
 
-    def _restore(self, frames: list[tuple[int, Features]]) -> None:
+    def restore(self, frames: list[tuple[int, Features]]) -> None:
         """Replace the contents by already compact frames (the newest ``max_frames``), all saved."""
         self._frames.clear()
         self._unsaved.clear()
@@ -393,7 +393,7 @@ def _kind(descriptor_type: str, descriptors: np.ndarray) -> tuple[str, str, int]
 _STORE_KEYS = ("descriptor_type", "stamps_ns", "counts", "keypoints", "descriptors")
 
 
-class FeatureStoreFolder:
+class FeatureStoreFolder(ChunkFolder[Features]):
     """A FeatureStore on disk, as an append-only folder of chunk files (``chunk-<n>.npz``, see
     :mod:`aefabmap_ros.io.chunk_folder`): each ``save`` writes only the frames added since the last
     one. ``load_into`` reads the chunks in order (a later copy of a frame wins) and keeps the newest
@@ -401,20 +401,7 @@ class FeatureStoreFolder:
     """
 
     def __init__(self, folder: Path) -> None:
-        self._chunks: ChunkFolder[Features] = ChunkFolder(folder, "chunk", "feature store", _frames_to_arrays,
-                                                          _read_chunk)
-
-    @property
-    def folder(self) -> Path:
-        return self._chunks.folder
-
-    def load_into(self, store: FeatureStore) -> None:
-        """Replace ``store``'s contents by the saved frames; ModelError naming a bad chunk (store unchanged)."""
-        store._restore(self._chunks.read())
-
-    def save(self, store: FeatureStore) -> None:
-        """Append the frames added since the last save as one chunk, then drop fully forgotten chunks."""
-        self._chunks.save(store)
+        super().__init__(folder, "chunk", "feature store", _frames_to_arrays, _read_chunk)
 
 
 def _read_chunk(chunk: Path) -> list[tuple[int, Features]]:

@@ -171,7 +171,7 @@ class FrameTimeline:
         return chosen
 
 
-class FrameTimelineFolder:
+class FrameTimelineFolder(ChunkFolder[int]):
     """A FrameTimeline on disk beside the verifier's feature store (verifier_node's ``store_dir``), so
     that after a restart loop tracking still reaches the frames seen before it.
 
@@ -181,20 +181,7 @@ class FrameTimelineFolder:
     """
 
     def __init__(self, folder: Path) -> None:
-        self._chunks: ChunkFolder[int] = ChunkFolder(folder, "timeline", "frame timeline",
-                                                     _timeline_arrays, _read_timeline_chunk)
-
-    @property
-    def folder(self) -> Path:
-        return self._chunks.folder
-
-    def load_into(self, timeline: FrameTimeline) -> None:
-        """Replace ``timeline``'s frames by the saved ones; ModelError naming a bad chunk (timeline unchanged)."""
-        timeline.restore(self._chunks.read())
-
-    def save(self, timeline: FrameTimeline) -> None:
-        """Append the frames added since the last save as one chunk, then drop fully forgotten chunks."""
-        self._chunks.save(timeline)
+        super().__init__(folder, "timeline", "frame timeline", _timeline_arrays, _read_timeline_chunk)
 
 
 def _timeline_arrays(frames: list[tuple[int, int]]) -> dict[str, np.ndarray]:

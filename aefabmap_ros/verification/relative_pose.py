@@ -391,7 +391,7 @@ class KeypointDepthStore:
 DEPTH_FORMAT_VERSION = 1
 
 
-class KeypointDepthFolder:
+class KeypointDepthFolder(ChunkFolder[np.ndarray]):
     """A KeypointDepthStore on disk beside the feature store's chunks (verifier_node's ``store_dir``),
     so that after a restart the places seen before it still give metric poses.
 
@@ -401,20 +401,7 @@ class KeypointDepthFolder:
     """
 
     def __init__(self, folder: Path) -> None:
-        self._chunks: ChunkFolder[np.ndarray] = ChunkFolder(folder, "depth", "keypoint depth store",
-                                                            _depth_arrays, _read_depth_chunk)
-
-    @property
-    def folder(self) -> Path:
-        return self._chunks.folder
-
-    def load_into(self, store: KeypointDepthStore) -> None:
-        """Replace ``store``'s depths by the saved ones; ModelError naming a bad chunk (store unchanged)."""
-        store.restore(self._chunks.read())
-
-    def save(self, store: KeypointDepthStore) -> None:
-        """Append the frames sampled since the last save as one chunk, then drop fully forgotten chunks."""
-        self._chunks.save(store)
+        super().__init__(folder, "depth", "keypoint depth store", _depth_arrays, _read_depth_chunk)
 
 
 def _depth_arrays(frames: list[tuple[int, np.ndarray]]) -> dict[str, np.ndarray]:
