@@ -32,6 +32,9 @@ class _Store:
     def __contains__(self, stamp: object) -> bool:
         return stamp in self.frames
 
+    def restore(self, frames: list[tuple[int, float]]) -> None:
+        self.frames, self._unsaved = dict(frames), []
+
 
 def _folder(path: Path) -> ChunkFolder[float]:
     def encode(frames):
@@ -62,8 +65,10 @@ def test_numbering_goes_on_after_a_restart(tmp_path):
     store = _Store(limit=10)
     store.add(1)
     _folder(tmp_path).save(store)
-    restarted = _folder(tmp_path)
-    assert restarted.read() == [(1, 0.1)]
+    restarted, reloaded = _folder(tmp_path), _Store(limit=10)
+    reloaded.add(7)  # replaced by what was saved
+    restarted.load_into(reloaded)
+    assert reloaded.frames == {1: 0.1} and reloaded.unsaved() == []
     store.add(2)
     restarted.save(store)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["part-000000000.npz", "part-000000001.npz"]
