@@ -273,3 +273,20 @@ def event_scores(closures: Sequence[tuple[int, int]], gt: np.ndarray, min_gap: i
         num_revisiting_frames_closed=len(true_queries.intersection(revisiting)),
         max_gap=int(max_gap),
     )
+
+
+def missed_with_a_true_place_ranked(closures: Sequence[tuple[int, int]], ranked: Sequence[tuple[int, int]],
+                                    gt: np.ndarray, min_gap: int = 10) -> int:
+    """Revisiting frames (a ground-truth loop at least ``min_gap`` frames back) that no true closure
+    ``(query, matched)`` came from, although a true place of theirs was ``ranked``: among the
+    ``(query, frame)`` pairs of the places each frame's posterior reported.
+
+    What limits recall: these frames were missed by the decision after the ranking (temporal
+    consistency, geometric verification); the other missed frames were never ranked right, a matter
+    of the vocabulary and FAB-MAP.
+    """
+    truth = np.asarray(gt).astype(bool)
+    revisiting = (truth & eligible_mask(truth.shape[0], min_gap)).any(axis=1)
+    closed = {int(query) for query, matched in closures if truth[query, matched]}
+    ranked_true = {int(query) for query, frame in ranked if frame <= query - min_gap and truth[query, frame]}
+    return sum(1 for query in ranked_true if revisiting[query] and query not in closed)

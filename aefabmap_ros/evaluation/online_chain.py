@@ -51,6 +51,9 @@ class ChainResult:
     # Every informative frame's best hypothesis as place_posteriors reports it: (query frame, frame of the
     # place, posterior) -- for the posterior's calibration.
     best: list[ChainClosure] = field(default_factory=list)
+    # (query frame, frame of the place) of every place each frame's posterior reports (its top_k): which
+    # revisits the ranking found, whatever the decision after it made of them.
+    ranked: list[tuple[int, int]] = field(default_factory=list)
 
 
 def run_online_chain(
@@ -92,6 +95,7 @@ def run_online_chain(
         if recognition.candidates:
             top = recognition.candidates[0]
             result.best.append(ChainClosure(frame, place_frames[top.place_id], top.probability))
+            result.ranked.extend((frame, place_frames[c.place_id]) for c in recognition.candidates)
         closure = recognition.loop_closure
         published: ChainClosure | None = None
         if closure is not None:

@@ -61,7 +61,13 @@ import scipy.sparse as sp
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.calibration import Reliability, reliability
 from aefabmap_ros.evaluation.methods import METHODS
-from aefabmap_ros.evaluation.metrics import EventScores, LoopMetrics, evaluate_scores, event_scores
+from aefabmap_ros.evaluation.metrics import (
+    EventScores,
+    LoopMetrics,
+    evaluate_scores,
+    event_scores,
+    missed_with_a_true_place_ranked,
+)
 from aefabmap_ros.evaluation.online_chain import run_online_chain
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
@@ -219,6 +225,10 @@ class OnlineScores:
     num_places: int
     reliability: Reliability  # of each frame's best hypothesis, the posterior fabmap_node publishes
     num_tracked: int = 0  # published closures that loop tracking added (frames without a candidate of their own)
+    # Revisiting frames each topic missed although their posterior ranked a true place (metrics.
+    # missed_with_a_true_place_ranked): the decision's misses, not the ranking's.
+    candidates_missed_ranked: int = 0
+    published_missed_ranked: int = 0
 
 
 @dataclass
@@ -339,8 +349,13 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt
     truth = np.asarray(gt).astype(bool)
     calibration = reliability(np.array([b.probability for b in chain.best]),
                               np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
+    def missed_ranked(closures: Sequence[Any]) -> int:
+        pairs = [(c.query_frame, c.matched_frame) for c in closures]
+        return missed_with_a_true_place_ranked(pairs, chain.ranked, gt, min_gap)
+
     return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
-                        chain.num_places, calibration, sum(c.tracked for c in chain.published))
+                        chain.num_places, calibration, sum(c.tracked for c in chain.published),
+                        missed_ranked(chain.candidates), missed_ranked(chain.published))
 
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],

@@ -13,8 +13,13 @@ from typing import Any
 import numpy as np
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, EventScores, eligible_mask, event_scores
-from aefabmap_ros.evaluation.reports import events_to_dict, fmt, jsonable_float, recall_cell
+from aefabmap_ros.evaluation.metrics import (
+    DEFAULT_EVENT_GAP,
+    EventScores,
+    event_scores,
+    missed_with_a_true_place_ranked,
+)
+from aefabmap_ros.evaluation.reports import MISSED_RANKED_KEY, events_to_dict, fmt, jsonable_float, recall_cell
 from aefabmap_ros.stamps import stamp_to_ns
 
 
@@ -129,26 +134,11 @@ def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any],
     precision, _ = closure_precision_recall(closures, gt, min_gap)
     events = event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap, event_gap)
     verified = sum(1 for message in loop_closures if int(message.inliers) > 0)
+    queries, frames = np.nonzero(recorded.scores > 0)  # sparse: a posterior reports a few places
+    ranked = list(zip(queries.tolist(), frames.tolist(), strict=True))
+    pairs = [(c.query_frame, c.matched_frame) for c in closures]
     return TopicClosureScores(role, topic, verified, precision, events,
-                              missed_with_a_true_place_ranked(closures, recorded.scores, gt, min_gap))
-
-
-def missed_with_a_true_place_ranked(closures: Sequence[RecordedClosure], scores: np.ndarray, gt: np.ndarray,
-                                    min_gap: int) -> int:
-    """Revisiting frames (a ground-truth loop at least ``min_gap`` frames back) that no true closure
-    came from, although a true place of theirs was ranked (``scores[i, j] > 0``: among the places
-    their recorded posterior reported).
-
-    What limits recall: these frames were missed by the decision after the ranking (temporal
-    consistency, geometric verification); the other missed frames were never ranked right, a matter
-    of the vocabulary and FAB-MAP.
-    """
-    truth = np.asarray(gt).astype(bool)
-    revisiting = (truth & eligible_mask(truth.shape[0], min_gap)).any(axis=1)
-    queries, places = np.nonzero(np.asarray(scores) > 0)  # sparse: a posterior reports a few places
-    ranked_true = queries[truth[queries, places] & (places <= queries - min_gap)]
-    closed = {c.query_frame for c in closures if truth[c.query_frame, c.matched_frame]}
-    return sum(1 for query in np.unique(ranked_true).tolist() if revisiting[query] and query not in closed)
+                              missed_with_a_true_place_ranked(pairs, ranked, gt, min_gap))
 
 
 def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
@@ -173,4 +163,4 @@ def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
 def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
     return {"role": row.role, "topic": row.topic, "verified": row.num_verified,
             "precision": jsonable_float(row.precision), **events_to_dict(row.events),
-            "missed_revisiting_frames_with_a_true_place_ranked": row.num_missed_ranked}
+            MISSED_RANKED_KEY: row.num_missed_ranked}

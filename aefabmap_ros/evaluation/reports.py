@@ -49,6 +49,11 @@ def results_markdown(results: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+# Revisiting frames a topic missed although their posterior ranked a true place
+# (metrics.missed_with_a_true_place_ranked).
+MISSED_RANKED_KEY = "missed_revisiting_frames_with_a_true_place_ranked"
+
+
 def online_markdown(results: Sequence[MethodResult]) -> str:
     """The nodes' decision chain per FAB-MAP method: what a backend receives, per closure and revisit event."""
     if all(r.online is None for r in results):
@@ -56,8 +61,8 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
     lines = ["", "Online chain (the nodes' defaults on this sequence's stamps; candidates: fabmap_node, "
              "published: /loop_closures):", "",
              "| method | places | candidates (false) | published (false; by loop tracking) | events closed "
-             "| recall (revisiting frames) |",
-             "|---|---|---|---|---|---|"]
+             "| recall (revisiting frames) | missed frames with a true place ranked |",
+             "|---|---|---|---|---|---|---|"]
     for result in results:
         online = result.online
         if online is None:
@@ -67,7 +72,8 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
             f"| {result.title} | {online.num_places} | {c.num_closures} ({c.num_false_closures}) "
             f"| {p.num_closures} ({p.num_false_closures}; {online.num_tracked})"
             f"{'' if online.verified else ' unverified'} "
-            f"| {p.num_events_closed}/{p.num_events} | {recall_cell(p)} |")
+            f"| {p.num_events_closed}/{p.num_events} | {recall_cell(p)} "
+            f"| {online.published_missed_ranked} / {p.num_revisiting_frames - p.num_revisiting_frames_closed} |")
     return "\n".join(lines) + "\n"
 
 
@@ -106,8 +112,10 @@ def result_to_dict(result: MethodResult) -> dict[str, Any]:
         "online_chain": None if result.online is None else {
             "verified": result.online.verified, "places": result.online.num_places,
             "tracked": result.online.num_tracked,
-            "candidates": events_to_dict(result.online.candidates),
-            "published": events_to_dict(result.online.published),
+            "candidates": {**events_to_dict(result.online.candidates),
+                           MISSED_RANKED_KEY: result.online.candidates_missed_ranked},
+            "published": {**events_to_dict(result.online.published),
+                          MISSED_RANKED_KEY: result.online.published_missed_ranked},
         },
     }
 

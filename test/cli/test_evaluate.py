@@ -74,6 +74,9 @@ def check_outputs(out: Path, methods: list[str]) -> dict:
             assert sum(entry["reliability"]["counts"]) == 0
             online = entry["online_chain"]
             assert online["published"]["closures"] <= online["candidates"]["closures"]
+            for topic in ("candidates", "published"):  # the decision's misses are among the missed frames
+                missed = online[topic]["revisiting_frames"] - online[topic]["revisiting_frames_closed"]
+                assert 0 <= online[topic]["missed_revisiting_frames_with_a_true_place_ranked"] <= missed
             assert 0 < online["places"] <= FRAMES
     assert (out / "pr_curves.png").read_bytes()[:4] == b"\x89PNG"
     if any("FABMAP" in m["method"] for m in results["methods"]):

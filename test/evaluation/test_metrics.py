@@ -12,6 +12,7 @@ from aefabmap_ros.evaluation.metrics import (
     eligible_mask,
     evaluate_scores,
     event_scores,
+    missed_with_a_true_place_ranked,
     revisit_events,
 )
 
@@ -257,3 +258,20 @@ def test_event_scores_errors() -> None:
         revisit_events(gt, min_gap=0)
     with pytest.raises(DataError, match="only 0 and 1"):
         revisit_events(gt * 2, min_gap=5)
+
+
+def test_missed_frames_with_a_true_place_ranked_by_hand() -> None:
+    # Frames 20-23 revisit frames 0-3; frame 24 revisits 20, within the min gap: not a revisiting frame.
+    gt = np.zeros((30, 30), np.uint8)
+    for query in range(20, 24):
+        gt[query, query - 20] = 1
+    gt[24, 20] = 1
+    ranked = [(20, 0), (20, 7),   # true place ranked, and closed below
+              (21, 9), (21, 1),   # true place ranked second, never closed: the decision missed it
+              (22, 9),            # only a wrong place ranked: the ranking missed it
+              (24, 20)]           # (23 ranked nothing: the ranking missed it; 24 is no revisiting frame)
+    closures = [(20, 0), (22, 9)]  # 22 -> 9 is false: it does not close 22
+    assert missed_with_a_true_place_ranked(closures, ranked, gt, 10) == 1
+    assert missed_with_a_true_place_ranked([(q, q - 20) for q in range(20, 24)], ranked, gt, 10) == 0
+    assert missed_with_a_true_place_ranked([], ranked, gt, 10) == 2  # 20 and 21
+    assert missed_with_a_true_place_ranked([], [(21, 1)], gt, 25) == 0  # 1 is not 25 frames before 21
