@@ -34,20 +34,18 @@ from aefabmap_ros.nodes.delivery import SequenceGaps
 ConfigT = TypeVar("ConfigT")
 LOG_THROTTLE_S = 5.0
 
+
+def _reliable_volatile(depth: int) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
 # Results are few and must not be lost: reliable, and deep enough for a slow backend to catch up.
-RESULT_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
-
-
+RESULT_QOS = _reliable_volatile(100)
 # Odometry comes at 50-200 Hz on a robot while a node may spend 0.1-1 s on one loop closure (verification
 # of 5 candidates, an iSAM2 update): 100 messages would cover half a second of it. The odometry gate and the
 # backend interpolate between consecutive messages, so each lost one widens a gap; they are ~700 bytes.
-ODOMETRY_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
+ODOMETRY_QOS = _reliable_volatile(2000)
 
 
 def pipeline_qos(depth: int) -> QoSProfile:
