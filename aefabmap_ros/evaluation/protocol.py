@@ -349,6 +349,7 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt
     truth = np.asarray(gt).astype(bool)
     calibration = reliability(np.array([b.probability for b in chain.best]),
                               np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
+
     def missed_ranked(closures: Sequence[Any]) -> int:
         pairs = [(c.query_frame, c.matched_frame) for c in closures]
         return missed_with_a_true_place_ranked(pairs, chain.ranked, gt, min_gap)

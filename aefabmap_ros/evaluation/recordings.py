@@ -19,7 +19,14 @@ from aefabmap_ros.evaluation.metrics import (
     event_scores,
     missed_with_a_true_place_ranked,
 )
-from aefabmap_ros.evaluation.reports import MISSED_RANKED_KEY, events_to_dict, fmt, jsonable_float, recall_cell
+from aefabmap_ros.evaluation.reports import (
+    MISSED_RANKED_KEY,
+    events_to_dict,
+    fmt,
+    jsonable_float,
+    missed_ranked_cell,
+    recall_cell,
+)
 from aefabmap_ros.stamps import stamp_to_ns
 
 
@@ -132,11 +139,11 @@ def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any],
     recorded = scores_from_recording(posteriors, loop_closures, gt.shape[0])
     closures = recorded.closures
     precision, _ = closure_precision_recall(closures, gt, min_gap)
-    events = event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap, event_gap)
+    pairs = [(c.query_frame, c.matched_frame) for c in closures]
+    events = event_scores(pairs, gt, min_gap, event_gap)
     verified = sum(1 for message in loop_closures if int(message.inliers) > 0)
     queries, frames = np.nonzero(recorded.scores > 0)  # sparse: a posterior reports a few places
     ranked = list(zip(queries.tolist(), frames.tolist(), strict=True))
-    pairs = [(c.query_frame, c.matched_frame) for c in closures]
     return TopicClosureScores(role, topic, verified, precision, events,
                               missed_with_a_true_place_ranked(pairs, ranked, gt, min_gap))
 
@@ -151,11 +158,10 @@ def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
     ]
     for row in rows:
         e = row.events
-        missed = e.num_revisiting_frames - e.num_revisiting_frames_closed
         lines.append(
             f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
             f"| {fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {fmt(e.fraction_closed)} "
-            f"| {recall_cell(e)} | {row.num_missed_ranked} / {missed} |"
+            f"| {recall_cell(e)} | {missed_ranked_cell(row.num_missed_ranked, e)} |"
         )
     return "\n".join(lines) + "\n"
 

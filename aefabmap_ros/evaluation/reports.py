@@ -31,6 +31,11 @@ def recall_cell(events: EventScores) -> str:
     return f"{fmt(events.frame_recall)} ({events.num_revisiting_frames_closed}/{events.num_revisiting_frames})"
 
 
+def missed_ranked_cell(missed_ranked: int, events: EventScores) -> str:
+    """"ranked / missed": the missed revisiting frames whose posterior ranked a true place, of all missed."""
+    return f"{missed_ranked} / {events.num_revisiting_frames - events.num_revisiting_frames_closed}"
+
+
 def results_markdown(results: Sequence[MethodResult]) -> str:
     """A markdown table: one row per method."""
     lines = [
@@ -73,7 +78,7 @@ def online_markdown(results: Sequence[MethodResult]) -> str:
             f"| {p.num_closures} ({p.num_false_closures}; {online.num_tracked})"
             f"{'' if online.verified else ' unverified'} "
             f"| {p.num_events_closed}/{p.num_events} | {recall_cell(p)} "
-            f"| {online.published_missed_ranked} / {p.num_revisiting_frames - p.num_revisiting_frames_closed} |")
+            f"| {missed_ranked_cell(online.published_missed_ranked, p)} |")
     return "\n".join(lines) + "\n"
 
 
