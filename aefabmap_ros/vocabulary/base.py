@@ -221,7 +221,7 @@ class VocabularyConfig:
         # Settings saved before these fields (a model's vocabulary_config) were trained without them: say so,
         # not today's defaults (the quantizer itself comes from the model's files either way).
         saved_before = {"ae_student_hidden": 0, "ae_student_epochs": 10, "ae_student_noise_rows": 0}
-        return cls(**{**{k: v for k, v in saved_before.items() if k not in values}, **values})
+        return cls(**{**saved_before, **values})
 
     def ae_options(self) -> AETrainingOptions:
         from aefabmap_ros.vocabulary.autoencoder import AETrainingOptions  # torch, only for this kind
