@@ -50,7 +50,9 @@ the essential matrix's (rotation and translation direction, ``translation_metric
 images) the depth at each stored keypoint is kept beside the features (same frame bound) and the
 pose is PnP's, in metres. With ``store_dir`` the depth at keypoints is saved there too (``depth-*.npz``
 beside the feature chunks, at the same times), so after a restart the reloaded places still give
-metric poses.
+metric poses. With depth and intrinsics, a candidate the epipolar test rejects also gets the metric
+test (verification/metric.py: one rigid motion by PnP and overlapping views; counted as
+``metric_test_accepted`` when it accepts); the image size it needs comes from the features messages.
 """
 
 from __future__ import annotations
@@ -108,6 +110,7 @@ from aefabmap_ros.verification.geometric import (
     verify_pair,
 )
 from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack
+from aefabmap_ros.verification.metric import KeypointDepths
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
     KeypointDepthFolder,
@@ -128,7 +131,7 @@ ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rota
 # The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
 # next closure on. The others size the store or the subscriptions at start-up and are refused.
 RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
-                              "max_iterations"})
+                              "max_iterations", "metric_min_inliers", "metric_min_view_overlap"})
 
 
 class PlaceToVerify(NamedTuple):
@@ -208,6 +211,7 @@ class VerifierNode(Node):
         self.camera = _camera_from_parameter(camera_matrix)
         self.camera_fixed = self.camera is not None
         self.depths = KeypointDepthStore(max_frames) if depth_topic else None
+        self.image_size: tuple[int, int] | None = None  # (width, height), from the features messages
         self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
         self.depth_folder = KeypointDepthFolder(Path(store_dir)) if store_dir and self.depths is not None else None
@@ -241,9 +245,12 @@ class VerifierNode(Node):
             "the feature store", save_period_s,
         )
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
+        metric_test = (f" or, with depth, >= {self.config.metric_min_inliers} PnP inliers and "
+                       f"{self.config.metric_min_view_overlap:.0%} view overlap"
+                       if depth_topic and self.config.metric_min_inliers else "")
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
-            f"{self.config.min_inlier_ratio:.0%} of the keypoints, "
+            f"{self.config.min_inlier_ratio:.0%} of the keypoints{metric_test}, "
             f"re-ranking the best {self.config.candidates} candidates, "
             f"tracking loops for {self.config.track_seconds:g} s, features of the last {max_frames} frames, "
             + ("closures checked against odometry on odom once it arrives" if odometry_gate else "no odometry gate")
@@ -258,6 +265,8 @@ class VerifierNode(Node):
             self.counter.drop("bad_features", str(exc))
             return
         self.store_saver.mark_changed()
+        if message.image_width and message.image_height:  # one camera: its images' size, for the metric test
+            self.image_size = (int(message.image_width), int(message.image_height))
         stored = self.store.get(stamp_ns)
         if self.depths is not None and stored is not None:
             self.depths.add_features(stamp_ns, stored.keypoints)
@@ -458,7 +467,7 @@ class VerifierNode(Node):
         near = self.track.near(query_ns, self._posterior_places(posterior),
                                lambda ranked: stamp_to_ns(ranked[1].stamp))[: self.config.candidates]
         tried.update(stamp_to_ns(place.stamp) for _, place in near)
-        outcome = rerank_by_inliers(near, lambda ranked: verify_pair(query, ranked[1].features, self.config))
+        outcome = rerank_by_inliers(near, lambda ranked: self._verify_pair(query_ns, query, ranked[1]))
         if outcome is None:
             return None
         rank, place = near[outcome.winner]
@@ -476,7 +485,7 @@ class VerifierNode(Node):
             if stamp_ns not in tried and features is not None and place_id is not None:
                 places.append(PlaceToVerify(place_id, time_from_ns(stamp_ns), features))
         tried.update(stamp_to_ns(place.stamp) for place in places)
-        outcome = rerank_by_inliers(places, lambda place: verify_pair(query, place.features, self.config))
+        outcome = rerank_by_inliers(places, lambda place: self._verify_pair(query_ns, query, place))
         if outcome is None:
             return None
         place = places[outcome.winner]
@@ -487,6 +496,23 @@ class VerifierNode(Node):
                                 float(posterior.log_likelihoods[ranks[0]]), outcome.verification)
         return TrackedMatch(place, 0.0, float("nan"), outcome.verification)
 
+    def _verify_pair(self, query_ns: int, query: CoreFeatures, place: PlaceToVerify) -> Verification:
+        """The geometric check of one pair; with both frames' keypoint depths and the intrinsics, a pair the
+        epipolar test rejects gets the metric one (verification/metric.py)."""
+        verification = verify_pair(query, place.features, self.config,
+                                   self._keypoint_depths(query_ns, stamp_to_ns(place.stamp)))
+        if verification.metric is not None and verification.accepted:
+            self.counter.ok("metric_test_accepted")
+        return verification
+
+    def _keypoint_depths(self, query_ns: int, place_ns: int) -> KeypointDepths | None:
+        if self.depths is None or self.camera is None or self.image_size is None:
+            return None
+        query_depths, place_depths = self.depths.get(query_ns), self.depths.get(place_ns)
+        if query_depths is None or place_depths is None:
+            return None
+        return KeypointDepths(self.camera, self.image_size, query_depths, place_depths)
+
     def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
         query = self.store.get(stamp_to_ns(message.header.stamp))
         candidates = self._candidates(message, posterior)
@@ -496,8 +522,9 @@ class VerifierNode(Node):
                               "or older than max_stored_frames)")
             return
         try:
+            query_ns = stamp_to_ns(message.header.stamp)
             outcome = rerank_by_inliers(
-                candidates, lambda candidate: verify_pair(query, candidate.features, self.config), require_best=True
+                candidates, lambda candidate: self._verify_pair(query_ns, query, candidate), require_best=True
             )
         except AefabmapError as exc:
             self.counter.drop("unverifiable", str(exc))

@@ -500,6 +500,46 @@ def test_verifier_node_attaches_the_relative_pose() -> None:
             node.destroy_node()
 
 
+def _keypoint_depth_image(features: Any, depths: np.ndarray, sec: int) -> Image:
+    """32FC1 depth holding each keypoint's depth around its pixel, NaN elsewhere."""
+    from test.verification.test_geometric import HEIGHT, WIDTH
+
+    image = np.full((HEIGHT, WIDTH), np.nan, dtype=np.float32)
+    for (x, y), z in zip(np.rint(features.keypoints[:, :2]).astype(int), depths, strict=True):
+        image[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2] = z  # keypoints are ~0.3 px noisy: cover the neighbours
+    return _image(image.tobytes(), "32FC1", HEIGHT, WIDTH, WIDTH * 4, sec=sec)
+
+
+def test_verifier_node_accepts_a_revisit_from_further_back_by_the_metric_test_with_depth() -> None:
+    """40 matches among 340 keypoints: refused by the epipolar test; with depth images and camera_info the
+    metric test accepts it (one motion, overlapping views), and the closure carries that metric pose."""
+    from test.verification.test_metric import _scene
+
+    scene = _scene(seed=3, shared=40, query_inside=300, query_outside=0, place_only=300)
+    for depth_topic in ("", "depth"):
+        node = VerifierNode(parameter_overrides=_params(candidates=1, track_seconds=0.0, odometry_gate=False,
+                                                        depth_topic=depth_topic))
+        try:
+            verified = Captured(node.publisher)
+            node._on_camera_info(_camera_info())
+            if depth_topic:
+                node._on_depth(_keypoint_depth_image(scene.place, scene.depths.place, sec=1))
+                node._on_depth(_keypoint_depth_image(scene.query, scene.depths.query, sec=3))
+            node._on_features(_features_message(scene.place, 1))
+            node._on_features(_features_message(scene.query, 3))
+            node._on_loop_closure(_closure(3, 1, query_id=10))
+            if not depth_topic:
+                assert not verified.messages and node.counter.counts["rejected"] == 1
+                continue
+            [closure] = verified.messages
+            assert node.counter.counts["metric_test_accepted"] == 1 and closure.inliers < 0.12 * 340
+            assert closure.pose_available and closure.translation_metric
+            position = np.array([closure.pose.position.x, closure.pose.position.y, closure.pose.position.z])
+            assert np.linalg.norm(position - scene.pose.translation) <= 0.1  # 8 m back, to 10 cm
+        finally:
+            node.destroy_node()
+
+
 def test_verifier_node_keeps_metric_poses_across_a_restart(tmp_path: Path) -> None:
     """The place's keypoint depths are saved with the feature store: after a restart (no new depth image of
     the place) its closures still get a metric pose; without the depth files they would be monocular."""

@@ -1,0 +1,177 @@
+"""The metric test (verification/metric.py) on scenes of known geometry: the view overlap against the share
+built into the scene, PnP's inliers against the scene's correspondences, and what it accepts and refuses
+beside the epipolar test."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.verification.geometric import SequenceDepths, VerificationConfig, cached_pair_verifier, verify_pair
+from aefabmap_ros.verification.metric import KeypointDepths, metric_check, view_overlap
+from aefabmap_ros.verification.relative_pose import CameraModel, RelativePose
+from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH, _features, _rotation_y
+
+CAMERA = CameraModel(np.array([[FOCAL, 0.0, WIDTH / 2], [0.0, FOCAL, HEIGHT / 2], [0.0, 0.0, 1.0]]))
+
+
+def _pixels(points: np.ndarray) -> np.ndarray:
+    return np.stack([FOCAL * points[:, 0] / points[:, 2] + WIDTH / 2,
+                     FOCAL * points[:, 1] / points[:, 2] + HEIGHT / 2], axis=1)
+
+
+def _in_image(points: np.ndarray, margin: float = 3.0) -> np.ndarray:
+    """In front of the camera and ``margin`` pixels inside its image (a negative margin: as far outside)."""
+    pixels = _pixels(points)
+    return (points[:, 2] > 0) & (pixels[:, 0] >= margin) & (pixels[:, 0] <= WIDTH - 1 - margin) \
+        & (pixels[:, 1] >= margin) & (pixels[:, 1] <= HEIGHT - 1 - margin)
+
+
+def _out_of_image(points: np.ndarray) -> np.ndarray:
+    """Clearly outside the view: pixel noise cannot carry it in."""
+    return ~_in_image(points, margin=-3.0)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Two views of one street, the query's camera further back: X_query = R X_place + t."""
+
+    query: Features
+    place: Features
+    depths: KeypointDepths
+    pose: RelativePose  # the place camera in the query's frame, exact
+    overlap: float  # the share of the query's keypoints inside the place's view, by construction
+
+
+def _scene(seed: int, shared: int, query_inside: int, query_outside: int, place_only: int) -> Scene:
+    """``shared`` points both cameras see and match; ``query_inside`` more the query sees inside the place's
+    view (unmatched: other detail), ``query_outside`` it sees outside it; ``place_only`` the place alone sees."""
+    rng = np.random.default_rng(seed)
+    rotation = _rotation_y(0.25)
+    centre = np.array([0.6, 0.0, -8.0])  # the query camera in the place's frame: 8 m back, turned 14 degrees
+    translation = -rotation @ centre
+
+    def to_query(points: np.ndarray) -> np.ndarray:
+        return points @ rotation.T + translation
+
+    def draw(count: int, in_place: bool, in_query: bool) -> np.ndarray:
+        """``count`` points in the place's frame, clearly inside or outside each camera's view."""
+        found = np.zeros((0, 3))
+        while found.shape[0] < count:
+            points = np.column_stack([rng.uniform(-30, 30, 4000), rng.uniform(-6, 6, 4000), rng.uniform(-10, 40, 4000)])
+            place_side = _in_image(points) if in_place else _out_of_image(points)
+            query_side = _in_image(to_query(points)) if in_query else _out_of_image(to_query(points))
+            found = np.vstack([found, points[place_side & query_side]])
+        return found[:count]
+
+    both = draw(shared + query_inside, in_place=True, in_query=True)
+    outside = draw(query_outside, in_place=False, in_query=True)
+    alone = draw(place_only, in_place=True, in_query=False)
+    descriptors = rng.uniform(0, 255, (shared, 128)).astype(np.float32)
+
+    def unrelated(count: int) -> np.ndarray:
+        return rng.uniform(0, 255, (count, 128)).astype(np.float32)
+
+    query_points = to_query(np.vstack([both, outside]))
+    place_points = np.vstack([both[:shared], alone])
+    noise = rng.normal(0.0, 0.3, (query_points.shape[0], 2))  # detector noise, well inside the 2 px threshold
+    query = _features(_pixels(query_points) + noise, np.vstack([descriptors, unrelated(query_inside + query_outside)]))
+    place = _features(_pixels(place_points), np.vstack([descriptors + rng.normal(0, 4, descriptors.shape).astype(
+        np.float32), unrelated(place_only)]))
+    depths = KeypointDepths(CAMERA, (WIDTH, HEIGHT), query_points[:, 2].astype(np.float32),
+                            place_points[:, 2].astype(np.float32))
+    pose = RelativePose(rotation, translation, np.eye(6), metric=True, inliers=shared)
+    return Scene(query, place, depths, pose, (shared + query_inside) / query_points.shape[0])
+
+
+@pytest.mark.parametrize(("inside", "outside"), [(100, 0), (60, 40), (10, 150), (0, 300)])
+def test_view_overlap_is_the_share_of_the_query_the_place_sees(inside: int, outside: int) -> None:
+    scene = _scene(seed=inside + outside, shared=40, query_inside=inside, query_outside=outside, place_only=50)
+    # Under the true motion: exactly the share built into the scene.
+    assert view_overlap(scene.query.keypoints, scene.depths, scene.pose) == pytest.approx(scene.overlap, abs=1e-12)
+    # Under PnP's motion from the matches: the scene's correspondences are its inliers, the share the same
+    # but for a keypoint or two on the image's edge.
+    rows = np.column_stack([np.arange(40), np.arange(40)])
+    check = metric_check(scene.query.keypoints, scene.query.keypoints[:40, :2], scene.place.keypoints[:40, :2],
+                         rows[:, 1], scene.depths, threshold_px=2.0, confidence=0.999, min_inliers=30)
+    assert check.inliers >= 38
+    assert check.view_overlap == pytest.approx(scene.overlap, abs=2.5 / len(scene.query))
+
+
+def test_a_revisit_from_further_back_is_accepted_with_depth() -> None:
+    """40 matches among 340 keypoints in each image: the epipolar test refuses them (12 % of the keypoints),
+    though every query keypoint lies in the place's view. With depth, one motion explains the matches and the
+    views overlap: accepted."""
+    scene = _scene(seed=3, shared=40, query_inside=300, query_outside=0, place_only=300)
+    without = verify_pair(scene.query, scene.place, VerificationConfig())
+    assert not without.accepted and without.inliers >= 36 and without.metric is None
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), scene.depths)
+    assert result.accepted and result.inliers == without.inliers
+    assert result.metric is not None and result.metric.inliers >= 36 and result.metric.view_overlap > 0.99
+
+
+def test_a_repeated_sign_in_another_street_stays_refused() -> None:
+    """The same 40 consistent matches, but the query's other 410 keypoints lie outside the place's view: one
+    motion fits the matches (a copied sign), the views do not overlap. The overlap refuses what PnP accepts."""
+    scene = _scene(seed=4, shared=40, query_inside=0, query_outside=410, place_only=410)
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), scene.depths)
+    assert result.metric is not None and result.metric.inliers >= 36
+    assert result.metric.view_overlap == pytest.approx(40 / 450, abs=0.01)
+    assert not result.accepted
+    lenient = VerificationConfig(metric_min_view_overlap=0.05)
+    assert verify_pair(scene.query, scene.place, lenient, scene.depths).accepted
+
+
+def test_wrong_depths_fit_no_motion() -> None:
+    scene = _scene(seed=5, shared=40, query_inside=300, query_outside=0, place_only=300)
+    shuffled = np.random.default_rng(5).permutation(scene.depths.place)
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), replace(scene.depths, place=shuffled))
+    assert result.metric is not None and result.metric.inliers < 30 and not result.accepted
+
+
+def test_the_metric_test_runs_only_where_the_epipolar_one_refuses_and_can_be_turned_off() -> None:
+    accepted = _scene(seed=6, shared=120, query_inside=0, query_outside=20, place_only=20)
+    result = verify_pair(accepted.query, accepted.place, VerificationConfig(), accepted.depths)
+    assert result.accepted and result.metric is None
+    far = _scene(seed=7, shared=40, query_inside=300, query_outside=0, place_only=300)
+    off = verify_pair(far.query, far.place, VerificationConfig(metric_min_inliers=0), far.depths)
+    assert not off.accepted and off.metric is None
+    # More inliers asked than there are matches: not even tried.
+    assert verify_pair(far.query, far.place, VerificationConfig(metric_min_inliers=60), far.depths).metric is None
+
+
+def test_sequence_depths_give_the_metric_test_only_to_pairs_with_depth_on_both_sides() -> None:
+    scene = _scene(seed=8, shared=40, query_inside=300, query_outside=0, place_only=300)
+    features = [scene.place, scene.query]
+    verify = cached_pair_verifier(features, VerificationConfig(),
+                                  SequenceDepths(CAMERA, (WIDTH, HEIGHT), [scene.depths.place, scene.depths.query]))
+    assert verify(1, 0).accepted
+    no_place_depth = cached_pair_verifier(features, VerificationConfig(),
+                                          SequenceDepths(CAMERA, (WIDTH, HEIGHT), [None, scene.depths.query]))
+    assert not no_place_depth(1, 0).accepted and no_place_depth(1, 0).metric is None
+    with pytest.raises(DataError, match="1 frames of keypoint depths for 2 frames"):
+        cached_pair_verifier(features, VerificationConfig(), SequenceDepths(CAMERA, (WIDTH, HEIGHT), [None]))
+
+
+def test_bad_depths_and_settings_are_refused() -> None:
+    scene = _scene(seed=9, shared=40, query_inside=300, query_outside=0, place_only=300)
+    config = VerificationConfig()
+    with pytest.raises(DataError, match="query keypoint depths"):
+        verify_pair(scene.query, scene.place, config, replace(scene.depths, query=scene.depths.query[:-1]))
+    with pytest.raises(DataError, match="has no depth"):
+        verify_pair(scene.query, scene.place, config, replace(scene.depths, place=scene.depths.place[:5]))
+    with pytest.raises(DataError, match="image size"):
+        KeypointDepths(CAMERA, (0, HEIGHT), scene.depths.query, scene.depths.place)
+    with pytest.raises(DataError, match="one value per keypoint"):
+        KeypointDepths(CAMERA, (WIDTH, HEIGHT), scene.depths.query.reshape(-1, 1), scene.depths.place)
+    with pytest.raises(ConfigError, match="metric_min_inliers"):
+        VerificationConfig(metric_min_inliers=5)
+    with pytest.raises(ConfigError, match="metric_min_view_overlap"):
+        VerificationConfig(metric_min_view_overlap=1.5)
+    # No keypoint with depth: no overlap to speak of.
+    blind = replace(scene.depths, query=np.full_like(scene.depths.query, np.nan))
+    assert view_overlap(scene.query.keypoints, blind, scene.pose) == 0.0
