@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from aefabmap_ros.cli.common import no_empty_folders_left_on_error
 from aefabmap_ros.cli.evaluate import SECTIONS
+from aefabmap_ros.cli.evaluate_depth import sequence_depths
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.ground_truth import check_gt_matches, load_gt_npz, loop_matrix_from_kitti
@@ -253,6 +254,8 @@ def _fingerprint(sources: list[ImageSource]) -> str:
 def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
     args, settings = run.args, run.settings
     check_training_choice(args)
+    if (args.depth is not None or args.depth_topic is not None) and not args.verify:
+        raise ConfigError("--depth/--depth-topic feed verification's metric test: add --verify")
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     source = test_source(args)
@@ -300,7 +303,8 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
         key = config_digest(model.feature_config)
         if key not in features_by_config:
             features_by_config[key] = run.features(source, model.feature_config)
-            verifiers[key] = cached_pair_verifier(features_by_config[key], settings.verification)
+            depths = sequence_depths(args, source, features_by_config[key]) if args.verify else None
+            verifiers[key] = cached_pair_verifier(features_by_config[key], settings.verification, depths)
         test_features = features_by_config[key]
         verification = (settings.verification, verifiers[key]) if args.verify else None
         wanted = methods_of_kind(model.quantizer.kind, methods)
@@ -328,6 +332,8 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     }
     if args.verify:
         header["geometric_verification"] = asdict(settings.verification)
+        header["depth"] = (f"{args.depth or args.depth_topic} (the metric test)"
+                           if args.depth is not None or args.depth_topic is not None else "none")
     return results, gt, header
 
 

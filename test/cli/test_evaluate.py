@@ -155,6 +155,49 @@ def test_verify_adds_a_geometrically_verified_row_per_method(data, trained, caps
     assert plain["online_chain"]["verified"] and not first["methods"][1]["online_chain"]["verified"]
 
 
+def test_verify_with_depth_gives_the_metric_test_from_a_folder_or_the_bag_alike(data, trained, capsys):
+    """--depth/--camera-info (folder) and --depth-topic/--camera-info-topic (bag) bring the same depth, so the
+    verified rows agree; the metric test only adds accepted pairs, so no query loses its verified candidate."""
+    test, _, _ = paths(data)
+    models = sorted({m["model_path"] for m in read_results(trained)["methods"]})
+    common = ["--gt", str(test / "loop_gt_poses.npz"), "--quiet", "--verify", "--methods", "ae-fabmap,bow"]
+    for model in models:
+        common += ["--model", model]
+    runs = {
+        "plain": ["--images", str(test / "images")],
+        "folder": ["--images", str(test / "images"), "--depth", str(test / "depth"),
+                   "--camera-info", str(test / "camera_info.yaml")],
+        "bag": ["--bag", str(test / "bag"), "--depth-topic", "/depth", "--camera-info-topic", "/camera_info"],
+    }
+    verified = {}
+    for name, argv in runs.items():
+        assert main(argv + common + ["--out", str(data / f"depth-{name}")]) == 0
+        results = read_results(data / f"depth-{name}")
+        assert ("metric test" in results["depth"]) == (name != "plain")
+        verified[name] = [m for m in results["methods"] if m["geometric_verification"]]
+    for folder, bag in zip(verified["folder"], verified["bag"], strict=True):
+        assert folder["average_precision"] == bag["average_precision"] and folder["pr_curve"] == bag["pr_curve"]
+    for plain, depth in zip(verified["plain"], verified["folder"], strict=True):
+        assert depth["num_queries"] >= plain["num_queries"]
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--depth", "D"], "the intrinsics"),
+    (["--camera-info", "C"], "give --depth"),
+    (["--depth-topic", "/depth", "--camera-info-topic", "/camera_info"], "is a topic of --bag"),
+])
+def test_error_depth_options_that_do_not_fit(data, trained, capsys, extra, message):
+    test, _, _ = paths(data)
+    models = sorted({m["model_path"] for m in read_results(trained)["methods"]})
+    argv = ["--images", str(test / "images"), "--gt", str(test / "loop_gt_poses.npz"), "--verify", "--quiet",
+            "--out", str(data / "depth-error"), "--model", models[0], *extra]
+    assert message in run_error(argv, capsys)
+    no_verify = ["--images", str(test / "images"), "--gt", str(test / "loop_gt_poses.npz"), "--quiet",
+                 "--out", str(data / "depth-error"), "--model", models[0], "--depth", str(test / "depth"),
+                 "--camera-info", str(test / "camera_info.yaml")]
+    assert "add --verify" in run_error(no_verify, capsys)
+
+
 def test_error_verify_with_a_recording(data, capsys):
     test, _, _ = paths(data)
     code = main(["--recording", str(test), "--gt", str(test / "loop_gt.npz"), "--verify", "--out",
