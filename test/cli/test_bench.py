@@ -49,7 +49,8 @@ def test_fabmap_quick(capsys: pytest.CaptureFixture[str]) -> None:
 def test_verify_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench.main(["verify", "--quick", "--features", "sift"]) == 0
     out = capsys.readouterr().out
-    for part in ("verify nearby", "verify distant", "per closure, 5 cand.", "KiB per frame", "feature extraction"):
+    for part in ("verify nearby", "verify distant", "per closure, 5 cand.", "KiB per frame", "feature extraction",
+                 "metric test (depth)", "their epipolar verification"):
         assert part in out
 
 
