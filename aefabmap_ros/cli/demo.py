@@ -308,8 +308,10 @@ def print_backend_result(test: Path, backend_dir: Path) -> None:
 
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
     gt = test / "loop_gt.npz"
+    # Verified with the bag's depth, as verifier_node verifies it in the online run (the metric test).
     _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
-          "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--out", args.out / "evaluation"],
+          "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--depth-topic", "/depth",
+          "--camera-info-topic", "/camera_info", "--out", args.out / "evaluation"],
          "offline evaluation of the four methods (each also after geometric verification: + GV)")
     if recording is not None:
         print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)
