@@ -10,9 +10,10 @@ queries with a true place among their 5 verified candidates were rejected so).
 With the depth at each keypoint and the camera intrinsics, both can be measured directly:
 
 * **one rigid motion**: the place's keypoints with depth are 3-D points; PnP (RANSAC) finds the
-  motion that projects them onto the query's matched pixels. A point-to-point reprojection test
-  (2-D, within ``ransac_threshold_px``) is far stricter than a point-to-line epipolar one, so
-  chance matches that fit a fundamental matrix rarely fit it;
+  motion that projects them onto the query's matched pixels (the matches the epipolar test kept: a
+  rigid motion's inliers fit its epipolar geometry too). A point-to-point reprojection test (2-D,
+  within ``ransac_threshold_px``) is far stricter than a point-to-line epipolar one, so chance
+  matches that fit a fundamental matrix rarely fit it;
 * **the views overlap**: under that motion, the query's own keypoints with depth are carried into
   the place's camera. The share of them that land in front of it and inside its image is how much
   of what the query sees the place saw too: the quantity the covisibility ground truth counts
