@@ -17,6 +17,7 @@ __all__ = [
     "demo",
     "demo_backend",
     "evaluate",
+    "evaluate_depth",
     "evaluate_run",
     "gt",
     "gt_run",

@@ -1,3 +1,4 @@
-"""Geometric verification of loop-closure candidates, loop tracking, and the relative pose of a closure."""
+"""Geometric verification of loop-closure candidates (with depth, the metric test too), loop tracking, and the
+relative pose of a closure."""
 
-__all__ = ["geometric", "loop_tracking", "relative_pose"]
+__all__ = ["geometric", "loop_tracking", "metric", "relative_pose"]
