@@ -387,10 +387,12 @@ def read_recording(path: Path) -> Recording:
 
 def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str, dict[str, Any]]:
     args, settings = run.args, run.settings
+    depth_given = any(value is not None for value in (args.depth, args.depth_topic, args.camera_info,
+                                                      args.camera_info_topic))
     if args.images is not None or args.bag is not None or args.model or args.train_images or args.train_bag \
-            or args.train_on_test or args.verify:
+            or args.train_on_test or args.verify or depth_given:
         raise ConfigError("--recording takes only the ground truth (--gt or --poses); it evaluates recorded "
-                          "outputs, no images, models or --verify")
+                          "outputs, no images, depth, models or --verify")
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     started = time.monotonic()

@@ -198,11 +198,11 @@ def test_error_depth_options_that_do_not_fit(data, trained, capsys, extra, messa
     assert "add --verify" in run_error(no_verify, capsys)
 
 
-def test_error_verify_with_a_recording(data, capsys):
+@pytest.mark.parametrize("extra", [["--verify"], ["--depth-topic", "/depth"], ["--camera-info", "camera_info.yaml"]])
+def test_error_verify_or_depth_with_a_recording(data, capsys, extra):
     test, _, _ = paths(data)
-    code = main(["--recording", str(test), "--gt", str(test / "loop_gt.npz"), "--verify", "--out",
-                 str(data / "bad")])
-    assert code == 1 and "no images, models or --verify" in capsys.readouterr().err
+    code = main(["--recording", str(test), "--gt", str(test / "loop_gt.npz"), *extra, "--out", str(data / "bad")])
+    assert code == 1 and "no images, depth, models or --verify" in capsys.readouterr().err
 
 
 def test_train_on_test_from_a_bag_with_poses(data):
