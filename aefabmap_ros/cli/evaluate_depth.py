@@ -23,7 +23,12 @@ from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.io.rgbd import list_depth_files, read_camera_info_yaml
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.verification.geometric import SequenceDepths
-from aefabmap_ros.verification.relative_pose import CameraModel, depth_at_pixels, depth_image_to_metres
+from aefabmap_ros.verification.relative_pose import (
+    CameraModel,
+    camera_info_to_model,
+    depth_at_pixels,
+    depth_image_to_metres,
+)
 
 
 def sequence_depths(args: argparse.Namespace, source: ImageSource,
@@ -66,9 +71,9 @@ def _camera_from_yaml(path: Path) -> tuple[CameraModel, tuple[int, int]]:
 def _camera_from_bag(bag: Path, topic: str) -> tuple[CameraModel, tuple[int, int]]:
     for message in bags.read_messages(bag, [topic]):
         info = message.message
-        matrix = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
-        if matrix[0, 0] > 0 and int(info.width) > 0 and int(info.height) > 0:
-            return CameraModel(matrix, np.asarray(info.d, dtype=np.float64)), (int(info.width), int(info.height))
+        camera = camera_info_to_model(info)
+        if camera is not None and int(info.width) > 0 and int(info.height) > 0:
+            return camera, (int(info.width), int(info.height))
     raise DataError(f"{topic} in {bag} holds no calibrated CameraInfo (K and image size)")
 
 

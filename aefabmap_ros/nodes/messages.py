@@ -21,7 +21,7 @@ from aefabmap_ros.backend.pose_graph import pose_from_matrix
 from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
-from aefabmap_ros.verification.relative_pose import CameraModel, PoseOutcome
+from aefabmap_ros.verification.relative_pose import PoseOutcome
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
 
@@ -188,14 +188,6 @@ def recognition_to_loop_closure(recognition: Recognition, header: Any) -> LoopCl
     message.probability = float(match.probability)
     message.log_likelihood = float(match.log_likelihood)
     return message
-
-
-def camera_info_to_model(message: Any) -> CameraModel | None:
-    """``sensor_msgs/CameraInfo`` -> intrinsics; None for an uncalibrated camera (K all zero)."""
-    matrix = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
-    if matrix[0, 0] == 0.0:
-        return None
-    return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))
 
 
 def pose_to_matrix(pose: Any) -> np.ndarray:

@@ -91,7 +91,6 @@ from aefabmap_ros.nodes.common import (
     run_node,
 )
 from aefabmap_ros.nodes.messages import (
-    camera_info_to_model,
     extrinsic_to_gtsam,
     fill_relative_pose,
     loop_closure_pose,
@@ -116,6 +115,7 @@ from aefabmap_ros.verification.relative_pose import (
     KeypointDepthFolder,
     KeypointDepthStore,
     RelativePoseConfig,
+    camera_info_to_model,
     relative_pose,
 )
 

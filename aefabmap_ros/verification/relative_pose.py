@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -83,6 +84,15 @@ class CameraModel:
         if self.matrix.shape != (3, 3) or not np.isfinite(self.matrix).all() or self.matrix[0, 0] <= 0 \
                 or self.matrix[1, 1] <= 0:
             raise DataError(f"camera matrix must be a finite 3x3 with positive focal lengths, got {self.matrix}")
+
+
+def camera_info_to_model(message: Any) -> CameraModel | None:
+    """``sensor_msgs/CameraInfo`` (a ROS message or a rosbags one: its ``k`` and ``d``) -> intrinsics; None for
+    an uncalibrated camera (K all zero)."""
+    matrix = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    if matrix[0, 0] == 0.0:
+        return None
+    return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))
 
 
 @dataclass(frozen=True)
