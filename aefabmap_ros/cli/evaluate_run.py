@@ -254,7 +254,8 @@ def _fingerprint(sources: list[ImageSource]) -> str:
 def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
     args, settings = run.args, run.settings
     check_training_choice(args)
-    if (args.depth is not None or args.depth_topic is not None) and not args.verify:
+    depth_given = args.depth is not None or args.depth_topic is not None
+    if depth_given and not args.verify:
         raise ConfigError("--depth/--depth-topic feed verification's metric test: add --verify")
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
@@ -332,8 +333,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     }
     if args.verify:
         header["geometric_verification"] = asdict(settings.verification)
-        header["depth"] = (f"{args.depth or args.depth_topic} (the metric test)"
-                           if args.depth is not None or args.depth_topic is not None else "none")
+        header["depth"] = f"{args.depth or args.depth_topic} (the metric test)" if depth_given else "none"
     return results, gt, header
 
 

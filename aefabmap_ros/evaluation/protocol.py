@@ -53,7 +53,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -343,20 +342,16 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt
     chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
                              verification)
 
-    def scored(closures: Sequence[Any]) -> EventScores:
-        return event_scores([(c.query_frame, c.matched_frame) for c in closures], gt, min_gap)
-
     truth = np.asarray(gt).astype(bool)
     calibration = reliability(np.array([b.probability for b in chain.best]),
                               np.array([truth[b.query_frame, b.matched_frame] for b in chain.best], dtype=bool))
-
-    def missed_ranked(closures: Sequence[Any]) -> int:
-        pairs = [(c.query_frame, c.matched_frame) for c in closures]
-        return missed_with_a_true_place_ranked(pairs, chain.ranked, gt, min_gap)
-
-    return OnlineScores(scored(chain.candidates), scored(chain.published), verification is not None,
-                        chain.num_places, calibration, sum(c.tracked for c in chain.published),
-                        missed_ranked(chain.candidates), missed_ranked(chain.published))
+    candidates = [(c.query_frame, c.matched_frame) for c in chain.candidates]
+    published = [(c.query_frame, c.matched_frame) for c in chain.published]
+    return OnlineScores(event_scores(candidates, gt, min_gap), event_scores(published, gt, min_gap),
+                        verification is not None, chain.num_places, calibration,
+                        sum(c.tracked for c in chain.published),
+                        missed_with_a_true_place_ranked(candidates, chain.ranked, gt, min_gap),
+                        missed_with_a_true_place_ranked(published, chain.ranked, gt, min_gap))
 
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],

@@ -514,7 +514,8 @@ class VerifierNode(Node):
         return KeypointDepths(self.camera, self.image_size, query_depths, place_depths)
 
     def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
-        query = self.store.get(stamp_to_ns(message.header.stamp))
+        query_ns = stamp_to_ns(message.header.stamp)
+        query = self.store.get(query_ns)
         candidates = self._candidates(message, posterior)
         if query is None or candidates is None:
             self.counter.drop("place_features_unknown",
@@ -522,7 +523,6 @@ class VerifierNode(Node):
                               "or older than max_stored_frames)")
             return
         try:
-            query_ns = stamp_to_ns(message.header.stamp)
             outcome = rerank_by_inliers(
                 candidates, lambda candidate: self._verify_pair(query_ns, query, candidate), require_best=True
             )
