@@ -34,6 +34,11 @@ class StampedFrames(Protocol[FrameT]):
     def restore(self, frames: list[tuple[int, FrameT]]) -> None: ...
 
 
+def chunk_pattern(prefix: str) -> str:
+    """The glob of a chunk folder's chunk files (their temporaries are named from these too)."""
+    return f"{prefix}-*.npz"
+
+
 class ChunkFolder(Generic[FrameT]):
     """``folder/<prefix>-<n>.npz`` chunks, n counting up from 0 across saves and restarts."""
 
@@ -53,7 +58,7 @@ class ChunkFolder(Generic[FrameT]):
         naming a bad chunk, and then nothing about the saved chunks is remembered."""
         if self.folder.exists() and not self.folder.is_dir():
             raise ModelError(f"{self._what} {self.folder} is not a folder")
-        chunks = sorted(self.folder.glob(f"{self._prefix}-*.npz")) if self.folder.is_dir() else []
+        chunks = sorted(self.folder.glob(chunk_pattern(self._prefix))) if self.folder.is_dir() else []
         numbers = [self._chunk_number(chunk) for chunk in chunks]
         frames: Frames[FrameT] = []
         chunk_stamps: dict[Path, set[int]] = {}

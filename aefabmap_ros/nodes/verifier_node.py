@@ -74,6 +74,7 @@ from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.features.extraction import Features as CoreFeatures
 from aefabmap_ros.io.atomic import remove_stale_temporaries
+from aefabmap_ros.io.chunk_folder import chunk_pattern
 from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.nodes.common import (
     LOG_THROTTLE_S,
@@ -556,8 +557,10 @@ class VerifierNode(Node):
 
     def _reload_stores(self, folder: Path) -> None:
         """What ``store_dir`` holds: a corrupt chunk stops start-up (ERROR) and is not overwritten."""
-        for pattern in ("chunk-*.npz", "depth-*.npz", "timeline-*.npz"):
-            for leftover in remove_stale_temporaries(folder, pattern):
+        # Every kind of chunk, whether or not this run keeps it (a run without depth still cleans depth chunks'
+        # leftovers).
+        for chunk_folder in (FeatureStoreFolder, KeypointDepthFolder, FrameTimelineFolder):
+            for leftover in remove_stale_temporaries(folder, chunk_pattern(chunk_folder.PREFIX)):
                 self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
         if self.store_folder is not None:
             self.store_folder.load_into(self.store)

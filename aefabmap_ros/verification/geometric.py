@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import TypeVar
+from typing import ClassVar, TypeVar
 
 import cv2
 import numpy as np
@@ -455,8 +455,10 @@ class FeatureStoreFolder(ChunkFolder[Features]):
     ``max_frames``.
     """
 
+    PREFIX: ClassVar[str] = "chunk"  # its chunk files: chunk-<n>.npz
+
     def __init__(self, folder: Path) -> None:
-        super().__init__(folder, "chunk", "feature store", _frames_to_arrays, _read_chunk)
+        super().__init__(folder, self.PREFIX, "feature store", _frames_to_arrays, _read_chunk)
 
 
 def _read_chunk(chunk: Path) -> list[tuple[int, Features]]:

@@ -34,7 +34,7 @@ from __future__ import annotations
 from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TypeVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 
@@ -180,8 +180,10 @@ class FrameTimelineFolder(ChunkFolder[int]):
     a frame).
     """
 
+    PREFIX: ClassVar[str] = "timeline"  # its chunk files: timeline-<n>.npz
+
     def __init__(self, folder: Path) -> None:
-        super().__init__(folder, "timeline", "frame timeline", _timeline_arrays, _read_timeline_chunk)
+        super().__init__(folder, self.PREFIX, "frame timeline", _timeline_arrays, _read_timeline_chunk)
 
 
 def _timeline_arrays(frames: list[tuple[int, int]]) -> dict[str, np.ndarray]:

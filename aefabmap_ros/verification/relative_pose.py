@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -410,8 +410,10 @@ class KeypointDepthFolder(ChunkFolder[np.ndarray]):
     concatenated; float32, NaN = none: ~2 KiB per frame of 500 keypoints).
     """
 
+    PREFIX: ClassVar[str] = "depth"  # its chunk files: depth-<n>.npz
+
     def __init__(self, folder: Path) -> None:
-        super().__init__(folder, "depth", "keypoint depth store", _depth_arrays, _read_depth_chunk)
+        super().__init__(folder, self.PREFIX, "keypoint depth store", _depth_arrays, _read_depth_chunk)
 
 
 def _depth_arrays(frames: list[tuple[int, np.ndarray]]) -> dict[str, np.ndarray]:
