@@ -77,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     test.add_argument("--depth-topic",
                       help="with --bag: its aligned depth topic (16UC1 mm or 32FC1 m), for verification's metric "
                       "test (with --verify; needs --camera-info-topic or --camera-info)")
-    test.add_argument("--camera-info", type=Path, help="ROS camera_info.yaml of the test camera (with --depth)")
+    test.add_argument("--camera-info", type=Path,
+                      help="ROS camera_info.yaml of the test camera, K and distortion (with --depth)")
     test.add_argument("--camera-info-topic", help="with --bag: its sensor_msgs/CameraInfo topic (with --depth-topic)")
     truth = parser.add_argument_group("ground truth (a loop matrix, or poses and a rule)")
     truth.add_argument("--gt", type=Path, help=".npz with key 'gt': (N, N) 0/1, gt[i, j] = 1: frame i revisits j")

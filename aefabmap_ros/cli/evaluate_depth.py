@@ -64,8 +64,8 @@ def sequence_depths(args: argparse.Namespace, source: ImageSource,
 
 
 def _camera_from_yaml(path: Path) -> tuple[CameraModel, tuple[int, int]]:
-    matrix, width, height = read_camera_info_yaml(path)
-    return CameraModel(matrix), (width, height)
+    info = read_camera_info_yaml(path)
+    return CameraModel(info.matrix, info.distortion), (info.width, info.height)
 
 
 def _camera_from_bag(bag: Path, topic: str) -> tuple[CameraModel, tuple[int, int]]:

@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     camera = parser.add_mutually_exclusive_group(required=True)
     camera.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                         help="pinhole intrinsics in pixels")
-    camera.add_argument("--camera-info", type=Path, help="ROS camera_info.yaml with the intrinsics")
+    camera.add_argument("--camera-info", type=Path,
+                        help="ROS camera_info.yaml with the intrinsics (a pinhole: no distortion)")
     parser.add_argument("--times", type=Path, help="seconds per frame, one per line (default: from file names)")
     parser.add_argument("--max-pose-offset-s", type=float, default=0.02,
                         help="tum: largest stamp difference of a frame and its pose (default: 0.02)")

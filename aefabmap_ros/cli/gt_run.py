@@ -64,7 +64,12 @@ def run(args: argparse.Namespace) -> int:
     files = list_depth_files(args.depth)
     stamps_ns = _stamps(args, files)
     if args.camera_info is not None:
-        camera_matrix, width, height = read_camera_info_yaml(args.camera_info)
+        info = read_camera_info_yaml(args.camera_info)
+        if np.any(info.distortion != 0.0):
+            # The covisibility rule lifts and projects pixels through a pinhole: distorted pixels would land wrong.
+            raise DataError(f"{args.camera_info} has distortion coefficients {info.distortion.tolist()}: the "
+                            "covisibility ground truth needs rectified depth images and their pinhole camera")
+        camera_matrix, width, height = info.matrix, info.width, info.height
     else:
         camera_matrix, width, height = intrinsics_matrix(*args.intrinsics), None, None
     poses, kept = _poses(args, stamps_ns, files)

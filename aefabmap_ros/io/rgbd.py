@@ -167,13 +167,28 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return check_camera_matrix(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
 
 
-def read_camera_info_yaml(path: Path) -> tuple[np.ndarray, int, int]:
-    """(K, width, height) from a ROS camera_calibration_parsers YAML file (``camera_matrix.data``)."""
+@dataclass(frozen=True)
+class CameraInfoFile:
+    """What a ROS camera_calibration_parsers YAML file says of the camera."""
+
+    matrix: np.ndarray  # (3, 3) K
+    distortion: np.ndarray  # (D,) OpenCV coefficients (plumb_bob / rational_polynomial); (0,) when none given
+    width: int
+    height: int
+
+
+def read_camera_info_yaml(path: Path) -> CameraInfoFile:
+    """K (``camera_matrix.data``), the distortion coefficients (``distortion_coefficients.data``; none when
+    the file has no such block) and the image size of a ROS camera_calibration_parsers YAML file."""
     try:
         content = yaml.safe_load(Path(path).read_text())
-        data = content["camera_matrix"]["data"]
+        matrix = np.asarray(content["camera_matrix"]["data"], dtype=np.float64).reshape(3, 3)
         width, height = int(content["image_width"]), int(content["image_height"])
-        matrix = np.asarray(data, dtype=np.float64).reshape(3, 3)
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as error:
+        coefficients = content.get("distortion_coefficients")
+        distortion = (np.zeros(0) if coefficients is None
+                      else np.asarray(coefficients["data"], dtype=np.float64).reshape(-1))
+        if not np.isfinite(distortion).all():
+            raise ValueError(f"distortion coefficients must be finite, got {distortion.tolist()}")
+        return CameraInfoFile(check_camera_matrix(matrix), distortion, width, height)
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError, AttributeError, DataError) as error:
         raise DataError(f"cannot read camera info {path}: {type(error).__name__}: {error}") from error
-    return check_camera_matrix(matrix), width, height

@@ -127,6 +127,20 @@ def test_camera_info_yaml(tmp_path, scene):
     assert main([*args, "--camera-info", str(root / "camera_info.yaml")]) == 1
 
 
+def test_camera_info_with_distortion_is_refused(tmp_path, scene, capsys):
+    """The covisibility rule is a pinhole computation: a distorted camera gets an error, not a wrong truth."""
+    from aefabmap_ros.cli.synth import camera_info_yaml
+
+    root = _write_kitti_folder(tmp_path, scene)
+    text = camera_info_yaml(CAMERA, WIDTH, HEIGHT).replace("data: [0.0, 0.0, 0.0, 0.0, 0.0]",
+                                                          "data: [-0.2, 0.05, 0.0, 0.0, 0.0]")
+    assert "-0.2" in text
+    (root / "camera_info.yaml").write_text(text)
+    args = [a for a in _kitti_args(root) if a not in INTRINSICS]
+    assert "needs rectified depth images" in _error(capsys, [*args, "--camera-info", str(root / "camera_info.yaml")])
+    assert not (root / "out" / "gt.npz").exists()
+
+
 def _error(capsys, argv):
     assert main(argv) == 1
     err = capsys.readouterr().err
