@@ -8,6 +8,8 @@ fundamental matrix) is the verifier's part.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -16,14 +18,23 @@ from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.features.extraction import Features
 
 
-def match_indices(query: Features, place: Features, *, ratio: float) -> np.ndarray:
-    """Matches from ``query`` to ``place``: (M, 2) int64 keypoint rows (into query, into place).
+@dataclass(frozen=True)
+class NearestNeighbours:
+    """Each query keypoint's two nearest place keypoints: what a ratio test filters. Computing them once
+    lets one pair be matched under two ratios (the verifier's epipolar and metric tests) for one search."""
 
-    Binary (uint8) descriptors are compared by Hamming distance, float ones by L2. Each query keypoint
-    keeps its nearest place keypoint when that is closer than ``ratio`` times the second nearest; a
-    place keypoint claimed by several query keypoints keeps only the closest (so no correspondence is
-    counted twice). Rows come in the order place keypoints were first claimed (the order RANSAC
-    samples from downstream, so it is part of the verifier's reproducible result).
+    query_rows: np.ndarray  # (K,) int64, in the matcher's order
+    place_rows: np.ndarray  # (K,) int64, the nearest place keypoint of each
+    nearest: np.ndarray  # (K,) float64 distance to it
+    second: np.ndarray  # (K,) float64 distance to the second nearest
+
+
+NO_NEIGHBOURS = NearestNeighbours(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+
+def nearest_neighbours(query: Features, place: Features) -> NearestNeighbours:
+    """The two nearest place keypoints of every query keypoint: Hamming distance for binary (uint8)
+    descriptors, L2 for float ones.
 
     Raises:
         DataError: malformed features, or features of two different descriptor types or sizes.
@@ -33,7 +44,7 @@ def match_indices(query: Features, place: Features, *, ratio: float) -> np.ndarr
     if query.descriptor_type != place.descriptor_type:
         raise DataError(f"cannot match {query.descriptor_type!r} features against {place.descriptor_type!r} ones")
     if len(query) == 0 or len(place) < 2:
-        return np.zeros((0, 2), np.int64)
+        return NO_NEIGHBOURS
     kind = kind_of(query.descriptors)
     if kind != kind_of(place.descriptors):
         raise DataError(f"descriptor dtypes differ: {query.descriptors.dtype} vs {place.descriptors.dtype}")
@@ -41,19 +52,43 @@ def match_indices(query: Features, place: Features, *, ratio: float) -> np.ndarr
         raise DataError(f"cannot match {query.descriptors.shape[1]}-d descriptors against "
                         f"{place.descriptors.shape[1]}-d ones")
     matcher = cv2.BFMatcher(kind.cv_norm)
-    pairs = matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=kind.dtype),
-                             np.ascontiguousarray(place.descriptors, dtype=kind.dtype), k=2)
+    pairs = [pair for pair in matcher.knnMatch(np.ascontiguousarray(query.descriptors, dtype=kind.dtype),
+                                               np.ascontiguousarray(place.descriptors, dtype=kind.dtype), k=2)
+             if len(pair) == 2]
+    return NearestNeighbours(np.array([pair[0].queryIdx for pair in pairs], np.int64),
+                             np.array([pair[0].trainIdx for pair in pairs], np.int64),
+                             np.array([pair[0].distance for pair in pairs], np.float64),
+                             np.array([pair[1].distance for pair in pairs], np.float64))
+
+
+def ratio_test_matches(neighbours: NearestNeighbours, ratio: float) -> np.ndarray:
+    """(M, 2) int64 keypoint rows (into query, into place) of the neighbours that pass Lowe's ratio test.
+
+    A query keypoint keeps its nearest place keypoint when that is closer than ``ratio`` times the
+    second nearest; a place keypoint claimed by several query keypoints keeps only the closest (so no
+    correspondence is counted twice). Rows come in the order place keypoints were first claimed (the
+    order RANSAC samples from downstream, so it is part of the verifier's reproducible result).
+    """
     best_by_place: dict[int, tuple[float, int]] = {}
-    for pair in pairs:
-        if len(pair) < 2 or pair[0].distance >= ratio * pair[1].distance:
-            continue
-        nearest = pair[0]
-        kept = best_by_place.get(nearest.trainIdx)
-        if kept is None or nearest.distance < kept[0]:
-            best_by_place[nearest.trainIdx] = (nearest.distance, nearest.queryIdx)
-    matches = np.array([(query_row, place_row) for place_row, (_, query_row) in best_by_place.items()],
-                       np.int64)
+    passed = np.flatnonzero(neighbours.nearest < ratio * neighbours.second)
+    for query_row, place_row, distance in zip(neighbours.query_rows[passed].tolist(),
+                                              neighbours.place_rows[passed].tolist(),
+                                              neighbours.nearest[passed].tolist(), strict=True):
+        kept = best_by_place.get(place_row)
+        if kept is None or distance < kept[0]:
+            best_by_place[place_row] = (distance, query_row)
+    matches = np.array([(query_row, place_row) for place_row, (_, query_row) in best_by_place.items()], np.int64)
     return matches.reshape(-1, 2)
+
+
+def match_indices(query: Features, place: Features, *, ratio: float) -> np.ndarray:
+    """Matches from ``query`` to ``place``: (M, 2) int64 keypoint rows (into query, into place), nearest
+    neighbours under Lowe's ratio test, one-to-one (:func:`ratio_test_matches`).
+
+    Raises:
+        DataError: malformed features, or features of two different descriptor types or sizes.
+    """
+    return ratio_test_matches(nearest_neighbours(query, place), ratio)
 
 
 def check_features(features: Features, role: str) -> None:
@@ -65,4 +100,5 @@ def check_features(features: Features, role: str) -> None:
                         f"{features.descriptors.shape}")
 
 
-__all__ = ["check_features", "match_indices"]
+__all__ = ["NO_NEIGHBOURS", "NearestNeighbours", "check_features", "match_indices", "nearest_neighbours",
+           "ratio_test_matches"]

@@ -132,7 +132,7 @@ ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rota
 # The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
 # next closure on. The others size the store or the subscriptions at start-up and are refused.
 RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
-                              "max_iterations", "metric_min_inliers", "metric_min_view_overlap"})
+                              "max_iterations", "metric_min_inliers", "metric_min_view_overlap", "metric_ratio"})
 
 
 class PlaceToVerify(NamedTuple):
@@ -246,8 +246,8 @@ class VerifierNode(Node):
             "the feature store", save_period_s,
         )
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
-        metric_test = (f" or, with depth, >= {self.config.metric_min_inliers} PnP inliers and "
-                       f"{self.config.metric_min_view_overlap:.0%} view overlap"
+        metric_test = (f" or, with depth, >= {self.config.metric_min_inliers} PnP inliers (matches at ratio "
+                       f"{self.config.metric_ratio:g}) and {self.config.metric_min_view_overlap:.0%} view overlap"
                        if depth_topic and self.config.metric_min_inliers else "")
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "

@@ -22,7 +22,11 @@ With the depth at each keypoint and the camera intrinsics, both can be measured 
 
 The query's depths check the motion independently of the place's, which PnP used. A candidate is
 accepted by this test when at least ``metric_min_inliers`` matches fit the motion and at least
-``metric_min_view_overlap`` of the query's keypoints land in the place's view. It adds to the
+``metric_min_view_overlap`` of the query's keypoints land in the place's view. It is asked of pairs the
+epipolar test refused for their share alone (``min_inliers`` inliers, too few of the keypoints), and it
+fits its motion to the matches under its own, looser Lowe's ratio (``metric_ratio``, 0.9): here the
+reprojection test and the overlap keep chance matches out, and a far view's true matches are often
+ambiguous at 0.8 (a facade's repeated windows, a smaller scale). It adds to the
 epipolar test, never removes from it: pairs with few keypoint depths (a keypoint on a depth edge
 samples the background) keep the epipolar decision.
 

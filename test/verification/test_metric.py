@@ -126,6 +126,54 @@ def test_a_repeated_sign_in_another_street_stays_refused() -> None:
     assert verify_pair(scene.query, scene.place, lenient, scene.depths).accepted
 
 
+def _ambiguous(scene: Scene, count: int, ratio: float) -> Scene:
+    """``scene`` with its first ``count`` matches made ambiguous: the place gets a decoy keypoint for each, at
+    ``1 / ratio`` times the true match's descriptor distance from the query's (Lowe's ratio exactly ``ratio``),
+    as a facade's repeated windows give."""
+    rng = np.random.default_rng(count)
+    query_descriptors = scene.query.descriptors[:count].astype(np.float64)
+
+    def at_distance(distance: float) -> np.ndarray:
+        directions = rng.normal(size=query_descriptors.shape)
+        return query_descriptors + distance * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+    place_descriptors = scene.place.descriptors.copy()
+    place_descriptors[:count] = at_distance(40.0)
+    decoys = at_distance(40.0 / ratio)
+    decoy_pixels = rng.uniform([0.0, 0.0], [WIDTH - 1, HEIGHT - 1], (count, 2))
+    place = _features(np.vstack([scene.place.keypoints[:, :2], decoy_pixels]),
+                      np.vstack([place_descriptors, decoys]).astype(np.float32))
+    depths = replace(scene.depths, place=np.concatenate([scene.depths.place, np.full(count, 10.0, np.float32)]))
+    return replace(scene, place=place, depths=depths)
+
+
+def test_matches_the_ratio_test_finds_ambiguous_reach_the_metric_test_at_its_own_ratio() -> None:
+    """40 shared points, 12 of them with a decoy at Lowe's ratio 0.85 (repeated windows): at 0.8 the pair has 28
+    inliers, enough to be refused only for its share, and too few for the metric test; at metric_ratio 0.9 the
+    12 come back, one motion explains all 40 and the pair is accepted, its pose fitted to those matches."""
+    scene = _ambiguous(_scene(seed=10, shared=40, query_inside=300, query_outside=0, place_only=300), 12, 0.85)
+    strict = verify_pair(scene.query, scene.place, VerificationConfig(metric_ratio=0.8), scene.depths)
+    # Fewer matches fit one geometry than the metric test asks: not even tried.
+    assert 25 <= strict.inliers <= 28 and strict.metric is None and not strict.accepted
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), scene.depths)
+    assert result.accepted and result.inliers == strict.inliers  # the epipolar test's own count, at ratio 0.8
+    assert result.metric is not None and result.metric.inliers >= 36 and result.metric.view_overlap > 0.99
+    assert result.matched_rows is not None and result.matched_rows.shape[0] >= 38
+    # A decoy is never the match of a shared point: its ratio is 1 / 0.85 the other way round.
+    assert int(result.matched_rows[:, 1].max()) < len(scene.place) - 12
+
+
+def test_a_pair_refused_for_too_few_inliers_gets_no_metric_test() -> None:
+    """Half the shared points ambiguous: 20 inliers at ratio 0.8, under min_inliers. The metric test is for pairs
+    refused for their share alone; this one is not tried, though at 0.9 its matches would pass."""
+    scene = _ambiguous(_scene(seed=11, shared=40, query_inside=300, query_outside=0, place_only=300), 20, 0.85)
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), scene.depths)
+    assert result.inliers < 25 and result.metric is None and not result.accepted
+    tried = verify_pair(scene.query, scene.place, VerificationConfig(min_inliers=15, min_inlier_ratio=0.5),
+                        scene.depths)
+    assert tried.metric is not None and tried.metric.inliers >= 36 and tried.accepted
+
+
 def test_wrong_depths_fit_no_motion() -> None:
     scene = _scene(seed=5, shared=40, query_inside=300, query_outside=0, place_only=300)
     shuffled = np.random.default_rng(5).permutation(scene.depths.place)
@@ -172,6 +220,9 @@ def test_bad_depths_and_settings_are_refused() -> None:
         VerificationConfig(metric_min_inliers=5)
     with pytest.raises(ConfigError, match="metric_min_view_overlap"):
         VerificationConfig(metric_min_view_overlap=1.5)
+    for ratio in (0.0, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="metric_ratio"):
+            VerificationConfig(metric_ratio=ratio)
     # No keypoint with depth: no overlap to speak of.
     blind = replace(scene.depths, query=np.full_like(scene.depths.query, np.nan))
     assert view_overlap(scene.query.keypoints, blind, scene.pose) == 0.0
