@@ -200,19 +200,45 @@ def matched_points(query: Features, place: Features, rows: np.ndarray) -> tuple[
             np.ascontiguousarray(place.keypoints[rows[:, 1], :2], dtype=np.float32))
 
 
-def epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> np.ndarray:
-    """(M,) bool: the matches consistent with one robustly fitted fundamental matrix (none when none fits)."""
+def fundamental_matrix(query_points: np.ndarray, place_points: np.ndarray,
+                       config: VerificationConfig) -> tuple[np.ndarray | None, np.ndarray]:
+    """A fundamental matrix robustly fitted to the matches (MAGSAC++; ``x_place^T F x_query = 0``) and its
+    (M,) bool inliers; (None, no inliers) when none fits."""
     if query_points.shape != place_points.shape or query_points.ndim != 2 or query_points.shape[1] != 2:
         raise DataError(f"point arrays must both be (M, 2), got {query_points.shape} and {place_points.shape}")
     none = np.zeros(query_points.shape[0], bool)
     if query_points.shape[0] < MIN_MODEL_MATCHES:
-        return none
+        return None, none
     try:
-        _, mask = cv2.findFundamentalMat(query_points, place_points, cv2.USAC_MAGSAC,
-                                         config.ransac_threshold_px, config.confidence, config.max_iterations)
+        matrix, mask = cv2.findFundamentalMat(query_points, place_points, cv2.USAC_MAGSAC,
+                                              config.ransac_threshold_px, config.confidence, config.max_iterations)
     except cv2.error:  # degenerate configurations (all points on a line, ...): no model, no inliers
-        return none
-    return none if mask is None else mask.ravel().astype(bool)
+        return None, none
+    if mask is None or matrix is None or matrix.shape != (3, 3):
+        return None, none
+    return matrix, mask.ravel().astype(bool)
+
+
+def epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> np.ndarray:
+    """(M,) bool: the matches consistent with one robustly fitted fundamental matrix (none when none fits)."""
+    return fundamental_matrix(query_points, place_points, config)[1]
+
+
+def within_epipolar_distance(matrix: np.ndarray, query_points: np.ndarray, place_points: np.ndarray,
+                             threshold_px: float) -> np.ndarray:
+    """(M,) bool: matches whose points both lie within ``threshold_px`` of the epipolar line the other's
+    point gives under ``matrix`` (the fundamental matrix of :func:`fundamental_matrix`)."""
+    if query_points.shape[0] == 0:
+        return np.zeros(0, bool)
+
+    def distances(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
+        lines = lines.reshape(-1, 3)
+        return np.asarray(np.abs(np.sum(lines[:, :2] * points, axis=1) + lines[:, 2])
+                          / np.hypot(lines[:, 0], lines[:, 1]))
+
+    in_place = cv2.computeCorrespondEpilines(query_points.reshape(-1, 1, 2), 1, matrix)
+    in_query = cv2.computeCorrespondEpilines(place_points.reshape(-1, 1, 2), 2, matrix)
+    return (distances(place_points, in_place) <= threshold_px) & (distances(query_points, in_query) <= threshold_px)
 
 
 def count_epipolar_inliers(query_points: np.ndarray, place_points: np.ndarray, config: VerificationConfig) -> int:
@@ -226,11 +252,12 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     of them for the two images' keypoint counts (``min_inlier_ratio``). With the keypoints' ``depths``
     (aligned with ``query`` and ``place``), a pair that fails gets the metric test
     (``verification.metric``): one rigid motion and overlapping views, fitted to the matches under
-    ``metric_ratio``. ``matched_rows`` are the matches of the test that decided."""
+    ``metric_ratio`` that lie on the fundamental matrix's epipolar lines. ``matched_rows`` are the matches
+    of the test that decided."""
     neighbours = nearest_neighbours(query, place)
     rows = ratio_test_matches(neighbours, config.ratio)
     query_points, place_points = matched_points(query, place, rows)
-    epipolar = epipolar_inliers(query_points, place_points, config)
+    fundamental, epipolar = fundamental_matrix(query_points, place_points, config)
     inliers = int(np.count_nonzero(epipolar))
     # The share of keypoints that fit one geometry: an overlap measure, independent of resolution.
     shared = inliers >= config.min_inlier_ratio * max(min(len(query), len(place)), 1)
@@ -239,14 +266,15 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     # The metric test is for pairs refused for their share of the keypoints alone: enough matches fit one
     # geometry, but few for the images' keypoints, as when a street is seen again from further back. (Measured on
     # the dense synthetic video: every pair it accepted had >= 26 inliers here.)
-    if accepted or depths is None or not config.metric_min_inliers or inliers < config.min_inliers:
+    if (accepted or depths is None or not config.metric_min_inliers or inliers < config.min_inliers
+            or fundamental is None):
         return verification
     if config.metric_ratio != config.ratio:
+        # The matches at metric_ratio that fit the geometry already found: no second robust fit, whose cost on a
+        # verifier busy with a revisit would be paid for every candidate refused for its share.
         rows = ratio_test_matches(neighbours, config.metric_ratio)
-        if rows.shape[0] < config.metric_min_inliers:  # too few matches to give the inliers asked: no RANSAC
-            return verification
         query_points, place_points = matched_points(query, place, rows)
-        epipolar = epipolar_inliers(query_points, place_points, config)
+        epipolar = within_epipolar_distance(fundamental, query_points, place_points, config.ransac_threshold_px)
     # A rigid motion's inliers fit its epipolar geometry too, so PnP runs on the epipolar inliers: a far cleaner
     # set than all matches, which its RANSAC gets through in a few iterations instead of its 1,000 (and with
     # fewer of them than the metric test asks, it cannot pass).

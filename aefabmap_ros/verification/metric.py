@@ -24,9 +24,11 @@ The query's depths check the motion independently of the place's, which PnP used
 accepted by this test when at least ``metric_min_inliers`` matches fit the motion and at least
 ``metric_min_view_overlap`` of the query's keypoints land in the place's view. It is asked of pairs the
 epipolar test refused for their share alone (``min_inliers`` inliers, too few of the keypoints), and it
-fits its motion to the matches under its own, looser Lowe's ratio (``metric_ratio``, 0.9): here the
-reprojection test and the overlap keep chance matches out, and a far view's true matches are often
-ambiguous at 0.8 (a facade's repeated windows, a smaller scale). It adds to the
+fits its motion to the matches under its own, looser Lowe's ratio (``metric_ratio``, 0.9) that lie
+within ``ransac_threshold_px`` of the epipolar lines the epipolar test found: here the reprojection test
+and the overlap keep chance matches out, and a far view's true matches are often ambiguous at 0.8 (a
+facade's repeated windows, a smaller scale). Taking them by the geometry already fitted costs no second
+robust fit (a refit gives the same closures: 1,692 against 1,687 on the dense video's offline chain). It adds to the
 epipolar test, never removes from it: pairs with few keypoint depths (a keypoint on a depth edge
 samples the background) keep the epipolar decision.
 

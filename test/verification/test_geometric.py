@@ -22,10 +22,12 @@ from aefabmap_ros.verification.geometric import (
     VerificationConfig,
     cached_pair_verifier,
     count_epipolar_inliers,
+    fundamental_matrix,
     match_descriptors,
     rerank_by_inliers,
     verified_scores,
     verify_pair,
+    within_epipolar_distance,
 )
 from test.conftest import SHARED_DIR as SHARED
 
@@ -549,3 +551,50 @@ def test_descriptors_of_different_lengths_are_a_data_error_not_a_cv2_error() -> 
     short = Features(place.keypoints, np.ascontiguousarray(place.descriptors[:, :64]), place.descriptor_type)
     with pytest.raises(DataError, match="128-d descriptors against 64-d"):
         match_descriptors(query, short, 0.8)
+
+
+def _posed_pixels(count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels of ``count`` points in a query and a place camera (X_query = R X_place + t), and the true
+    fundamental matrix (x_place^T F x_query = 0) from the motion and K: the independent reference."""
+    rng = np.random.default_rng(seed)
+    camera = np.array([[FOCAL, 0.0, WIDTH / 2], [0.0, FOCAL, HEIGHT / 2], [0.0, 0.0, 1.0]])
+    rotation, translation = _rotation_y(0.2), np.array([0.8, 0.1, -2.0])
+    points = np.column_stack([rng.uniform(-6, 6, count), rng.uniform(-3, 3, count), rng.uniform(8, 30, count)])
+
+    def pixels(in_camera: np.ndarray) -> np.ndarray:
+        projected = in_camera @ camera.T
+        return (projected[:, :2] / projected[:, 2:]).astype(np.float32)
+
+    # The query camera in the place's frame: X_place = R^T X_query - R^T t, so E = [-R^T t]x R^T.
+    back_rotation, (x, y, z) = rotation.T, -rotation.T @ translation
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    inverse = np.linalg.inv(camera)
+    truth = inverse.T @ cross @ back_rotation @ inverse
+    return pixels(points @ rotation.T + translation), pixels(points), truth / np.linalg.norm(truth)
+
+
+def test_fundamental_matrix_is_the_motions_own() -> None:
+    query, place, truth = _posed_pixels(60, seed=1)
+    matrix, inliers = fundamental_matrix(query, place, VerificationConfig())
+    assert matrix is not None and inliers.all()
+    fitted = matrix / np.linalg.norm(matrix)
+    assert min(np.abs(fitted - truth).max(), np.abs(fitted + truth).max()) < 1e-3  # equal up to scale and sign
+    too_few, none = fundamental_matrix(query[:5], place[:5], VerificationConfig())
+    assert too_few is None and none.tolist() == [False] * 5
+
+
+def test_within_epipolar_distance_measures_pixels_from_the_epipolar_lines() -> None:
+    query, place, truth = _posed_pixels(200, seed=2)
+    assert within_epipolar_distance(truth, query, place, 1e-3).all()
+    moved = place + np.random.default_rng(3).normal(0.0, 2.0, place.shape).astype(np.float32)
+    # Brute force: x_place^T F x_query over the norm of each epipolar line's normal, in either image.
+    homogeneous_query = np.column_stack([query, np.ones(len(query))]).astype(np.float64)
+    homogeneous_place = np.column_stack([moved, np.ones(len(moved))]).astype(np.float64)
+    algebraic = np.abs(np.sum(homogeneous_place * (homogeneous_query @ truth.T), axis=1))
+    in_place = algebraic / np.linalg.norm((homogeneous_query @ truth.T)[:, :2], axis=1)
+    in_query = algebraic / np.linalg.norm((homogeneous_place @ truth)[:, :2], axis=1)
+    for threshold in (0.5, 2.0, 4.0):
+        expected = (in_place <= threshold) & (in_query <= threshold)
+        assert 0 < expected.sum() < len(expected)
+        np.testing.assert_array_equal(within_epipolar_distance(truth, query, moved, threshold), expected)
+    assert within_epipolar_distance(truth, query[:0], place[:0], 2.0).shape == (0,)
