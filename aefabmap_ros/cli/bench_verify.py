@@ -80,8 +80,8 @@ def _timed_with_depth(features: list[Features], depths: np.ndarray, camera: Came
         started = time.perf_counter()
         result = verify_pair(features[query], features[place], config, keypoint_depths)
         seconds.append(time.perf_counter() - started)
-        ran += result.metric is not None
-        accepted += result.metric is not None and result.accepted
+        ran += result.metric is not None and not result.epipolar_accepted
+        accepted += result.accepted and not result.epipolar_accepted
     return seconds, ran, accepted
 
 

@@ -498,12 +498,14 @@ class VerifierNode(Node):
         return TrackedMatch(place, 0.0, float("nan"), outcome.verification)
 
     def _verify_pair(self, query_ns: int, query: CoreFeatures, place: PlaceToVerify) -> Verification:
-        """The geometric check of one pair; with both frames' keypoint depths and the intrinsics, a pair the
-        epipolar test rejects gets the metric one (verification/metric.py)."""
+        """The geometric check of one pair; with both frames' keypoint depths and the intrinsics, the metric test
+        decides too (verification/metric.py)."""
         verification = verify_pair(query, place.features, self.config,
                                    self._keypoint_depths(query_ns, stamp_to_ns(place.stamp)))
-        if verification.metric is not None and verification.accepted:
+        if verification.accepted and not verification.epipolar_accepted:
             self.counter.ok("metric_test_accepted")
+        elif verification.epipolar_accepted and not verification.accepted:
+            self.counter.ok("metric_test_refused_no_view_overlap")
         return verification
 
     def _keypoint_depths(self, query_ns: int, place_ns: int) -> KeypointDepths | None:

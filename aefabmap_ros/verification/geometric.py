@@ -183,7 +183,10 @@ class Verification:
     matches: int  # descriptor matches that passed the ratio test
     inliers: int  # of those, consistent with the fitted fundamental matrix
     accepted: bool
-    metric: MetricCheck | None = None  # the metric test's outcome, when it ran (the epipolar test rejected)
+    metric: MetricCheck | None = None  # the metric test's outcome, when it ran (it needs depth)
+    # The epipolar test's own decision: with depth, the metric test may accept a pair it refused for its share
+    # of the keypoints, or refuse one it accepted whose views do not overlap.
+    epipolar_accepted: bool = False
     # (M, 2) keypoint rows of the matches (query, place): an accepted pair's relative pose is computed from
     # the same matches without matching again. Not part of the outcome's value.
     matched_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -250,9 +253,10 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
                 depths: KeypointDepths | None = None) -> Verification:
     """Geometric verification of one candidate pair: enough inliers of one fundamental matrix, and enough
     of them for the two images' keypoint counts (``min_inlier_ratio``). With the keypoints' ``depths``
-    (aligned with ``query`` and ``place``), a pair that fails gets the metric test
-    (``verification.metric``): one rigid motion and overlapping views, fitted to the matches under
-    ``metric_ratio`` that lie on the fundamental matrix's epipolar lines. ``matched_rows`` are the matches
+    (aligned with ``query`` and ``place``), the metric test (``verification.metric``) decides too: a pair
+    refused for its share alone is accepted when its matches under ``metric_ratio`` that lie on the
+    fundamental matrix's epipolar lines fit one rigid motion under which the views overlap, and an accepted
+    pair whose inliers fit one motion under which they do not is refused. ``matched_rows`` are the matches
     of the test that decided."""
     neighbours = nearest_neighbours(query, place)
     rows = ratio_test_matches(neighbours, config.ratio)
@@ -262,12 +266,23 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     # The share of keypoints that fit one geometry: an overlap measure, independent of resolution.
     shared = inliers >= config.min_inlier_ratio * max(min(len(query), len(place)), 1)
     accepted = inliers >= config.min_inliers and shared
-    verification = Verification(matches=int(rows.shape[0]), inliers=inliers, accepted=accepted, matched_rows=rows)
+    verification = Verification(matches=int(rows.shape[0]), inliers=inliers, accepted=accepted, matched_rows=rows,
+                                epipolar_accepted=accepted)
+    if depths is None or not config.metric_min_inliers or fundamental is None:
+        return verification
+    if accepted:
+        # With depth the overlap is measured for every pair, not only for those the share refused: a pair whose
+        # inliers fit one motion under which the views barely overlap is the same corner seen from far round (the
+        # ground truth's edge, 50 degrees and 2 m apart), and a backend should not get it. Without a motion
+        # (keypoints without depth) the epipolar decision stands.
+        check = metric_check(query.keypoints, query_points[epipolar], place_points[epipolar], rows[epipolar, 1],
+                             depths, config.ransac_threshold_px, config.confidence, config.metric_min_inliers)
+        overlapping = check.inliers < config.metric_min_inliers or check.view_overlap >= config.metric_min_view_overlap
+        return replace(verification, accepted=overlapping, metric=check)
     # The metric test is for pairs refused for their share of the keypoints alone: enough matches fit one
     # geometry, but few for the images' keypoints, as when a street is seen again from further back. (Measured on
     # the dense synthetic video: every pair it accepted had >= 26 inliers here.)
-    if (accepted or depths is None or not config.metric_min_inliers or inliers < config.min_inliers
-            or fundamental is None):
+    if inliers < config.min_inliers:
         return verification
     if config.metric_ratio != config.ratio:
         # The matches at metric_ratio that fit the geometry already found: no second robust fit, whose cost on a

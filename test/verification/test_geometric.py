@@ -155,7 +155,8 @@ def test_a_true_second_view_is_accepted_with_its_correspondences_as_inliers() ->
     # The accepted pair keeps its matches (the relative pose uses them): the matcher's rows.
     assert result.matched_rows is not None
     np.testing.assert_array_equal(result.matched_rows, match_indices(query, place, ratio=0.8))
-    assert result == Verification(result.matches, result.inliers, True)  # the rows are not part of the value
+    # The rows are not part of the value.
+    assert result == Verification(result.matches, result.inliers, True, epipolar_accepted=True)
 
 
 def test_a_small_shared_part_of_two_busy_images_is_no_match() -> None:

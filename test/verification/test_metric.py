@@ -181,15 +181,32 @@ def test_wrong_depths_fit_no_motion() -> None:
     assert result.metric is not None and result.metric.inliers < 30 and not result.accepted
 
 
-def test_the_metric_test_runs_only_where_the_epipolar_one_refuses_and_can_be_turned_off() -> None:
+def test_an_accepted_pair_keeps_its_acceptance_where_the_views_overlap_and_the_test_can_be_turned_off() -> None:
     accepted = _scene(seed=6, shared=120, query_inside=0, query_outside=20, place_only=20)
     result = verify_pair(accepted.query, accepted.place, VerificationConfig(), accepted.depths)
-    assert result.accepted and result.metric is None
+    assert result.accepted and result.epipolar_accepted
+    assert result.metric is not None and result.metric.view_overlap == pytest.approx(120 / 140, abs=0.02)
     far = _scene(seed=7, shared=40, query_inside=300, query_outside=0, place_only=300)
     off = verify_pair(far.query, far.place, VerificationConfig(metric_min_inliers=0), far.depths)
     assert not off.accepted and off.metric is None
     # More inliers asked than there are matches: not even tried.
     assert verify_pair(far.query, far.place, VerificationConfig(metric_min_inliers=60), far.depths).metric is None
+
+
+def test_an_accepted_pair_whose_views_do_not_overlap_is_refused_with_depth() -> None:
+    """70 consistent matches, 14 % of the place's keypoints: the epipolar test accepts. But the query's other
+    420 keypoints lie outside the place's view (the same corner seen from far round, or a copied facade in a
+    new street): under the motion the matches fit, 14 % of the query overlaps the place. With depth: refused."""
+    scene = _scene(seed=12, shared=70, query_inside=0, query_outside=420, place_only=300)
+    without = verify_pair(scene.query, scene.place, VerificationConfig())
+    assert without.accepted and without.epipolar_accepted and without.metric is None
+    result = verify_pair(scene.query, scene.place, VerificationConfig(), scene.depths)
+    assert result.epipolar_accepted and not result.accepted
+    assert result.metric is not None and result.metric.inliers >= 60
+    assert result.metric.view_overlap == pytest.approx(70 / 490, abs=0.01)
+    # No motion to judge by (no place keypoint has depth): the epipolar decision stands.
+    blind = replace(scene.depths, place=np.full_like(scene.depths.place, np.nan))
+    assert verify_pair(scene.query, scene.place, VerificationConfig(), blind).accepted
 
 
 def test_sequence_depths_give_the_metric_test_only_to_pairs_with_depth_on_both_sides() -> None:
