@@ -50,9 +50,10 @@ the essential matrix's (rotation and translation direction, ``translation_metric
 images) the depth at each stored keypoint is kept beside the features (same frame bound) and the
 pose is PnP's, in metres. With ``store_dir`` the depth at keypoints is saved there too (``depth-*.npz``
 beside the feature chunks, at the same times), so after a restart the reloaded places still give
-metric poses. With depth and intrinsics, a candidate the epipolar test rejects also gets the metric
-test (verification/metric.py: one rigid motion by PnP and overlapping views; counted as
-``metric_test_accepted`` when it accepts); the image size it needs comes from the features messages.
+metric poses. With depth and intrinsics the metric test decides too (verification/metric.py: one rigid
+motion by PnP and overlapping views): it accepts a candidate the epipolar test refused for its share of
+the keypoints (counted as ``metric_test_accepted``) and refuses one it accepted whose views do not
+overlap (``metric_test_refused_no_view_overlap``); the image size it needs comes from the features messages.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     pipeline_qos,
     report_when_connected,
+    result_qos,
     run_node,
 )
 from aefabmap_ros.nodes.messages import (
@@ -163,7 +165,8 @@ class TrackedMatch(NamedTuple):
 class VerifierNode(Node):
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("verifier_node", **node_kwargs)
-        depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the features subscription.")
+        depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the features, depth and CameraInfo "
+                                  "subscriptions, and of the candidates and posteriors (at least 100).")
         max_frames = declare_parameter(
             self, "max_stored_frames", 20000,
             "Frames whose features are kept for verification (the oldest are forgotten first).",
@@ -231,7 +234,9 @@ class VerifierNode(Node):
                                         self.counter)
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
-        counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, RESULT_QOS,
+        # As deep as the features queue: a verifier behind during a revisit must not lose the candidates and
+        # posteriors of the frames it has yet to reach.
+        counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, result_qos(depth),
                              self.counter)
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
         if depth_topic:
@@ -239,7 +244,7 @@ class VerifierNode(Node):
         if self.odometry_gate is not None:
             counted_subscription(self, Odometry, "odom", self._on_odometry, ODOMETRY_QOS, self.counter)
         if self.rerank or self.track.enabled:
-            counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS,
+            counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, result_qos(depth),
                                  self.counter)
         self.store_saver = PeriodicSave(
             self, None if self.store_folder is None else self.store_folder.folder, self._save_store,
