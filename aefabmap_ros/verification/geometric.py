@@ -42,7 +42,13 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.descriptors import BINARY, FLOAT, kind_of
 from aefabmap_ros.features.extraction import Features
-from aefabmap_ros.features.matching import check_features, match_indices, nearest_neighbours, ratio_test_matches
+from aefabmap_ros.features.matching import (
+    NearestNeighbours,
+    check_features,
+    match_indices,
+    nearest_neighbours,
+    ratio_test_matches,
+)
 from aefabmap_ros.io.chunk_folder import ChunkFolder
 from aefabmap_ros.io.npz_files import read_versioned_npz
 from aefabmap_ros.verification.metric import KeypointDepths, MetricCheck, metric_check
@@ -271,36 +277,52 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     if depths is None or not config.metric_min_inliers or fundamental is None:
         return verification
     if accepted:
-        # With depth the overlap is measured for every pair, not only for those the share refused: a pair whose
-        # inliers fit one motion under which the views barely overlap is the same corner seen from far round (the
-        # ground truth's edge, 50 degrees and 2 m apart), and a backend should not get it. Without a motion
-        # (keypoints without depth) the epipolar decision stands.
-        check = metric_check(query.keypoints, query_points[epipolar], place_points[epipolar], rows[epipolar, 1],
-                             depths, config.ransac_threshold_px, config.confidence, config.metric_min_inliers)
-        overlapping = check.inliers < config.metric_min_inliers or check.view_overlap >= config.metric_min_view_overlap
-        return replace(verification, accepted=overlapping, metric=check)
+        return _refused_without_overlap(verification, query, query_points[epipolar], place_points[epipolar],
+                                        rows[epipolar, 1], depths, config)
     # The metric test is for pairs refused for their share of the keypoints alone: enough matches fit one
     # geometry, but few for the images' keypoints, as when a street is seen again from further back. (Measured on
     # the dense synthetic video: every pair it accepted had >= 26 inliers here.)
     if inliers < config.min_inliers:
         return verification
-    if config.metric_ratio != config.ratio:
-        # The matches at metric_ratio that fit the geometry already found: no second robust fit, whose cost on a
-        # verifier busy with a revisit would be paid for every candidate refused for its share.
-        rows = ratio_test_matches(neighbours, config.metric_ratio)
-        query_points, place_points = matched_points(query, place, rows)
-        epipolar = within_epipolar_distance(fundamental, query_points, place_points, config.ransac_threshold_px)
-    # A rigid motion's inliers fit its epipolar geometry too, so PnP runs on the epipolar inliers: a far cleaner
-    # set than all matches, which its RANSAC gets through in a few iterations instead of its 1,000 (and with
-    # fewer of them than the metric test asks, it cannot pass).
-    if np.count_nonzero(epipolar) < config.metric_min_inliers:
+    return _accepted_by_metric_test(verification, query, place, neighbours, fundamental, depths, config)
+
+
+def _motion_check(query: Features, query_points: np.ndarray, place_points: np.ndarray, place_rows: np.ndarray,
+                  depths: KeypointDepths, config: VerificationConfig) -> tuple[MetricCheck, bool, bool]:
+    """The metric test on matches that fit the epipolar geometry (a rigid motion's inliers fit it too, so PnP's
+    RANSAC gets through them in a few iterations): its outcome, whether a motion was found, whether the views
+    overlap under it."""
+    check = metric_check(query.keypoints, query_points, place_points, place_rows, depths,
+                         config.ransac_threshold_px, config.confidence, config.metric_min_inliers)
+    return check, check.inliers >= config.metric_min_inliers, check.view_overlap >= config.metric_min_view_overlap
+
+
+def _refused_without_overlap(verification: Verification, query: Features, query_points: np.ndarray,
+                             place_points: np.ndarray, place_rows: np.ndarray, depths: KeypointDepths,
+                             config: VerificationConfig) -> Verification:
+    """An accepted pair whose inliers fit one motion under which the views barely overlap is refused: the same
+    corner seen from far round (the ground truth's edge, 50 degrees and 2 m apart), which a backend should not
+    get. Without a motion (keypoints without depth) the epipolar decision stands."""
+    check, moved, overlapping = _motion_check(query, query_points, place_points, place_rows, depths, config)
+    return replace(verification, accepted=overlapping or not moved, metric=check)
+
+
+def _accepted_by_metric_test(verification: Verification, query: Features, place: Features,
+                             neighbours: NearestNeighbours, fundamental: np.ndarray, depths: KeypointDepths,
+                             config: VerificationConfig) -> Verification:
+    """A pair refused for its share, accepted when its matches at ``metric_ratio`` that fit the epipolar geometry
+    already found (no second robust fit, whose cost on a verifier busy with a revisit would be paid for every
+    candidate refused so) fit one rigid motion under which the views overlap."""
+    rows = ratio_test_matches(neighbours, config.metric_ratio)
+    query_points, place_points = matched_points(query, place, rows)
+    on_lines = within_epipolar_distance(fundamental, query_points, place_points, config.ransac_threshold_px)
+    if np.count_nonzero(on_lines) < config.metric_min_inliers:  # it cannot pass: not tried
         return verification
-    check = metric_check(query.keypoints, query_points[epipolar], place_points[epipolar], rows[epipolar, 1],
-                         depths, config.ransac_threshold_px, config.confidence, config.metric_min_inliers)
-    metric_accepted = (check.inliers >= config.metric_min_inliers
-                       and check.view_overlap >= config.metric_min_view_overlap)
-    return replace(verification, accepted=metric_accepted, metric=check,
-                   matched_rows=rows if metric_accepted else verification.matched_rows)
+    check, moved, overlapping = _motion_check(query, query_points[on_lines], place_points[on_lines],
+                                              rows[on_lines, 1], depths, config)
+    accepted = moved and overlapping
+    return replace(verification, accepted=accepted, metric=check,
+                   matched_rows=rows if accepted else verification.matched_rows)
 
 
 PairVerifier = Callable[[int, int], Verification]
