@@ -37,12 +37,11 @@ keypoint depths (a keypoint on a depth edge samples the background) keep the epi
 Measured on the dense synthetic video (kitti00-trained autoencoder vocabulary, depth from the bag):
 recall over revisiting frames 0.551 -> 0.621 through the nodes (0.622 in the offline chain), 8 of 8
 events, no false closure (0.600 before session 26's metric_ratio and overlap of accepted pairs). A first
-version ran PnP on all matches: at 25 inliers it accepted a
-perpendicular view on the demo's town with a wrong motion (26 inliers, 90 % overlap under its own
-motion), so the default asks 30, a margin kept though 25 adds no false closure with PnP on the
-epipolar inliers (README, "Verification with depth"). What it does not stop: a look-alike built as a
-copy (the second synthetic town's copied corners) fits one motion and overlaps as a true revisit
-does; odometry refuses those (``backend.odometry_gate``).
+version ran PnP on all matches: at 25 inliers it accepted a perpendicular view on the demo's town with a
+wrong motion (26 inliers, 90 % overlap under its own motion), so the default asks 30, a margin kept though
+25 adds no false closure with PnP on the epipolar inliers (README, "Verification with depth"). What it
+does not stop: a look-alike built as a copy (the second synthetic town's copied corners) fits one motion
+and overlaps as a true revisit does; odometry refuses those (``backend.odometry_gate``).
 """
 
 from __future__ import annotations
