@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -68,21 +69,35 @@ def _timed_closures(stored: list[Features], config: VerificationConfig) -> tuple
     return seconds, accepted
 
 
+@dataclass(frozen=True)
+class DepthTiming:
+    """Verifying pairs with their keypoints' depth: the seconds of each, and what the metric test decided."""
+
+    seconds: list[float]
+    share_refused_tried: int  # pairs the epipolar test refused for their share that the metric test tried
+    share_refused_accepted: int  # of those, accepted
+    accepted_checked: int  # pairs the epipolar test accepted whose view overlap was measured
+    accepted_refused: int  # of those, refused: no overlap under their motion
+
+
 def _timed_with_depth(features: list[Features], depths: np.ndarray, camera: CameraModel,
-                      pairs: list[tuple[int, int]], config: VerificationConfig) -> tuple[list[float], int, int]:
-    """(seconds, pairs the metric test ran on, pairs it accepted) of verifying each pair with its keypoints'
-    depth (sampled beforehand, as verifier_node keeps it per keypoint)."""
+                      pairs: list[tuple[int, int]], config: VerificationConfig) -> DepthTiming:
+    """Verify each pair with its keypoints' depth (sampled beforehand, as verifier_node keeps it per keypoint)."""
     size = (depths.shape[2], depths.shape[1])
-    seconds, ran, accepted = [], 0, 0
+    seconds: list[float] = []
+    tried = accepted = checked = refused = 0
     for query, place in pairs:
         keypoint_depths = KeypointDepths(camera, size, depth_at_pixels(depths[query], features[query].keypoints),
                                          depth_at_pixels(depths[place], features[place].keypoints))
         started = time.perf_counter()
         result = verify_pair(features[query], features[place], config, keypoint_depths)
         seconds.append(time.perf_counter() - started)
-        ran += result.metric is not None and not result.epipolar_accepted
+        ran = result.metric is not None
+        tried += ran and not result.epipolar_accepted
         accepted += result.accepted and not result.epipolar_accepted
-    return seconds, ran, accepted
+        checked += ran and result.epipolar_accepted
+        refused += result.epipolar_accepted and not result.accepted
+    return DepthTiming(seconds, tried, accepted, checked, refused)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -135,10 +150,12 @@ def run(args: argparse.Namespace) -> int:
                 accepted = sum(1 for n in inliers if n >= config.min_inliers)
                 print(f"  verify {name:12s}   {_ms(total)}  (matching {np.median(matching) * 1e3:.2f} ms); "
                       f"accepted {accepted}/{len(pairs)}, median inliers {np.median(inliers):.0f}")
-                with_depth, ran, metric_accepted = _timed_with_depth(features, sequence.depths,
-                                                                     CameraModel(sequence.camera_matrix), pairs, config)
-                print(f"    with depth           {_ms(with_depth)}  ({np.median(with_depth) / np.median(total):.2f}x "
-                      f"without; the metric test ran on {ran}, accepted {metric_accepted})")
+                depth = _timed_with_depth(features, sequence.depths, CameraModel(sequence.camera_matrix), pairs,
+                                          config)
+                print(f"    with depth           {_ms(depth.seconds)}  "
+                      f"({np.median(depth.seconds) / np.median(total):.2f}x without; the metric test ran on "
+                      f"{depth.share_refused_tried} refused for their share, accepted {depth.share_refused_accepted}; "
+                      f"on {depth.accepted_checked} accepted, refused {depth.accepted_refused})")
             stored = [kept for stamp in range(len(features)) if (kept := store.get(stamp)) is not None]
             closure_s, closures_accepted = _timed_closures(stored, config)
             print(f"  per closure, {config.candidates} cand. {_ms(closure_s)}  "
