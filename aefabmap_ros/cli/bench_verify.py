@@ -11,7 +11,8 @@ per loop closure (re-ranking), extraction once per image. "per closure" is verif
 one closure on its stored features (the strongest 500 keypoints): the matched place, then, when
 it is accepted, the other candidates (here the 4 frames before it). Also what a pair
 costs with depth ("with depth": the same pairs verified with the rendered depth at their keypoints,
-so a pair the epipolar test refuses gets the metric test), as a ratio to the same pairs without.
+so the metric test tries a pair the epipolar test refused for its share and checks the view overlap
+of one it accepted), as a ratio to the same pairs without.
 """
 
 from __future__ import annotations

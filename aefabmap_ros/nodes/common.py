@@ -42,15 +42,15 @@ def _reliable_volatile(depth: int) -> QoSProfile:
 
 # Results are few and must not be lost: reliable, and deep enough for a slow backend to catch up.
 RESULT_QOS = _reliable_volatile(100)
-
-
-def result_qos(depth: int) -> QoSProfile:
-    """RESULT_QOS at least ``depth`` deep: for a node that may fall behind per-frame results (place_posteriors)."""
-    return _reliable_volatile(max(depth, 100))
 # Odometry comes at 50-200 Hz on a robot while a node may spend 0.1-1 s on one loop closure (verification
 # of 5 candidates, an iSAM2 update): 100 messages would cover half a second of it. The odometry gate and the
 # backend interpolate between consecutive messages, so each lost one widens a gap; they are ~700 bytes.
 ODOMETRY_QOS = _reliable_volatile(2000)
+
+
+def result_qos(depth: int) -> QoSProfile:
+    """RESULT_QOS, at least ``depth`` deep: for a node that may fall behind per-frame results (place_posteriors)."""
+    return _reliable_volatile(max(depth, RESULT_QOS.depth))
 
 
 def pipeline_qos(depth: int) -> QoSProfile:

@@ -102,7 +102,8 @@ class VerificationConfig:
     metric_min_view_overlap: float = field(
         default=0.5,
         metadata={"description": "The metric test's overlap: at least this share of the query's keypoints with "
-                  "depth land in the place's view under that motion, in [0, 1]."},
+                  "depth land in the place's view under that motion, in [0, 1]; asked too of a pair the epipolar "
+                  "test accepts whose inliers fit one motion."},
     )
     metric_ratio: float = field(
         default=0.9,
