@@ -356,10 +356,12 @@ def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt
 
 def verified_result(result: MethodResult, verification: tuple[VerificationConfig, PairVerifier],
                     gt: np.ndarray, min_gap: int) -> MethodResult:
-    """``result`` after geometric verification of each query's best ``candidates`` candidates."""
+    """``result`` after geometric verification of each query's best ``candidates`` candidates (and, when they
+    all fail, the next ``more_candidates``)."""
     verification_config, verify = verification
     started = time.monotonic()
-    scores = verified_scores(result.scores, verify, verification_config.candidates, min_gap)
+    scores = verified_scores(result.scores, verify, verification_config.candidates, min_gap,
+                             verification_config.more_candidates)
     return replace(result, scores=scores, verified=True, seconds=result.seconds + time.monotonic() - started,
                    reliability=None, online=None,
                    metrics=evaluate_scores(scores, gt, min_gap, result.metrics.threshold))

@@ -163,7 +163,9 @@ class FabMapConfig:
         },
     )
     top_k: int = field(
-        default=5, metadata={"description": "Number of best place candidates reported per query."}
+        default=10,
+        metadata={"description": "Number of best place candidates reported per query (verifier_node verifies "
+                  "the best candidates plus more_candidates of them)."},
     )
     min_words: int = field(
         default=DEFAULT_MIN_WORDS,

@@ -26,6 +26,14 @@ queries 60 and 68 are 4 and 3 frames ahead of the view with the most inliers, ju
 labelled revisit. The inlier count measures the shared scene directly. The confidence of the match
 stays the appearance score of the best-ranked accepted candidate, so re-ranking changes which place
 a query is matched to, not how confident the detection is.
+
+Deeper search: when every one of the best candidates fails, the next ``more_candidates`` are verified
+and re-ranked alike (the offline protocol and loop tracking; a loop closure's own verification stops at
+a refused best candidate, FAB-MAP's detection). On dense video the true place often sits at rank 6-10
+behind look-alike frames of one stretch: on the dense synthetic video with depth, a true place is among
+the best 5 for 1,878 of the 2,711 revisiting frames and among the best 10 for 2,015, and the offline
+recall at 100 % precision rises 0.580 -> 0.602 with no false match; on ``rtabmap_samples`` 0.773 ->
+0.795. A query whose best candidates hold a match verifies no more than before.
 """
 
 from __future__ import annotations
@@ -118,6 +126,14 @@ class VerificationConfig:
                   "one with the most inliers is the match (re-ranking; 1 = verify only the best; online, "
                   "fabmap_node's top_k bounds it) (>= 1)."},
     )
+    more_candidates: int = field(
+        default=5,
+        metadata={"description": "When none of the best candidates is accepted, the next this many are verified and "
+                  "re-ranked alike (0 = off, >= 0): the offline protocol's and loop tracking's deeper search. A "
+                  "loop closure's own verification is not searched deeper: a refused best candidate refuses it. "
+                  "Measured on the dense synthetic video with depth: offline recall at 100 % precision 0.580 -> "
+                  "0.602, no false match added; an accepted query costs what it did."},
+    )
 
     track_seconds: float = field(
         default=1.0,
@@ -150,7 +166,8 @@ class VerificationConfig:
         def bad(name: str, rule: str) -> ConfigError:
             return ConfigError(f"VerificationConfig.{name} = {getattr(self, name)!r}: must be {rule}")
 
-        for name in ("min_inliers", "max_iterations", "candidates", "track_frames", "metric_min_inliers"):
+        for name in ("min_inliers", "max_iterations", "candidates", "more_candidates", "track_frames",
+                     "metric_min_inliers"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 raise bad(name, "an integer")
@@ -178,7 +195,8 @@ class VerificationConfig:
             raise bad("max_iterations", ">= 1")
         if self.candidates < 1:
             raise bad("candidates", ">= 1")
-        for name in ("track_seconds", "track_island_seconds", "track_min_age_seconds", "track_frames"):
+        for name in ("track_seconds", "track_island_seconds", "track_min_age_seconds", "track_frames",
+                     "more_candidates"):
             if getattr(self, name) < 0:
                 raise bad(name, ">= 0")
 
@@ -374,17 +392,22 @@ class Reranked:
 
 
 def rerank_by_inliers(
-    candidates: Sequence[CandidateT], verify: Callable[[CandidateT], Verification], require_best: bool = False
+    candidates: Sequence[CandidateT], verify: Callable[[CandidateT], Verification], require_best: bool = False,
+    first: int = 0,
 ) -> Reranked | None:
     """Verify ``candidates`` (ranked best first); the accepted one with the most inliers wins.
 
     Ranks in the result index ``candidates``. Ties in inliers go to the better-ranked candidate. With
     ``require_best`` a rejected best candidate rejects the query and nothing else is tried (the
-    online verifier: the detection is the best candidate's). None when no candidate is accepted.
+    online verifier: the detection is the best candidate's). With ``first`` > 0 the best ``first``
+    candidates decide when one of them is accepted, and the others are verified only when all of them
+    fail (``VerificationConfig.more_candidates``), re-ranked alike. None when no candidate is accepted.
     """
     winner: tuple[int, Verification] | None = None
     best_accepted = -1
     for rank, candidate in enumerate(candidates):
+        if rank == first and winner is not None:
+            break  # the best ones hold a match: the deeper search is for queries whose best all failed
         result = verify(candidate)
         if not result.accepted:
             if rank == 0 and require_best:
@@ -399,26 +422,29 @@ def rerank_by_inliers(
     return Reranked(winner=winner[0], verification=winner[1], best_accepted=best_accepted)
 
 
-def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, min_gap: int) -> np.ndarray:
+def verified_scores(scores: np.ndarray, verify: PairVerifier, candidates: int, min_gap: int,
+                    more_candidates: int = 0) -> np.ndarray:
     """Score matrix after verification and re-ranking: one entry per query that has an accepted candidate.
 
     For query i, the eligible places j <= i - min_gap with a positive score are ranked best first
     (ties: the most recent first, as the metrics pick them) and the best ``candidates`` of them are
-    verified. The accepted place with the most inliers gets the score of the best-ranked accepted
-    place; every other entry of row i is 0. A query whose candidates all fail has no loop candidate.
+    verified; when none is accepted, the next ``more_candidates`` (re-ranked alike). The accepted place
+    with the most inliers gets the score of the best-ranked accepted place; every other entry of row i
+    is 0. A query whose candidates all fail has no loop candidate.
     """
     matrix = np.asarray(scores, dtype=np.float64)
     if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
         raise DataError(f"scores must be a square (N, N) matrix, got shape {matrix.shape}")
-    if candidates < 1 or min_gap < 1:
-        raise ConfigError(f"candidates ({candidates}) and min_gap ({min_gap}) must be >= 1")
+    if candidates < 1 or min_gap < 1 or more_candidates < 0:
+        raise ConfigError(f"candidates ({candidates}) and min_gap ({min_gap}) must be >= 1, more_candidates "
+                          f"({more_candidates}) >= 0")
     out = np.zeros_like(matrix)
     for query in range(min_gap, matrix.shape[0]):
         row = matrix[query, : query - min_gap + 1]
         # Best first; among equal scores the most recent place (the metrics' tie rule).
-        order = np.lexsort((-np.arange(row.size), -row))[:candidates]
+        order = np.lexsort((-np.arange(row.size), -row))[: candidates + more_candidates]
         ranked = order[row[order] > 0.0]
-        outcome = rerank_by_inliers(ranked.tolist(), partial(verify, query))
+        outcome = rerank_by_inliers(ranked.tolist(), partial(verify, query), first=candidates)
         if outcome is not None:
             out[query, ranked[outcome.winner]] = row[ranked[outcome.best_accepted]]
     return out

@@ -209,6 +209,7 @@ def test_too_few_matches_give_no_model() -> None:
     ("min_inlier_ratio", 1.5, r"in \[0, 1\]"),
     ("ransac_threshold_px", 0.0, "> 0"), ("confidence", 1.0, r"in \(0, 1\)"), ("max_iterations", 0, ">= 1"),
     ("candidates", 0, ">= 1"), ("min_inliers", True, "an integer"), ("ratio", float("nan"), "finite"),
+    ("more_candidates", -1, ">= 0"), ("more_candidates", 2.0, "an integer"),
 ])
 def test_config_validation(field: str, value: object, message: str) -> None:
     with pytest.raises(ConfigError, match=f"VerificationConfig.{field}.*{message}"):
@@ -261,24 +262,49 @@ def test_rerank_ties_go_to_the_better_ranked_and_require_best_stops_at_a_rejecte
     assert rerank_by_inliers(["c"], verify) is None and rerank_by_inliers([], verify) is None
 
 
+def test_rerank_searches_deeper_only_when_every_best_candidate_fails() -> None:
+    results = {"refused": Verification(50, 5, False), "weak": Verification(50, 30, True),
+               "strong": Verification(50, 90, True), "deep": Verification(50, 60, True)}
+    calls: list[str] = []
+
+    def verify(name: str) -> Verification:
+        calls.append(name)
+        return results[name]
+
+    # The best two hold a match: the deeper candidates are never verified, however many inliers they have.
+    outcome = rerank_by_inliers(["refused", "weak", "strong", "deep"], verify, first=2)
+    assert outcome == Reranked(winner=1, verification=results["weak"], best_accepted=1) and len(calls) == 2
+    calls.clear()
+    # Both best refused: the rest are verified and re-ranked among themselves, ranks still index the whole list.
+    outcome = rerank_by_inliers(["refused", "refused", "deep", "strong"], verify, first=2)
+    assert outcome == Reranked(winner=3, verification=results["strong"], best_accepted=2) and len(calls) == 4
+    calls.clear()
+    # A loop closure's own verification (require_best) never goes deeper than a refused best.
+    assert rerank_by_inliers(["refused", "strong"], verify, require_best=True, first=1) is None and calls == ["refused"]
+
+
 @settings(max_examples=60, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(1, 6), st.integers(1, 4))
-def test_verified_scores_equal_a_brute_force_reranking(seed: int, candidates: int, min_gap: int) -> None:
+@given(st.integers(0, 2**32 - 1), st.integers(1, 6), st.integers(1, 4), st.integers(0, 4))
+def test_verified_scores_equal_a_brute_force_reranking(seed: int, candidates: int, min_gap: int,
+                                                       more_candidates: int) -> None:
     """Reference: sort each row's eligible places in plain Python (score, then recency), verify the
-    best K with a positive score, keep the accepted one with most inliers (first on ties)."""
+    best K with a positive score, keep the accepted one with most inliers (first on ties); when none is
+    accepted, the same with the next ``more_candidates``."""
     rng = np.random.default_rng(seed)
     size = 9
     scores = np.round(rng.random((size, size)), 1) * (rng.random((size, size)) < 0.7)  # ties and zeros
     inliers = {(q, p): int(rng.integers(0, 60)) for q in range(size) for p in range(size)}
-    out = verified_scores(scores, FakeVerifier(inliers), candidates, min_gap)
+    out = verified_scores(scores, FakeVerifier(inliers), candidates, min_gap, more_candidates)
     expected = np.zeros((size, size))
     for query in range(min_gap, size):
         eligible = sorted(range(query - min_gap + 1), key=lambda p: (-scores[query, p], -p))
-        tried = [p for p in eligible[:candidates] if scores[query, p] > 0]
-        accepted = [p for p in tried if inliers[query, p] >= 20]
-        if accepted:
-            best = max(accepted, key=lambda p: (inliers[query, p], -tried.index(p)))
-            expected[query, best] = scores[query, accepted[0]]
+        for tried in (eligible[:candidates], eligible[candidates : candidates + more_candidates]):
+            tried = [p for p in tried if scores[query, p] > 0]
+            accepted = [p for p in tried if inliers[query, p] >= 20]
+            if accepted:
+                best = max(accepted, key=lambda p: (inliers[query, p], -tried.index(p)))
+                expected[query, best] = scores[query, accepted[0]]
+                break
     np.testing.assert_array_equal(out, expected)
 
 
@@ -306,6 +332,8 @@ def test_walk_rejects_bad_arguments() -> None:
         verified_scores(np.zeros((3, 4)), FakeVerifier(set()), 1, 1)
     with pytest.raises(ConfigError, match="must be >= 1"):
         verified_scores(np.zeros((3, 3)), FakeVerifier(set()), 0, 1)
+    with pytest.raises(ConfigError, match="more_candidates"):
+        verified_scores(np.zeros((3, 3)), FakeVerifier(set()), 1, 1, -1)
 
 
 # ----------------------------------------------------------------------------------- feature store
