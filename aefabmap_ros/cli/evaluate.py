@@ -29,10 +29,12 @@ can be reused with --model.
 
 With --verify every method gets a second row, "<method> + GV": each query's best candidates
 (verification: candidates, default 5) are checked geometrically -- descriptor matches with the
-ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers (default 20)
-inliers. Of the accepted ones, the candidate with the most inliers is the query's match and it
-carries the score of the best-ranked accepted one (none accepted: no candidate). verifier_node
-does the same online for every published loop closure.
+ratio test, a fundamental matrix by MAGSAC++, at least verification: min_inliers (default 25)
+inliers and min_inlier_ratio of the keypoints. Of the accepted ones, the candidate with the most
+inliers is the query's match and it carries the score of the best-ranked accepted one; when none
+is accepted, the next ones (evaluation: verify_more_candidates, default 5) are tried alike (none
+accepted: no candidate). verifier_node does the same online for every published loop closure,
+except that a refused best candidate refuses it (FAB-MAP's detection) and nothing deeper is tried.
 
 Every FAB-MAP method also runs the nodes' decision chain on the sequence with its own stamps (--rate
 for a folder): the config's fabmap section as fabmap_node uses it (places from dense video, recent

@@ -148,10 +148,9 @@ def _tracked(
     """verifier_node's loop tracking: the query's top candidates near the tracked place, then the frames
     nearest that place in time not tried yet; the best verified of the first group that has one wins."""
     stamp_ns = int(stamps[frame])
-    near = track.near(stamp_ns, candidates, lambda candidate: candidate.stamp_ns)[
-        : config.candidates + config.more_candidates]
+    near = track.near(stamp_ns, candidates, lambda candidate: candidate.stamp_ns)[: config.candidates]
     frames = [place_frames[c.place_id] for c in near]
-    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place), first=config.candidates)
+    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place))
     if outcome is not None:
         winner = near[outcome.winner]
         return ChainClosure(frame, frames[outcome.winner], winner.probability, outcome.verification.inliers,

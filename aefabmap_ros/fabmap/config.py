@@ -163,9 +163,7 @@ class FabMapConfig:
         },
     )
     top_k: int = field(
-        default=10,
-        metadata={"description": "Number of best place candidates reported per query (verifier_node verifies "
-                  "the best candidates plus more_candidates of them)."},
+        default=5, metadata={"description": "Number of best place candidates reported per query."}
     )
     min_words: int = field(
         default=DEFAULT_MIN_WORDS,

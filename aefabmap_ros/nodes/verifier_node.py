@@ -470,11 +470,10 @@ class VerifierNode(Node):
     def _track_candidates(self, query_ns: int, query: CoreFeatures, posterior: PlacePosterior,
                           tried: set[int]) -> TrackedMatch | None:
         """The query's top candidates near the tracked place, best verified wins (their stamps go to ``tried``)."""
-        near = self.track.near(query_ns, self._posterior_places(posterior), lambda ranked: stamp_to_ns(
-            ranked[1].stamp))[: self.config.candidates + self.config.more_candidates]
+        near = self.track.near(query_ns, self._posterior_places(posterior),
+                               lambda ranked: stamp_to_ns(ranked[1].stamp))[: self.config.candidates]
         tried.update(stamp_to_ns(place.stamp) for _, place in near)
-        outcome = rerank_by_inliers(near, lambda ranked: self._verify_pair(query_ns, query, ranked[1]),
-                                    first=self.config.candidates)
+        outcome = rerank_by_inliers(near, lambda ranked: self._verify_pair(query_ns, query, ranked[1]))
         if outcome is None:
             return None
         rank, place = near[outcome.winner]

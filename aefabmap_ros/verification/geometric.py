@@ -27,16 +27,13 @@ labelled revisit. The inlier count measures the shared scene directly. The confi
 stays the appearance score of the best-ranked accepted candidate, so re-ranking changes which place
 a query is matched to, not how confident the detection is.
 
-Deeper search: when every one of the best candidates fails, the next ``more_candidates`` are verified
-and re-ranked alike (the offline protocol and loop tracking; a loop closure's own verification stops at
-a refused best candidate, FAB-MAP's detection). On dense video the true place often sits at rank 6-10
-behind look-alike frames of one stretch: on the dense synthetic video with depth, a true place is among
-the best 5 for 1,878 of the 2,711 revisiting frames and among the best 10 for 2,015, and the offline
-recall at 100 % precision rises 0.580 -> 0.602 with no false match; on ``rtabmap_samples`` 0.773 ->
-0.795. The price is more chances to accept a wrong pair: images only on the dense video, one pair on the
-ground truth's edge (the same corner 45 degrees round, 12.0 % of the keypoints; depth's view overlap
-refuses it) caps that recall at 0.509 instead of 0.532. A query whose best candidates hold a match
-verifies no more than before.
+Deeper search (the evaluation's "+ GV" rows, ``EvaluationConfig.verify_more_candidates``): when every
+one of a query's best candidates fails, the next ones are verified and re-ranked alike. On dense video
+the true place often sits at rank 6-10 behind look-alike frames of one stretch: on the dense synthetic
+video a true place is among the best 5 for 1,878 of the 2,711 revisiting frames and among the best 10
+for 2,015. Online a loop closure's own verification stops at a refused best candidate (FAB-MAP's
+detection), and loop tracking keeps to the best ``candidates``: searching deeper there added 8 closures
+on the dense video and one on the demo town's ground-truth edge.
 """
 
 from __future__ import annotations
@@ -129,15 +126,6 @@ class VerificationConfig:
                   "one with the most inliers is the match (re-ranking; 1 = verify only the best; online, "
                   "fabmap_node's top_k bounds it) (>= 1)."},
     )
-    more_candidates: int = field(
-        default=5,
-        metadata={"description": "When none of the best candidates is accepted, the next this many are verified and "
-                  "re-ranked alike (0 = off, >= 0): the offline protocol's and loop tracking's deeper search. A "
-                  "loop closure's own verification is not searched deeper: a refused best candidate refuses it. "
-                  "Measured on the dense synthetic video: offline recall at 100 % precision 0.580 -> 0.602 with "
-                  "depth, no false match added; images only 0.532 -> 0.509, one ground-truth-edge match added; an "
-                  "accepted query costs what it did."},
-    )
 
     track_seconds: float = field(
         default=1.0,
@@ -170,8 +158,7 @@ class VerificationConfig:
         def bad(name: str, rule: str) -> ConfigError:
             return ConfigError(f"VerificationConfig.{name} = {getattr(self, name)!r}: must be {rule}")
 
-        for name in ("min_inliers", "max_iterations", "candidates", "more_candidates", "track_frames",
-                     "metric_min_inliers"):
+        for name in ("min_inliers", "max_iterations", "candidates", "track_frames", "metric_min_inliers"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 raise bad(name, "an integer")
@@ -199,8 +186,7 @@ class VerificationConfig:
             raise bad("max_iterations", ">= 1")
         if self.candidates < 1:
             raise bad("candidates", ">= 1")
-        for name in ("track_seconds", "track_island_seconds", "track_min_age_seconds", "track_frames",
-                     "more_candidates"):
+        for name in ("track_seconds", "track_island_seconds", "track_min_age_seconds", "track_frames"):
             if getattr(self, name) < 0:
                 raise bad(name, ">= 0")
 
@@ -405,7 +391,7 @@ def rerank_by_inliers(
     ``require_best`` a rejected best candidate rejects the query and nothing else is tried (the
     online verifier: the detection is the best candidate's). With ``first`` > 0 the best ``first``
     candidates decide when one of them is accepted, and the others are verified only when all of them
-    fail (``VerificationConfig.more_candidates``), re-ranked alike. None when no candidate is accepted.
+    fail (the evaluation's deeper search), re-ranked alike. None when no candidate is accepted.
     """
     winner: tuple[int, Verification] | None = None
     best_accepted = -1

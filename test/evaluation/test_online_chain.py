@@ -57,11 +57,11 @@ def test_consistent_candidates_and_verified_closures():
     assert [b.query_frame for b in result.best] == list(range(3, 10))
     assert (result.best[5].matched_frame, result.candidates[0].probability) == (2, result.best[5].probability)
     # Every place each posterior reports (top_k), best first: what the ranking found. Only places at least
-    # 3 s old are hypotheses: frame 3 ranks the one place of 0 s, frame 7 (no candidate) all five (top_k is more),
+    # 3 s old are hypotheses: frame 3 ranks the one place of 0 s, frame 7 (no candidate) the top_k of its five,
     # scene 1 first.
     assert [frame for query, frame in result.ranked if query == 3] == [0]
     ranked_by_7 = [frame for query, frame in result.ranked if query == 7]
-    assert ranked_by_7[0] == 1 and sorted(ranked_by_7) == [0, 1, 2, 3, 4] and CONFIG.top_k >= 5
+    assert ranked_by_7[0] == 1 and sorted(ranked_by_7) == [0, 1, 2, 3, 4] and CONFIG.top_k == 5
     assert all(query - frame >= 3 for query, frame in result.ranked)
     assert {(b.query_frame, b.matched_frame) for b in result.best} <= set(result.ranked)
 

@@ -12,18 +12,21 @@ from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.metrics import evaluate_scores
 from aefabmap_ros.evaluation.protocol import (
     EvaluationConfig,
+    MethodResult,
     evaluate_model,
     fabmap_evaluation_config,
     fabmap_posterior_matrix,
     leave_one_out_samples,
     model_tree,
     tfidf_matrix,
+    verified_result,
 )
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.model.directory import Model
+from aefabmap_ros.verification.geometric import VerificationConfig
 from aefabmap_ros.vocabulary.base import VocabularyConfig
 from aefabmap_ros.vocabulary.kmeans import train_kmeans_quantizer
 from test.conftest import require_shared
@@ -165,6 +168,8 @@ def test_tfidf_matrix_is_core_tfidf():
     ({"threshold": 1.5}, "threshold=1.5"),
     ({"bow_threshold": -0.1}, "bow_threshold=-0.1"),
     ({"fabmap_exclude_recent": -2}, "fabmap_exclude_recent=-2"),
+    ({"verify_more_candidates": -1}, "verify_more_candidates=-1"),
+    ({"verify_more_candidates": 1.0}, "verify_more_candidates=1.0"),
 ])
 def test_evaluation_config_errors(values, message):
     with pytest.raises(ConfigError, match=message):
@@ -223,3 +228,25 @@ def test_evaluate_model_errors():
     model.tree_matrix = None
     with pytest.raises(ModelError, match="has no Chow-Liu tree"):
         model_tree(model)
+
+
+def test_gv_rows_search_past_the_best_candidates_only_when_they_all_fail():
+    """Query 3's true place 0 is FAB-MAP's third: with 2 candidates the "+ GV" row misses it, with 1 more it is
+    found and keeps its own score (the best accepted one's); query 2's best candidate passes, so its deeper
+    candidate is never verified."""
+    from test.verification.test_geometric import FakeVerifier
+
+    scores = np.zeros((4, 4))
+    scores[3, :3] = [0.1, 0.2, 0.3]
+    scores[2, :2] = [0.4, 0.5]
+    gt = np.zeros((4, 4), np.uint8)
+    gt[3, 0] = gt[2, 1] = 1
+    result = MethodResult(name="AE-FABMAP", vocabulary_kind="autoencoder", vocabulary_size=4, vocabulary_id="v",
+                          scores=scores, metrics=evaluate_scores(scores, gt, 1, 0.99), seconds=0.0)
+    verify = FakeVerifier({(3, 0), (2, 1), (2, 0)})
+    shallow = verified_result(result, (VerificationConfig(candidates=2), verify), gt, 1)
+    assert shallow.scores[3].sum() == 0.0 and shallow.metrics.recall_at_100_precision == 0.5
+    verify.calls.clear()
+    deep = verified_result(result, (VerificationConfig(candidates=1), verify), gt, 1, more_candidates=2)
+    assert deep.scores[3, 0] == 0.1 and deep.scores[2, 1] == 0.5 and deep.metrics.recall_at_100_precision == 1.0
+    assert (2, 0) not in verify.calls and verify.calls[-3:] == [(3, 2), (3, 1), (3, 0)]

@@ -654,30 +654,6 @@ def test_verifier_node_tracks_a_verified_loop_through_frames_without_a_candidate
         node.destroy_node()
 
 
-@pytest.mark.parametrize(("more_candidates", "tracked"), [(1, True), (0, False)])
-def test_verifier_node_tracking_searches_past_its_best_candidates_only_when_they_fail(more_candidates: int,
-                                                                                     tracked: bool) -> None:
-    from test.verification.test_geometric import _two_views
-
-    query, place, _ = _two_views(seed=26)
-    _, unrelated, _ = _two_views(seed=27)
-    node = VerifierNode(parameter_overrides=_params(candidates=1, more_candidates=more_candidates, track_seconds=2.0,
-                                                    track_island_seconds=3.0, track_frames=0))
-    try:
-        verified = Captured(node.publisher)
-        for sec, features in ((1, place), (2, unrelated), (10, query), (11, query)):
-            node._on_features(_features_message(features, sec))
-        node._on_loop_closure(_closure(10, 1, query_id=100))
-        node._on_posterior(_posterior(10, [1, 2]))  # the detection, verified: the track starts
-        # The frame's best candidate near the track (2) fails geometry; the next (1) is the deeper search's.
-        node._on_posterior(_posterior(11, [2, 1], candidate=False))
-        closures = [(m.header.stamp.sec, m.matched_place_id) for m in verified.messages]
-        assert closures == ([(10, 1), (11, 1)] if tracked else [(10, 1)])
-        assert node.counter.counts.get("accepted_by_tracking", 0) == int(tracked)
-    finally:
-        node.destroy_node()
-
-
 def test_verifier_node_tracks_a_loop_through_the_stored_frames_next_to_the_verified_place() -> None:
     from test.verification.test_geometric import _two_views
 

@@ -209,7 +209,6 @@ def test_too_few_matches_give_no_model() -> None:
     ("min_inlier_ratio", 1.5, r"in \[0, 1\]"),
     ("ransac_threshold_px", 0.0, "> 0"), ("confidence", 1.0, r"in \(0, 1\)"), ("max_iterations", 0, ">= 1"),
     ("candidates", 0, ">= 1"), ("min_inliers", True, "an integer"), ("ratio", float("nan"), "finite"),
-    ("more_candidates", -1, ">= 0"), ("more_candidates", 2.0, "an integer"),
 ])
 def test_config_validation(field: str, value: object, message: str) -> None:
     with pytest.raises(ConfigError, match=f"VerificationConfig.{field}.*{message}"):
