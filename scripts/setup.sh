@@ -124,7 +124,21 @@ install_package() {
   mark_done package "$hash"
 }
 
+# One set-up at a time per venv: the demo started while the test command's first set-up still installs would
+# run a second pip into the same half-built venv and fail on its half-installed distributions. The second run
+# waits here, then finds every stage done.
+wait_for_other_setup() {
+  command -v flock >/dev/null 2>&1 || return 0
+  mkdir -p "$(dirname "$VENV")"
+  exec 9>"$VENV.setup-lock"
+  if ! flock -n 9; then
+    log "another set-up of $VENV is running: waiting for it"
+    flock 9
+  fi
+}
+
 main() {
+  wait_for_other_setup
   ensure_system_tools
   create_venv
   install_requirements
