@@ -102,7 +102,14 @@ def record(args: argparse.Namespace) -> int:
             started = time.monotonic()
             try:
                 while rclpy.ok():
-                    rclpy.spin_once(node, timeout_sec=0.1)
+                    try:
+                        rclpy.spin_once(node, timeout_sec=0.1)
+                    except Exception:
+                        if rclpy.ok():
+                            raise
+                        # Ctrl-C shut the context down between the check and the wait (rclpy raises "context is
+                        # not valid"): a stop like any other, which must not throw away what was recorded.
+                        break
                     now = time.monotonic()
                     if args.duration > 0 and now - started >= args.duration:
                         break

@@ -72,6 +72,23 @@ def test_record_refuses_existing_output(tmp_path: Path, capsys: pytest.CaptureFi
     assert "already exists" in capsys.readouterr().err
 
 
+@pytest.mark.ros
+def test_record_keeps_its_bag_when_ctrl_c_shuts_rclpy_down_during_a_wait(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The demo lost a whole recording so: the signal handler shut the context down between rclpy.ok() and
+    spin_once, which then raised, and the bag writer discarded the unfinished bag."""
+    rclpy = pytest.importorskip("rclpy")
+
+    def interrupted_wait(node: Any, timeout_sec: float) -> None:
+        rclpy.shutdown()
+        raise RuntimeError("failed to initialize wait set: the given context is not valid")
+
+    monkeypatch.setattr(rclpy, "spin_once", interrupted_wait)
+    output = tmp_path / "recording"
+    assert record.main([str(output), "--duration", "5"]) == 0
+    assert output.is_dir() and any(output.iterdir())
+
+
 def test_launch_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert launch.main(["--model", str(tmp_path / "none")]) == 1
     assert "is not a directory" in capsys.readouterr().err
