@@ -12,7 +12,7 @@ one closure on its stored features (the strongest 500 keypoints): the matched pl
 it is accepted, the other candidates (here the 4 frames before it). Also what a pair
 costs with depth ("with depth": the same pairs verified with the rendered depth at their keypoints,
 so the metric test tries a pair the epipolar test refused for its share and checks the view overlap
-of one it accepted), as a ratio to the same pairs without.
+and covisibility of one it accepted), as a ratio to the same pairs without.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.verification.frame_depths import FrameDepths
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
     VerificationConfig,
@@ -35,7 +36,7 @@ from aefabmap_ros.verification.geometric import (
     verify_pair,
 )
 from aefabmap_ros.verification.metric import KeypointDepths
-from aefabmap_ros.verification.relative_pose import CameraModel, depth_at_pixels
+from aefabmap_ros.verification.relative_pose import CameraModel
 
 
 def _ms(values_s: list[float]) -> str:
@@ -83,13 +84,15 @@ class DepthTiming:
 
 def _timed_with_depth(features: list[Features], depths: np.ndarray, camera: CameraModel,
                       pairs: list[tuple[int, int]], config: VerificationConfig) -> DepthTiming:
-    """Verify each pair with its keypoints' depth (sampled beforehand, as verifier_node keeps it per keypoint)."""
+    """Verify each pair with its frames' depths (sampled beforehand as verifier_node keeps them: at the keypoints
+    and on the coarse grid of the covisibility test)."""
     size = (depths.shape[2], depths.shape[1])
     seconds: list[float] = []
     tried = accepted = checked = refused = 0
     for query, place in pairs:
-        keypoint_depths = KeypointDepths(camera, size, depth_at_pixels(depths[query], features[query].keypoints),
-                                         depth_at_pixels(depths[place], features[place].keypoints))
+        kept = [FrameDepths.sample(depths[frame], features[frame].keypoints) for frame in (query, place)]
+        keypoint_depths = KeypointDepths(camera, size, kept[0].keypoints, kept[1].keypoints, kept[0].grid,
+                                         kept[1].grid)
         started = time.perf_counter()
         result = verify_pair(features[query], features[place], config, keypoint_depths)
         seconds.append(time.perf_counter() - started)

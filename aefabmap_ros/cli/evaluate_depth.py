@@ -22,13 +22,14 @@ from aefabmap_ros.io import bags
 from aefabmap_ros.io.image_messages import depth_message_to_metres
 from aefabmap_ros.io.rgbd import list_depth_files, read_camera_info_yaml
 from aefabmap_ros.io.sources import ImageSource
-from aefabmap_ros.verification.geometric import SequenceDepths
-from aefabmap_ros.verification.relative_pose import (
-    CameraModel,
-    camera_info_to_model,
+from aefabmap_ros.verification.frame_depths import (
+    DepthGrid,
     depth_at_pixels,
     depth_image_to_metres,
+    sample_depth_grid,
 )
+from aefabmap_ros.verification.geometric import SequenceDepths
+from aefabmap_ros.verification.relative_pose import CameraModel, camera_info_to_model
 
 
 def sequence_depths(args: argparse.Namespace, source: ImageSource,
@@ -53,14 +54,16 @@ def sequence_depths(args: argparse.Namespace, source: ImageSource,
     images = (_depth_from_folder(args.depth, len(features)) if args.depth is not None
               else _depth_from_bag(args.bag, args.depth_topic, source.stamps_ns()))
     keypoint_depths: list[np.ndarray | None] = [None] * len(features)
+    depth_grids: list[DepthGrid | None] = [None] * len(features)
     for index, depth in images:  # one image at a time: a long sequence's depth does not fit in memory
         if (depth.shape[1], depth.shape[0]) != size:
             raise DataError(f"depth image {index} is {depth.shape[1]}x{depth.shape[0]}, the camera's images "
                             f"{size[0]}x{size[1]}")
         keypoint_depths[index] = depth_at_pixels(depth, features[index].keypoints[:, :2])
+        depth_grids[index] = sample_depth_grid(depth)
     if all(depths is None for depths in keypoint_depths):
         raise DataError(f"no depth image of {args.depth or args.depth_topic} belongs to a test image")
-    return SequenceDepths(camera, size, keypoint_depths)
+    return SequenceDepths(camera, size, keypoint_depths, depth_grids)
 
 
 def _camera_from_yaml(path: Path) -> tuple[CameraModel, tuple[int, int]]:

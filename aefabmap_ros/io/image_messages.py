@@ -11,7 +11,7 @@ from PIL import Image as PILImage
 
 from aefabmap_ros.errors import DataError, ImageTooLargeError
 from aefabmap_ros.features.images import decode_compressed, image_to_gray
-from aefabmap_ros.verification.relative_pose import depth_image_to_metres
+from aefabmap_ros.verification.frame_depths import depth_image_to_metres
 
 
 def image_message_pixels(message: Any) -> int | None:

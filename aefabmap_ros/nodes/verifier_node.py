@@ -47,13 +47,15 @@ reason in ``pose_status`` (counted). Intrinsics come from ``camera_info`` (``sen
 or the ``camera_matrix`` parameter (fx, fy, cx, cy; it wins when set). Without depth the pose is
 the essential matrix's (rotation and translation direction, ``translation_metric`` false); with
 ``depth_topic`` set (an aligned ``sensor_msgs/Image``, 16UC1 in mm or 32FC1 in m, stamped like the
-images) the depth at each stored keypoint is kept beside the features (same frame bound) and the
-pose is PnP's, in metres. With ``store_dir`` the depth at keypoints is saved there too (``depth-*.npz``
-beside the feature chunks, at the same times), so after a restart the reloaded places still give
-metric poses. With depth and intrinsics the metric test decides too (verification/metric.py: one rigid
-motion by PnP and overlapping views): it accepts a candidate the epipolar test refused for its share of
-the keypoints (counted as ``metric_test_accepted``) and refuses one it accepted whose views do not
-overlap (``metric_test_refused_no_view_overlap``); the image size it needs comes from the features messages.
+images) the depth at each stored keypoint and the depth image on a coarse grid (~12 KiB a frame,
+verification/frame_depths.py) are kept beside the features (same frame bound) and the pose is PnP's, in
+metres. With ``store_dir`` they are saved there too (``depth-*.npz`` beside the feature chunks, at the
+same times), so after a restart the reloaded places still give metric poses. With depth and intrinsics
+the metric test decides too (verification/metric.py: one rigid motion by PnP, under which the views
+overlap and the query's depth lands on the place's surface): it accepts a candidate the epipolar test
+refused for its share of the keypoints (counted as ``metric_test_accepted``) and refuses one it accepted
+whose views do not overlap or are not covisible (``metric_test_refused_no_view_overlap``); the image size
+it needs comes from the features messages.
 """
 
 from __future__ import annotations
@@ -102,6 +104,7 @@ from aefabmap_ros.nodes.messages import (
     time_from_ns,
 )
 from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.verification.frame_depths import FrameDepthFolder, FrameDepthStore
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
     FeatureStoreFolder,
@@ -115,8 +118,6 @@ from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimeline
 from aefabmap_ros.verification.metric import KeypointDepths
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
-    KeypointDepthFolder,
-    KeypointDepthStore,
     RelativePoseConfig,
     camera_info_to_model,
     relative_pose,
@@ -134,7 +135,9 @@ ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rota
 # The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
 # next closure on. The others size the store or the subscriptions at start-up and are refused.
 RUNTIME_SETTINGS = frozenset({"min_inliers", "min_inlier_ratio", "ratio", "ransac_threshold_px", "confidence",
-                              "max_iterations", "metric_min_inliers", "metric_min_view_overlap", "metric_ratio"})
+                              "max_iterations", "metric_min_inliers", "metric_min_view_overlap", "metric_ratio",
+                              "metric_min_covisibility", "metric_depth_tolerance_m",
+                              "metric_depth_relative_tolerance"})
 
 
 class PlaceToVerify(NamedTuple):
@@ -214,11 +217,11 @@ class VerifierNode(Node):
         self.store = FeatureStore(max_frames, max_features)
         self.camera = _camera_from_parameter(camera_matrix)
         self.camera_fixed = self.camera is not None
-        self.depths = KeypointDepthStore(max_frames) if depth_topic else None
+        self.depths = FrameDepthStore(max_frames) if depth_topic else None
         self.image_size: tuple[int, int] | None = None  # (width, height), from the features messages
         self.timeline = FrameTimeline(max_frames)  # the frames' places, for tracking through unranked frames
         self.store_folder = FeatureStoreFolder(Path(store_dir)) if store_dir else None
-        self.depth_folder = KeypointDepthFolder(Path(store_dir)) if store_dir and self.depths is not None else None
+        self.depth_folder = FrameDepthFolder(Path(store_dir)) if store_dir and self.depths is not None else None
         self.timeline_folder = FrameTimelineFolder(Path(store_dir)) if store_dir else None
         if store_dir:
             self._reload_stores(Path(store_dir))
@@ -252,7 +255,8 @@ class VerifierNode(Node):
         )
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
         metric_test = (f" or, with depth, >= {self.config.metric_min_inliers} PnP inliers (matches at ratio "
-                       f"{self.config.metric_ratio:g}) and {self.config.metric_min_view_overlap:.0%} view overlap"
+                       f"{self.config.metric_ratio:g}), {self.config.metric_min_view_overlap:.0%} view overlap and "
+                       f"{self.config.metric_min_covisibility:.0%} covisibility"
                        if depth_topic and self.config.metric_min_inliers else "")
         self.get_logger().info(
             f"verifying loop closures: >= {self.config.min_inliers} fundamental-matrix inliers and "
@@ -364,12 +368,18 @@ class VerifierNode(Node):
         rows = verification.matched_rows
         assert rows is not None, "verify_pair keeps the matched rows of every verification it returns"
         query_points, place_points = matched_points(query, place, rows)
-        keypoint_depths = None if self.depths is None else self.depths.get(stamp_to_ns(closure.matched_stamp))
-        # The depth store samples the stored keypoints in their order: a place row is its depth's index.
-        place_depths = None if keypoint_depths is None else keypoint_depths[rows[:, 1]].astype(np.float64)
-        outcome = relative_pose(query_points, place_points, self.camera, self.pose_config, place_depths)
+        # The depth store samples the stored keypoints in their order: a keypoint row is its depth's index.
+        place_depths = self._depths_at(stamp_to_ns(closure.matched_stamp), rows[:, 1])
+        query_depths = self._depths_at(stamp_to_ns(closure.header.stamp), rows[:, 0])
+        outcome = relative_pose(query_points, place_points, self.camera, self.pose_config, place_depths,
+                                None if place_depths is None else query_depths)
         fill_relative_pose(closure, outcome)
         self.counter.ok(f"pose_{outcome.status.name.lower()}")
+
+    def _depths_at(self, stamp_ns: int, keypoint_rows: np.ndarray) -> np.ndarray | None:
+        """The stored depths of a frame's keypoints ``keypoint_rows``; None when that frame has none."""
+        frame_depths = None if self.depths is None else self.depths.get(stamp_ns)
+        return None if frame_depths is None else frame_depths.keypoints[keypoint_rows].astype(np.float64)
 
     @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
@@ -503,23 +513,24 @@ class VerifierNode(Node):
         return TrackedMatch(place, 0.0, float("nan"), outcome.verification)
 
     def _verify_pair(self, query_ns: int, query: CoreFeatures, place: PlaceToVerify) -> Verification:
-        """The geometric check of one pair; with both frames' keypoint depths and the intrinsics, the metric test
+        """The geometric check of one pair; with both frames' depths and the intrinsics, the metric test
         decides too (verification/metric.py)."""
         verification = verify_pair(query, place.features, self.config,
-                                   self._keypoint_depths(query_ns, stamp_to_ns(place.stamp)))
+                                   self._pair_depths(query_ns, stamp_to_ns(place.stamp)))
         if verification.accepted and not verification.epipolar_accepted:
             self.counter.ok("metric_test_accepted")
         elif verification.epipolar_accepted and not verification.accepted:
             self.counter.ok("metric_test_refused_no_view_overlap")
         return verification
 
-    def _keypoint_depths(self, query_ns: int, place_ns: int) -> KeypointDepths | None:
+    def _pair_depths(self, query_ns: int, place_ns: int) -> KeypointDepths | None:
         if self.depths is None or self.camera is None or self.image_size is None:
             return None
         query_depths, place_depths = self.depths.get(query_ns), self.depths.get(place_ns)
         if query_depths is None or place_depths is None:
             return None
-        return KeypointDepths(self.camera, self.image_size, query_depths, place_depths)
+        return KeypointDepths(self.camera, self.image_size, query_depths.keypoints, place_depths.keypoints,
+                              query_depths.grid, place_depths.grid)
 
     def _verify(self, message: LoopClosure, posterior: PlacePosterior | None) -> None:
         query_ns = stamp_to_ns(message.header.stamp)
@@ -566,7 +577,7 @@ class VerifierNode(Node):
         """What ``store_dir`` holds: a corrupt chunk stops start-up (ERROR) and is not overwritten."""
         # Every kind of chunk, whether or not this run keeps it (a run without depth still cleans depth chunks'
         # leftovers).
-        for chunk_folder in (FeatureStoreFolder, KeypointDepthFolder, FrameTimelineFolder):
+        for chunk_folder in (FeatureStoreFolder, FrameDepthFolder, FrameTimelineFolder):
             for leftover in remove_stale_temporaries(folder, chunk_pattern(chunk_folder.PREFIX)):
                 self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
         if self.store_folder is not None:
@@ -576,7 +587,7 @@ class VerifierNode(Node):
         if self.depth_folder is not None and self.depths is not None:
             self.depth_folder.load_into(self.depths)
             if len(self.depths):
-                self.get_logger().info(f"reloaded the keypoint depths of {len(self.depths)} frames")
+                self.get_logger().info(f"reloaded the depths of {len(self.depths)} frames")
         if self.timeline_folder is not None:
             # Without it, loop tracking after a restart would never reach the frames stored before it.
             self.timeline_folder.load_into(self.timeline)

@@ -512,13 +512,18 @@ def _keypoint_depth_image(features: Any, depths: np.ndarray, sec: int) -> Image:
 
 def test_verifier_node_accepts_a_revisit_from_further_back_by_the_metric_test_with_depth() -> None:
     """40 matches among 340 keypoints: refused by the epipolar test; with depth images and camera_info the
-    metric test accepts it (one motion, overlapping views), and the closure carries that metric pose."""
+    metric test accepts it (one motion, overlapping views), and the closure carries that metric pose.
+
+    The scene is scattered points, not surfaces: its depth images hold depth at the keypoints only, so the
+    covisibility test (the depth images' grids, kept by the node) finds nothing of the query's surface on the
+    place's and refuses the pair; with that test off the keypoints decide."""
     from test.verification.test_metric import _scene
 
     scene = _scene(seed=3, shared=40, query_inside=300, query_outside=0, place_only=300)
-    for depth_topic in ("", "depth"):
+    for depth_topic, covisibility in (("", 0.3), ("depth", 0.3), ("depth", 0.0)):
         node = VerifierNode(parameter_overrides=_params(candidates=1, track_seconds=0.0, odometry_gate=False,
-                                                        depth_topic=depth_topic))
+                                                        depth_topic=depth_topic,
+                                                        metric_min_covisibility=covisibility))
         try:
             verified = Captured(node.publisher)
             node._on_camera_info(_camera_info())
@@ -528,8 +533,9 @@ def test_verifier_node_accepts_a_revisit_from_further_back_by_the_metric_test_wi
             node._on_features(_features_message(scene.place, 1))
             node._on_features(_features_message(scene.query, 3))
             node._on_loop_closure(_closure(3, 1, query_id=10))
-            if not depth_topic:
+            if not depth_topic or covisibility:
                 assert not verified.messages and node.counter.counts["rejected"] == 1
+                assert "metric_test_accepted" not in node.counter.counts
                 continue
             [closure] = verified.messages
             assert node.counter.counts["metric_test_accepted"] == 1 and closure.inliers < 0.12 * 340

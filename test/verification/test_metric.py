@@ -11,8 +11,9 @@ import pytest
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.verification.frame_depths import DepthGrid, sample_depth_grid
 from aefabmap_ros.verification.geometric import SequenceDepths, VerificationConfig, cached_pair_verifier, verify_pair
-from aefabmap_ros.verification.metric import KeypointDepths, metric_check, view_overlap
+from aefabmap_ros.verification.metric import KeypointDepths, covisibility, metric_check, view_overlap
 from aefabmap_ros.verification.relative_pose import CameraModel, RelativePose
 from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH, _features, _rotation_y
 
@@ -243,3 +244,130 @@ def test_bad_depths_and_settings_are_refused() -> None:
     # No keypoint with depth: no overlap to speak of.
     blind = replace(scene.depths, query=np.full_like(scene.depths.query, np.nan))
     assert view_overlap(scene.query.keypoints, blind, scene.pose) == 0.0
+
+
+# Covisibility on scenes of known geometry: depth images ray-cast from planes, the share checked against a
+# count made from the scene itself (which surface each camera's ray meets first), not from depth images.
+
+@dataclass(frozen=True)
+class Patch:
+    """A wall facing the cameras: the plane z = ``z`` (place frame) for x in [x_min, x_max]."""
+
+    z: float
+    x_min: float = -np.inf
+    x_max: float = np.inf
+
+
+def _ray_hits(origin: np.ndarray, directions: np.ndarray, patch: Patch) -> np.ndarray:
+    """(N,) ray parameter where each ray ``origin + s * direction`` meets ``patch`` (inf: it does not)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (patch.z - origin[2]) / directions[:, 2]
+    x = origin[0] + s * directions[:, 0]
+    hit = (s > 0) & (x >= patch.x_min) & (x <= patch.x_max)
+    return np.where(hit, s, np.inf)
+
+
+def _render_depth(centre: np.ndarray, patches: list[Patch]) -> np.ndarray:
+    """Depth image (metres, NaN = nothing) of a camera at ``centre`` (place frame) looking along +z."""
+    rows, columns = np.mgrid[0:HEIGHT, 0:WIDTH]
+    directions = np.column_stack([(columns.ravel() - WIDTH / 2) / FOCAL, (rows.ravel() - HEIGHT / 2) / FOCAL,
+                                  np.ones(rows.size)])  # z = 1: the ray parameter is the depth
+    nearest = np.min([_ray_hits(centre, directions, patch) for patch in patches], axis=0)
+    return np.where(np.isfinite(nearest), nearest, np.nan).reshape(HEIGHT, WIDTH).astype(np.float32)
+
+
+def _visible_share(query_grid: DepthGrid, centre: np.ndarray, patches: list[Patch]) -> tuple[float, float]:
+    """For the query's grid pixels with depth (camera at ``centre``), the share the place camera (at the origin)
+    sees first along its own ray, inside its image; and the share merely inside its image (occlusion ignored)."""
+    rows, columns = np.nonzero(np.isfinite(query_grid.values))
+    u = query_grid.offset + columns * query_grid.step
+    v = query_grid.offset + rows * query_grid.step
+    depth = query_grid.values[rows, columns].astype(np.float64)
+    points = centre + np.column_stack([(u - WIDTH / 2) / FOCAL * depth, (v - HEIGHT / 2) / FOCAL * depth, depth])
+    in_image = _in_image(points, margin=0.0)
+    towards = points / points[:, 2:3]  # the place's rays through them, z = 1
+    first = np.min([_ray_hits(np.zeros(3), towards, patch) for patch in patches], axis=0)
+    unoccluded = first >= points[:, 2] - 1e-6
+    return float(np.mean(in_image & unoccluded)), float(np.mean(in_image))
+
+
+def _moved_sideways(x: float) -> RelativePose:
+    """The place camera in the frame of a query camera at (x, 0, 0), both looking along +z."""
+    return RelativePose(np.eye(3), np.array([-x, 0.0, 0.0]), np.eye(6), metric=True, inliers=100)
+
+
+def test_covisibility_of_a_wall_seen_from_the_side_is_the_shared_strip() -> None:
+    """A wall 5 m away, the query 0.84 m to the side: 84 px of shift, 10.5 grid columns of 8 px. The query's
+    every other grid column (0, 2, ..., 78) lands on the place's grid up to column 68: 35 of 40."""
+    wall = [Patch(5.0)]
+    query = sample_depth_grid(_render_depth(np.array([0.84, 0.0, 0.0]), wall))
+    place = sample_depth_grid(_render_depth(np.zeros(3), wall))
+    assert query.step == 8 and query.values.shape == (60, 80) and query.values.dtype == np.float16
+    assert covisibility(query, place, _moved_sideways(0.84), CAMERA) == pytest.approx(35 / 40, abs=1e-12)
+    # The same frame: everything; a wall the place saw 20 cm further back: nothing (beyond 5 cm + 1 %).
+    assert covisibility(place, place, _moved_sideways(0.0), CAMERA) == 1.0
+    behind = sample_depth_grid(_render_depth(np.zeros(3), [Patch(5.2)]))
+    assert covisibility(query, behind, _moved_sideways(0.84), CAMERA) == 0.0
+
+
+@pytest.mark.parametrize("side", [1.0, 2.0, 3.0])
+def test_covisibility_counts_what_a_pillar_hides_from_the_place(side: float) -> None:
+    """A pillar 4 m away in front of a wall 12 m away; the query camera stands ``side`` m to the side, so it
+    sees wall the pillar hides from the place. The estimate follows the count made from the scene's geometry,
+    never above it: across a depth edge the interpolated depth agrees with neither surface, so each of the
+    pillar's two edges, in either grid, costs at most one grid column (1 / 80). It is clearly below the share
+    that merely lands in the place's image."""
+    scene = [Patch(12.0), Patch(4.0, -1.5, 1.5)]
+    centre = np.array([side, 0.0, 0.0])
+    query = sample_depth_grid(_render_depth(centre, scene))
+    place = sample_depth_grid(_render_depth(np.zeros(3), scene))
+    visible, in_image = _visible_share(query, centre, scene)
+    estimate = covisibility(query, place, _moved_sideways(side), CAMERA)
+    assert visible - 4 / 80 <= estimate <= visible + 1e-12
+    assert in_image - visible > 0.1  # occlusion matters in this scene: the test is not the frustum share
+
+
+def test_the_covisibility_test_refuses_a_pair_whose_surfaces_the_place_did_not_see() -> None:
+    """The accepted street scene (120 consistent matches, the views overlapping) with depth grids: where the place's
+    grid agrees with the query's surface the pair stays accepted; where the place saw something 1 m in front of
+    all of it (the same corner with a wall between) it is refused; without grids, or with the test off, the
+    keypoint overlap decides alone."""
+    scene = _scene(seed=6, shared=120, query_inside=0, query_outside=20, place_only=20)
+    # The query sees a wall 20 m ahead: z_query = 20, i.e. r3 . X_place + t_z = 20 in the place's frame. The
+    # place's grid holds the depth along its own rays to that plane (the wall seen obliquely).
+    wall_in_query = sample_depth_grid(np.full((HEIGHT, WIDTH), 20.0, np.float32))
+    rows, columns = np.mgrid[0:60, 0:80]
+    rays = np.stack([(4 + 8 * columns - WIDTH / 2) / FOCAL, (4 + 8 * rows - HEIGHT / 2) / FOCAL,
+                     np.ones((60, 80))], axis=-1)
+    with np.errstate(divide="ignore"):
+        place_values = (20.0 - scene.pose.translation[2]) / (rays @ scene.pose.rotation[2])
+    place_values = np.where(place_values > 0, place_values, np.nan)
+    seen = DepthGrid(place_values.astype(np.float16), 8)
+    blocked = DepthGrid((place_values - 1.0).astype(np.float16), 8)
+    config = VerificationConfig()
+
+    def verified(place_grid: DepthGrid | None, settings: VerificationConfig = config) -> bool:
+        depths = replace(scene.depths, query_grid=wall_in_query, place_grid=place_grid)
+        result = verify_pair(scene.query, scene.place, settings, depths)
+        assert result.metric is not None and result.metric.inliers >= 110
+        return result.accepted
+
+    assert covisibility(wall_in_query, seen, scene.pose, CAMERA, 0.05, 0.05) > 0.3
+    assert covisibility(wall_in_query, blocked, scene.pose, CAMERA, 0.05, 0.05) == 0.0
+    assert verified(seen) and not verified(blocked)
+    assert verified(None)  # no grids: the keypoint overlap alone
+    assert verified(blocked, VerificationConfig(metric_min_covisibility=0.0))
+    with pytest.raises(ConfigError, match="metric_min_covisibility"):
+        VerificationConfig(metric_min_covisibility=1.5)
+    with pytest.raises(ConfigError, match="metric_depth_relative_tolerance"):
+        VerificationConfig(metric_depth_relative_tolerance=-0.1)
+
+
+def test_sequence_depths_hand_each_pair_its_two_grids() -> None:
+    scene = _scene(seed=8, shared=40, query_inside=300, query_outside=0, place_only=300)
+    grids = [DepthGrid(np.full((2, 2), value, np.float16), 4) for value in (1.0, 2.0)]
+    depths = SequenceDepths(CAMERA, (WIDTH, HEIGHT), [scene.depths.place, scene.depths.query], grids)
+    pair = depths.pair(1, 0)
+    assert pair is not None and pair.query_grid is grids[1] and pair.place_grid is grids[0]
+    no_grids = SequenceDepths(CAMERA, (WIDTH, HEIGHT), [scene.depths.place, scene.depths.query]).pair(1, 0)
+    assert no_grids is not None and no_grids.query_grid is None and no_grids.place_grid is None

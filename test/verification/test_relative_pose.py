@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -12,13 +10,13 @@ from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.verification.relative_pose import (
     UNKNOWN_SCALE_VARIANCE,
     CameraModel,
-    KeypointDepthStore,
+    PoseOutcome,
     PoseStatus,
     RelativePoseConfig,
-    depth_image_to_metres,
     essential_pose,
     pnp_pose,
     relative_pose,
+    rigid_alignment,
 )
 
 CAMERA = CameraModel(np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]]))
@@ -155,33 +153,6 @@ def test_bad_input_is_refused() -> None:
         RelativePoseConfig(min_inliers=3)
 
 
-def test_depth_images_in_both_encodings() -> None:
-    millimetres = np.array([[0, 1500], [2000, 65535]], dtype=np.uint16)
-    np.testing.assert_allclose(depth_image_to_metres(millimetres, "16UC1"), [[np.nan, 1.5], [2.0, 65.535]])
-    metres = np.array([[np.nan, 1.5], [-1.0, np.inf]], dtype=np.float32)
-    np.testing.assert_allclose(depth_image_to_metres(metres, "32FC1"), [[np.nan, 1.5], [np.nan, np.nan]])
-    with pytest.raises(DataError):
-        depth_image_to_metres(millimetres, "rgb8")
-
-
-def test_keypoint_depths_arrive_in_either_order_and_stay_bounded() -> None:
-    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
-    keypoints = np.array([[1.0, 2.0], [3.2, 0.4], [9.0, 9.0]], dtype=np.float32)
-    store = KeypointDepthStore(max_frames=2)
-    store.add_depth(10, depth)
-    store.add_features(10, keypoints)
-    store.add_features(20, keypoints)
-    assert store.get(20) is None
-    store.add_depth(20, depth + 100)
-    first, second = store.get(10), store.get(20)
-    assert first is not None and second is not None
-    np.testing.assert_allclose(first, np.array([9.0, 3.0, np.nan]))  # (row 2, col 1), (row 0, col 3), outside
-    np.testing.assert_allclose(second, np.array([109.0, 103.0, np.nan]))
-    store.add_depth(30, depth)
-    store.add_features(30, keypoints)
-    assert len(store) == 2 and store.get(10) is None
-
-
 def test_relative_pose_error_against_a_known_pair() -> None:
     """Query at the origin, place 2 m along x turned 10 degrees about y; a measurement 1 degree and 5 cm off."""
     from scipy.spatial.transform import Rotation
@@ -205,45 +176,49 @@ def test_relative_pose_error_against_a_known_pair() -> None:
     assert relative_pose_error(query, place, unit).direction_deg == pytest.approx(0.0, abs=1e-6)
 
 
-def test_keypoint_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> None:
-    from aefabmap_ros.verification.relative_pose import KeypointDepthFolder, KeypointDepthStore
-
-    store = KeypointDepthStore(max_frames=2)
-    folder = KeypointDepthFolder(tmp_path)
-    depth_image = np.arange(100, dtype=np.float32).reshape(10, 10)
-    store.add_features(1, np.array([[1.0, 2.0], [3.0, 4.0]], np.float32))
-    store.add_depth(1, depth_image)
-    folder.save(store)
-    store.add_depth(2, depth_image)
-    store.add_features(2, np.array([[5.0, 5.0]], np.float32))
-    folder.save(store)
-    folder.save(store)  # nothing new: no empty chunk
-    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000000.npz", "depth-000000001.npz"]
-
-    reloaded = KeypointDepthStore(max_frames=2)
-    KeypointDepthFolder(tmp_path).load_into(reloaded)
-    first, second = reloaded.get(1), reloaded.get(2)
-    assert first is not None and second is not None
-    assert first.tolist() == [21.0, 43.0] and second.tolist() == [55.0]
-    assert reloaded.unsaved() == []  # reloaded frames count as saved
-
-    # Two more frames push frames 1 and 2 out: their chunks are deleted at the next save.
-    later = KeypointDepthFolder(tmp_path)
-    later.load_into(reloaded)
-    for stamp in (3, 4):
-        reloaded.add_depth(stamp, depth_image)
-        reloaded.add_features(stamp, np.array([[0.0, 0.0]], np.float32))
-    later.save(reloaded)
-    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000002.npz"]
+def test_rigid_alignment_recovers_a_known_motion_despite_outliers() -> None:
+    """60 place points moved by a known motion, 20 of them replaced by points off it by metres: the motion to
+    1e-9 and exactly the 40 true matches as inliers."""
+    rng = np.random.default_rng(5)
+    place = np.column_stack([rng.uniform(-5, 5, 60), rng.uniform(-2, 2, 60), rng.uniform(3, 20, 60)])
+    rotation, translation = rotation_about([0.2, 1.0, 0.1], 25.0), np.array([0.8, -0.1, 2.5])
+    query = place @ rotation.T + translation
+    wrong = rng.choice(60, 20, replace=False)
+    query[wrong] += rng.uniform(2.0, 6.0, (20, 3)) * rng.choice([-1.0, 1.0], (20, 3))
+    found = rigid_alignment(place, query)
+    assert found is not None
+    found_rotation, found_translation, inliers = found
+    np.testing.assert_allclose(found_rotation, rotation, atol=1e-9)
+    np.testing.assert_allclose(found_translation, translation, atol=1e-9)
+    expected = np.ones(60, bool)
+    expected[wrong] = False
+    np.testing.assert_array_equal(inliers, expected)
+    assert rigid_alignment(place[:7], query[:7]) is None  # too few for any redundancy
 
 
-def test_a_corrupt_keypoint_depth_chunk_is_named(tmp_path: Path) -> None:
-    from aefabmap_ros.errors import ModelError
-    from aefabmap_ros.io.npz_files import write_npz_atomically
-    from aefabmap_ros.verification.relative_pose import DEPTH_FORMAT_VERSION, KeypointDepthFolder, KeypointDepthStore
+@pytest.mark.parametrize("seed", range(4))
+def test_a_far_facade_gets_its_pose_from_the_query_depths(seed: int) -> None:
+    """A facade 35 m away (12 x 6 m, nearly planar) seen again from 15 m further back and 10 degrees turned,
+    keypoints with 0.5 px noise: PnP's reprojection cannot tell its two solutions apart (its pose is degrees
+    and metres off), the query's depths can (the dense synthetic video's streets seen from further back)."""
+    rng = np.random.default_rng(seed)
+    place = np.column_stack([rng.uniform(-6, 6, 40), rng.uniform(-3, 3, 40), 35.0 + rng.normal(0, 0.05, 40)])
+    rotation = rotation_about([0.0, 1.0, 0.0], 10.0)
+    centre = np.array([1.0, 0.0, -15.0])  # the query camera in the place's frame
+    query = (place - centre) @ rotation  # R^T (X - c): X_query = R^T X_place - R^T c
+    true_rotation, true_translation = rotation.T, -rotation.T @ centre
+    noisy = [project(points) + rng.normal(0, 0.5, (40, 2)) for points in (query, place)]
+    config = RelativePoseConfig(ransac_threshold_px=2.0)
 
-    write_npz_atomically(tmp_path / "depth-000000000.npz", {
-        "format_version": np.array(DEPTH_FORMAT_VERSION), "stamps_ns": np.array([1, 2]),
-        "counts": np.array([2, 2]), "depths": np.zeros(3, np.float32)})
-    with pytest.raises(ModelError, match=r"depth-000000000\.npz"):
-        KeypointDepthFolder(tmp_path).load_into(KeypointDepthStore(max_frames=2))
+    def error(outcome: PoseOutcome) -> tuple[float, float]:
+        assert outcome.pose is not None and outcome.pose.metric
+        return (rotation_error_deg(outcome.pose.rotation, true_rotation),
+                float(np.linalg.norm(outcome.pose.translation - true_translation)))
+
+    reprojection_only = error(pnp_pose(noisy[0], noisy[1], place[:, 2], CAMERA, config))
+    with_depths = error(pnp_pose(noisy[0], noisy[1], place[:, 2], CAMERA, config, query[:, 2]))
+    assert reprojection_only[0] > 1.0 and reprojection_only[1] > 0.5  # the case this is about
+    assert with_depths[0] < 0.7 and with_depths[1] < 0.2
+    # Depths that fit no motion (a broken depth image) change nothing: PnP's own solution stays.
+    broken = rng.uniform(5.0, 60.0, 40)
+    assert error(pnp_pose(noisy[0], noisy[1], place[:, 2], CAMERA, config, broken)) == reprojection_only

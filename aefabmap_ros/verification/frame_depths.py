@@ -1,0 +1,249 @@
+"""What verification keeps of each frame's depth image: the depth at its keypoints and a coarse grid.
+
+The metric test (``verification.metric``) needs two things of a frame's aligned depth image: the depth
+at each stored keypoint (PnP's 3-D points, the keypoint view overlap) and the image itself, coarsely,
+for the covisibility test (where the query's pixels land on the place's surface, occlusion included).
+Both are small: ~2 KiB of keypoint depths for 500 keypoints and a float16 grid of about 80 columns
+(``GRID_COLUMNS``; 80 x 60 = 9.6 KiB for a 4:3 image at any resolution), against the ~300 KiB of a
+640 x 480 depth image.
+
+``FrameDepthStore`` keeps them for the verifier's recent frames by image stamp (depth images and
+features arrive on separate topics, in any order) and ``FrameDepthFolder`` saves them beside the
+feature store, so the places seen before a restart keep their metric test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.io.chunk_folder import ChunkFolder
+from aefabmap_ros.io.npz_files import read_versioned_npz
+
+
+def depth_image_to_metres(image: np.ndarray, encoding: str) -> np.ndarray:
+    """A depth image as float32 metres with NaN where there is none: 16UC1 in millimetres (0 = none) or
+    32FC1 in metres (NaN, inf or <= 0 = none), the two ROS depth conventions (REP 118)."""
+    if image.ndim != 2:
+        raise DataError(f"depth image must be single-channel, got shape {image.shape}")
+    if encoding in ("16UC1", "mono16"):
+        metres = image.astype(np.float32) / 1000.0
+    elif encoding == "32FC1":
+        metres = image.astype(np.float32, copy=True)
+    else:
+        raise DataError(f"depth encoding {encoding!r} is not 16UC1 (mm) or 32FC1 (m)")
+    metres[~np.isfinite(metres) | (metres <= 0)] = np.nan
+    return metres
+
+
+def depth_at_pixels(depth_m: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) float32 depth at each (x, y) pixel (nearest pixel); NaN outside the image or where none."""
+    columns = np.rint(points[:, 0]).astype(np.int64)
+    rows = np.rint(points[:, 1]).astype(np.int64)
+    inside = (columns >= 0) & (rows >= 0) & (columns < depth_m.shape[1]) & (rows < depth_m.shape[0])
+    out = np.full(points.shape[0], np.nan, dtype=np.float32)
+    out[inside] = depth_m[rows[inside], columns[inside]]
+    return out
+
+
+@dataclass(frozen=True)
+class DepthGrid:
+    """A frame's depth image sampled on a coarse grid.
+
+    ``values[r, c]`` is the depth (metres, NaN = none) at pixel (x, y) = (offset + c * step,
+    offset + r * step), offset = step // 2: the ground truth's sampling grid (``evaluation.ground_truth``).
+    """
+
+    values: np.ndarray  # (rows, columns) float16 or float32
+    step: int
+
+    def __post_init__(self) -> None:
+        if isinstance(self.step, bool) or not isinstance(self.step, int | np.integer) or self.step < 1 \
+                or np.asarray(self.values).ndim != 2:
+            raise DataError(f"a depth grid is a 2-D array with an integer step >= 1, got shape "
+                            f"{np.asarray(self.values).shape} and step {self.step!r}")
+
+    @property
+    def offset(self) -> int:
+        return self.step // 2
+
+
+GRID_COLUMNS = 80
+
+
+def grid_step_for(width: int) -> int:
+    """The grid step giving about ``GRID_COLUMNS`` columns across an image ``width`` pixels wide."""
+    return max(1, round(width / GRID_COLUMNS))
+
+
+def sample_depth_grid(depth_m: np.ndarray, step: int | None = None) -> DepthGrid:
+    """The depth image (metres, H x W; 0, negative, NaN = none) on its coarse grid, as float16 (a relative
+    precision of 0.05 %, far inside any depth tolerance; up to 65 km)."""
+    if depth_m.ndim != 2:
+        raise DataError(f"depth image must be single-channel, got shape {depth_m.shape}")
+    step = grid_step_for(depth_m.shape[1]) if step is None else step
+    samples = np.asarray(depth_m[step // 2::step, step // 2::step], dtype=np.float32)
+    samples = np.where(np.isfinite(samples) & (samples > 0), samples, np.nan)
+    return DepthGrid(samples.astype(np.float16), step)
+
+
+@dataclass(frozen=True)
+class FrameDepths:
+    """What is kept of one frame's depth image."""
+
+    keypoints: np.ndarray  # (N,) float32 metres at each stored keypoint, NaN = none
+    grid: DepthGrid | None  # None: saved by a version that kept no grid
+
+    @staticmethod
+    def sample(depth_m: np.ndarray, keypoints: np.ndarray) -> FrameDepths:
+        return FrameDepths(depth_at_pixels(depth_m, keypoints), sample_depth_grid(depth_m))
+
+
+class FrameDepthStore:
+    """The FrameDepths of recent frames, by image stamp.
+
+    Bounded like the feature store it complements (``max_frames``, oldest first; ~12 KiB per frame).
+    Depth images and features arrive on separate topics: the last ``max_images`` depth images wait for
+    their frame's features, and features whose depth image has not come yet are sampled when it comes
+    (``add_features`` / ``add_depth`` in any order).
+    """
+
+    def __init__(self, max_frames: int, max_images: int = 30) -> None:
+        if max_frames < 1 or max_images < 1:
+            raise ConfigError(f"FrameDepthStore needs max_frames ({max_frames}) and max_images ({max_images}) >= 1")
+        self.max_frames = max_frames
+        self.max_images = max_images
+        self._depths: dict[int, FrameDepths] = {}
+        self._images: dict[int, np.ndarray] = {}
+        self._waiting_keypoints: dict[int, np.ndarray] = {}
+        self._unsaved: dict[int, None] = {}  # stamps sampled since the last save, in order (an ordered set)
+
+    def __len__(self) -> int:
+        return len(self._depths)
+
+    def __contains__(self, stamp_ns: object) -> bool:
+        return stamp_ns in self._depths
+
+    def get(self, stamp_ns: int) -> FrameDepths | None:
+        return self._depths.get(stamp_ns)
+
+    def unsaved(self) -> list[tuple[int, FrameDepths]]:
+        """The frames sampled since ``mark_saved`` and still kept, oldest first (what a save appends)."""
+        return [(stamp, self._depths[stamp]) for stamp in self._unsaved if stamp in self._depths]
+
+    def mark_saved(self) -> None:
+        self._unsaved.clear()
+
+    def restore(self, frames: list[tuple[int, FrameDepths]]) -> None:
+        """Replace the kept depths by saved ones (oldest first; the newest ``max_frames`` stay); they count as saved."""
+        self._depths.clear()
+        self._unsaved.clear()
+        for stamp, depths in frames:
+            self._depths.pop(stamp, None)
+            self._depths[stamp] = depths
+        _trim(self._depths, self.max_frames)
+
+    def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
+        keypoints = self._waiting_keypoints.pop(stamp_ns, None)
+        if keypoints is not None:
+            self._keep(stamp_ns, FrameDepths.sample(depth_m, keypoints))
+            return
+        self._images[stamp_ns] = depth_m
+        _trim(self._images, self.max_images)
+
+    def add_features(self, stamp_ns: int, keypoints: np.ndarray) -> None:
+        """The keypoints as stored for this frame (the feature store's, so the depths align with them)."""
+        image = self._images.pop(stamp_ns, None)
+        if image is not None:
+            self._keep(stamp_ns, FrameDepths.sample(image, keypoints))
+            return
+        self._waiting_keypoints[stamp_ns] = keypoints
+        _trim(self._waiting_keypoints, self.max_images)
+
+    def _keep(self, stamp_ns: int, depths: FrameDepths) -> None:
+        self._depths.pop(stamp_ns, None)
+        self._depths[stamp_ns] = depths
+        self._unsaved[stamp_ns] = None
+        _trim(self._depths, self.max_frames)
+        if len(self._unsaved) > self.max_frames:  # forgotten before any save: nothing to write for them
+            self._unsaved = {stamp: None for stamp in self._unsaved if stamp in self._depths}
+
+
+DEPTH_FORMAT_VERSION = 1
+
+
+class FrameDepthFolder(ChunkFolder[FrameDepths]):
+    """A FrameDepthStore on disk beside the feature store's chunks (verifier_node's ``store_dir``),
+    so that after a restart the places seen before it still get the metric test.
+
+    Append-only like FeatureStoreFolder (:mod:`aefabmap_ros.io.chunk_folder`): each ``save`` writes the
+    frames sampled since the last one as ``depth-<n>.npz``: stamps, per-frame counts and the keypoint
+    depths concatenated (float32, NaN = none), and each frame's grid (shape, step; 0 rows = none) with
+    the grids' values concatenated (float16). Chunks written before grids were kept (no grid arrays)
+    still load, without grids: those places get the keypoint overlap test alone.
+    """
+
+    PREFIX: ClassVar[str] = "depth"  # its chunk files: depth-<n>.npz
+
+    def __init__(self, folder: Path) -> None:
+        super().__init__(folder, self.PREFIX, "frame depth store", _depth_arrays, _read_depth_chunk)
+
+
+def _depth_arrays(frames: list[tuple[int, FrameDepths]]) -> dict[str, np.ndarray]:
+    grids = [depths.grid for _, depths in frames]
+    return {
+        "format_version": np.array(DEPTH_FORMAT_VERSION, dtype=np.int64),
+        "stamps_ns": np.array([stamp for stamp, _ in frames], dtype=np.int64),
+        "counts": np.array([len(depths.keypoints) for _, depths in frames], dtype=np.int64),
+        "depths": np.concatenate([depths.keypoints for _, depths in frames]).astype(np.float32),
+        "grid_shapes": np.array([(0, 0) if grid is None else grid.values.shape for grid in grids],
+                                dtype=np.int64).reshape(-1, 2),
+        "grid_steps": np.array([0 if grid is None else grid.step for grid in grids], dtype=np.int64),
+        "grid_values": np.concatenate([np.zeros(0, np.float16)] + [grid.values.astype(np.float16).ravel()
+                                                                   for grid in grids if grid is not None]),
+    }
+
+
+def _read_depth_chunk(chunk: Path) -> list[tuple[int, FrameDepths]]:
+    arrays = read_versioned_npz(chunk, "keypoint depth chunk", "keypoint depth chunk",
+                                ("stamps_ns", "counts", "depths"), DEPTH_FORMAT_VERSION)
+    stamps, counts, depths = arrays["stamps_ns"], arrays["counts"], arrays["depths"]
+    if stamps.ndim != 1 or counts.shape != stamps.shape or depths.ndim != 1 \
+            or (counts.size and counts.min() < 0) or int(counts.sum()) != depths.size:
+        raise ModelError(f"keypoint depth chunk {chunk}: stamps, counts and depths do not agree")
+    split = np.split(depths.astype(np.float32), np.cumsum(counts)[:-1]) if counts.size else []
+    grids = _read_grids(chunk, arrays, len(stamps))
+    return [(int(stamp), FrameDepths(keypoints, grid))
+            for stamp, keypoints, grid in zip(stamps, split, grids, strict=True)]
+
+
+def _read_grids(chunk: Path, arrays: dict[str, np.ndarray], num_frames: int) -> list[DepthGrid | None]:
+    if "grid_values" not in arrays:  # written before grids were kept
+        return [None] * num_frames
+    shapes, steps, values = arrays.get("grid_shapes"), arrays.get("grid_steps"), arrays["grid_values"]
+    if shapes is None or steps is None or shapes.shape != (num_frames, 2) or steps.shape != (num_frames,) \
+            or values.ndim != 1 or (shapes.size and shapes.min() < 0) \
+            or int(np.prod(shapes, axis=1).sum()) != values.size:
+        raise ModelError(f"keypoint depth chunk {chunk}: the depth grids' shapes and values do not agree")
+    grids: list[DepthGrid | None] = []
+    start = 0
+    for (rows, columns), step in zip(shapes.tolist(), steps.tolist(), strict=True):
+        if rows == 0 or columns == 0:
+            grids.append(None)
+            continue
+        size = rows * columns
+        try:
+            grids.append(DepthGrid(values[start:start + size].reshape(rows, columns), int(step)))
+        except DataError as error:
+            raise ModelError(f"keypoint depth chunk {chunk}: {error}") from error
+        start += size
+    return grids
+
+
+def _trim(frames: dict[int, FrameDepths] | dict[int, np.ndarray], limit: int) -> None:
+    while len(frames) > limit:
+        del frames[next(iter(frames))]

@@ -1,0 +1,131 @@
+"""What verification keeps of each frame's depth (verification/frame_depths.py): depth conventions, keypoint
+depths and grids against hand-computed values, the store's bounds and order, and its folder across a restart."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.errors import DataError, ModelError
+from aefabmap_ros.io.npz_files import write_npz_atomically
+from aefabmap_ros.verification.frame_depths import (
+    DEPTH_FORMAT_VERSION,
+    DepthGrid,
+    FrameDepthFolder,
+    FrameDepthStore,
+    depth_image_to_metres,
+    grid_step_for,
+    sample_depth_grid,
+)
+
+
+def test_depth_images_in_both_encodings() -> None:
+    millimetres = np.array([[0, 1500], [2000, 65535]], dtype=np.uint16)
+    np.testing.assert_allclose(depth_image_to_metres(millimetres, "16UC1"), [[np.nan, 1.5], [2.0, 65.535]])
+    metres = np.array([[np.nan, 1.5], [-1.0, np.inf]], dtype=np.float32)
+    np.testing.assert_allclose(depth_image_to_metres(metres, "32FC1"), [[np.nan, 1.5], [np.nan, np.nan]])
+    with pytest.raises(DataError):
+        depth_image_to_metres(millimetres, "rgb8")
+
+
+def test_the_grid_samples_every_step_th_pixel_half_a_step_in() -> None:
+    """A 40 x 24 image whose depth encodes its pixel (row * 100 + column, cm): the grid of step 4 holds the
+    pixels at rows and columns 2, 6, 10, ..., NaN where the image has none, in float16."""
+    rows, columns = np.mgrid[0:24, 0:40]
+    depth = ((rows * 100 + columns) / 100.0).astype(np.float32)
+    depth[6, 10] = 0.0  # no depth there
+    grid = sample_depth_grid(depth, step=4)
+    assert grid.values.shape == (6, 10) and grid.values.dtype == np.float16 and grid.offset == 2
+    assert float(grid.values[0, 0]) == pytest.approx(2.02, rel=1e-3)  # pixel (row 2, column 2)
+    assert float(grid.values[5, 9]) == pytest.approx(22.38, rel=1e-3)  # pixel (row 22, column 38)
+    assert np.isnan(grid.values[1, 2])  # pixel (row 6, column 10)
+    # The step gives about 80 columns whatever the resolution.
+    assert [grid_step_for(width) for width in (80, 320, 640, 1280, 1920)] == [1, 4, 8, 16, 24]
+    assert sample_depth_grid(np.ones((480, 640), np.float32)).values.shape == (60, 80)
+    with pytest.raises(DataError, match="step"):
+        DepthGrid(np.ones((2, 2)), 0)
+    with pytest.raises(DataError, match="single-channel"):
+        sample_depth_grid(np.ones((4, 4, 3)))
+
+
+def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
+    keypoints = np.array([[1.0, 2.0], [3.2, 0.4], [9.0, 9.0]], dtype=np.float32)
+    store = FrameDepthStore(max_frames=2)
+    store.add_depth(10, depth)
+    store.add_features(10, keypoints)
+    store.add_features(20, keypoints)
+    assert store.get(20) is None
+    store.add_depth(20, depth + 100)
+    first, second = store.get(10), store.get(20)
+    assert first is not None and second is not None
+    np.testing.assert_allclose(first.keypoints, [9.0, 3.0, np.nan])  # (row 2, col 1), (row 0, col 3), outside
+    np.testing.assert_allclose(second.keypoints, [109.0, 103.0, np.nan])
+    # A 4-pixel-wide image: step 1 (~80 columns at most), the whole image; 0 (no depth) becomes NaN.
+    assert first.grid is not None and first.grid.step == 1
+    np.testing.assert_allclose(first.grid.values.astype(np.float32), np.where(depth > 0, depth, np.nan))
+    store.add_depth(30, depth)
+    store.add_features(30, keypoints)
+    assert len(store) == 2 and store.get(10) is None
+
+
+def test_frame_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> None:
+    store = FrameDepthStore(max_frames=2)
+    folder = FrameDepthFolder(tmp_path)
+    depth_image = np.arange(1, 101, dtype=np.float32).reshape(10, 10)
+    store.add_features(1, np.array([[1.0, 2.0], [3.0, 4.0]], np.float32))
+    store.add_depth(1, depth_image)
+    folder.save(store)
+    store.add_depth(2, depth_image * 2)
+    store.add_features(2, np.array([[5.0, 5.0]], np.float32))
+    folder.save(store)
+    folder.save(store)  # nothing new: no empty chunk
+    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000000.npz", "depth-000000001.npz"]
+
+    reloaded = FrameDepthStore(max_frames=2)
+    FrameDepthFolder(tmp_path).load_into(reloaded)
+    first, second = reloaded.get(1), reloaded.get(2)
+    assert first is not None and second is not None
+    assert first.keypoints.tolist() == [22.0, 44.0] and second.keypoints.tolist() == [112.0]
+    for kept, image in ((first, depth_image), (second, depth_image * 2)):
+        assert kept.grid is not None and kept.grid.step == 1
+        np.testing.assert_array_equal(kept.grid.values, image.astype(np.float16))
+    assert reloaded.unsaved() == []  # reloaded frames count as saved
+
+    # Two more frames push frames 1 and 2 out: their chunks are deleted at the next save.
+    later = FrameDepthFolder(tmp_path)
+    later.load_into(reloaded)
+    for stamp in (3, 4):
+        reloaded.add_depth(stamp, depth_image)
+        reloaded.add_features(stamp, np.array([[0.0, 0.0]], np.float32))
+    later.save(reloaded)
+    assert sorted(p.name for p in tmp_path.glob("depth-*.npz")) == ["depth-000000002.npz"]
+
+
+def test_a_chunk_saved_before_grids_were_kept_loads_without_them(tmp_path: Path) -> None:
+    write_npz_atomically(tmp_path / "depth-000000000.npz", {
+        "format_version": np.array(DEPTH_FORMAT_VERSION), "stamps_ns": np.array([1, 2]),
+        "counts": np.array([2, 1]), "depths": np.array([1.0, 2.0, 3.0], np.float32)})
+    store = FrameDepthStore(max_frames=2)
+    FrameDepthFolder(tmp_path).load_into(store)
+    first, second = store.get(1), store.get(2)
+    assert first is not None and second is not None
+    assert first.keypoints.tolist() == [1.0, 2.0] and second.keypoints.tolist() == [3.0]
+    assert first.grid is None and second.grid is None
+
+
+def test_a_corrupt_depth_chunk_is_named(tmp_path: Path) -> None:
+    write_npz_atomically(tmp_path / "depth-000000000.npz", {
+        "format_version": np.array(DEPTH_FORMAT_VERSION), "stamps_ns": np.array([1, 2]),
+        "counts": np.array([2, 2]), "depths": np.zeros(3, np.float32)})
+    with pytest.raises(ModelError, match=r"depth-000000000\.npz"):
+        FrameDepthFolder(tmp_path).load_into(FrameDepthStore(max_frames=2))
+    # Grids whose shapes do not add up to their values.
+    write_npz_atomically(tmp_path / "depth-000000000.npz", {
+        "format_version": np.array(DEPTH_FORMAT_VERSION), "stamps_ns": np.array([1]),
+        "counts": np.array([1]), "depths": np.zeros(1, np.float32), "grid_shapes": np.array([[2, 3]]),
+        "grid_steps": np.array([4]), "grid_values": np.zeros(5, np.float16)})
+    with pytest.raises(ModelError, match=r"depth-000000000\.npz: the depth grids"):
+        FrameDepthFolder(tmp_path).load_into(FrameDepthStore(max_frames=2))
