@@ -302,7 +302,10 @@ def pnp_pose(query_points: np.ndarray, place_points: np.ndarray, place_depths_m:
 # query's (metres, plus a share of the query point's depth: depth noise grows with range).
 RIGID_TOLERANCE_M = 0.05
 RIGID_RELATIVE_TOLERANCE = 0.05
-RIGID_MIN_REPROJECTED = 0.9  # share of PnP's inliers the alignment must reproject within its threshold
+RIGID_MIN_REPROJECTED = 0.9  # share of PnP's inliers the alignment must reproject within its threshold ...
+# ... or within this many pixels, if more: the alignment is not fitted to the image, and at the published pose's
+# 1 px the far views it is for failed (dense video: 94-97 % of their inliers within 2 px, 85-89 % within 1 px).
+RIGID_CHECK_MIN_PX = 2.0
 # Minimal triplets drawn, all at once (fixed seed: the same pair gives the same pose). PnP's inliers are mostly
 # consistent: at half of them outliers, 64 triplets miss an all-inlier one with probability 2e-4.
 RIGID_HYPOTHESES = 64
@@ -362,10 +365,9 @@ def _depth_consistent(rvec: np.ndarray, tvec: np.ndarray, objects: np.ndarray, i
                       threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
     """PnP's refined pose (rvec, tvec), or the rigid alignment of its inliers' two 3-D point sets (place points
     ``objects``, query pixels ``images`` with ``query_depths``) when that alignment fits them better in 3-D
-    (:func:`_misfit`) and still explains the image: ``RIGID_MIN_REPROJECTED`` of PnP's inliers reproject within
-    ``threshold_px`` under it (depths too noisy to place a far facade -- at 5 % of 50 m, metres -- fit some
-    motion in 3-D that the image refutes). Asked only when at least eight of the inliers have a query depth
-    and agree on one motion.
+    (:func:`_misfit`) and still explains the image: ``RIGID_MIN_REPROJECTED`` of PnP's inliers reproject
+    within ``threshold_px`` (at least ``RIGID_CHECK_MIN_PX``) under it. Asked only when at least eight of
+    the inliers have a query depth and agree on one motion.
 
     Why not refine the reprojection from the alignment instead: on a far facade the reprojection error is
     nearly flat between the two solutions, and the refinement slides back to the wrong one (measured).
@@ -385,7 +387,8 @@ def _depth_consistent(rvec: np.ndarray, tvec: np.ndarray, objects: np.ndarray, i
     aligned = _rotation_vector(rotation).reshape(3, 1), translation.reshape(3, 1)
     distortion = camera.distortion if camera.distortion.size else None
     projected, _ = cv2.projectPoints(objects, aligned[0], aligned[1], camera.matrix, distortion)
-    reprojected = np.linalg.norm(projected.reshape(-1, 2) - images, axis=1) <= threshold_px
+    check_px = max(threshold_px, RIGID_CHECK_MIN_PX)
+    reprojected = np.linalg.norm(projected.reshape(-1, 2) - images, axis=1) <= check_px
     if np.count_nonzero(reprojected) < RIGID_MIN_REPROJECTED * objects.shape[0]:
         return rvec, tvec
     return aligned
