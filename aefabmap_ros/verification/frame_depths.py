@@ -82,13 +82,35 @@ def grid_step_for(width: int) -> int:
 
 def sample_depth_grid(depth_m: np.ndarray, step: int | None = None) -> DepthGrid:
     """The depth image (metres, H x W; 0, negative, NaN = none) on its coarse grid, as float16 (a relative
-    precision of 0.05 %, far inside any depth tolerance; up to 65 km)."""
+    precision of 0.05 %, far inside any depth tolerance; up to 65 km).
+
+    A grid pixel without depth takes the median of its 3 x 3 neighbours that have one, when at least
+    ``MIN_NEIGHBOURS_WITH_DEPTH`` do: a real sensor's scattered dropouts (edges, speckle) would otherwise
+    leave holes that void every interpolation cell around them (the covisibility test needs all four
+    corners), while a hole larger than a few pixels (out of range, a window) stays one.
+    """
     if depth_m.ndim != 2:
         raise DataError(f"depth image must be single-channel, got shape {depth_m.shape}")
     step = grid_step_for(depth_m.shape[1]) if step is None else step
-    samples = np.asarray(depth_m[step // 2::step, step // 2::step], dtype=np.float32)
-    samples = np.where(np.isfinite(samples) & (samples > 0), samples, np.nan)
+    height, width = depth_m.shape
+    rows, columns = np.arange(step // 2, height, step), np.arange(step // 2, width, step)
+    around = np.stack([_valid_metres(depth_m[np.clip(rows + d_row, 0, height - 1)][:, np.clip(columns + d_column,
+                                                                                            0, width - 1)])
+                       for d_row in (0, -1, 1) for d_column in (0, -1, 1)])  # the grid pixel itself first
+    samples = around[0]
+    missing = ~np.isfinite(samples) & (np.isfinite(around).sum(axis=0) >= MIN_NEIGHBOURS_WITH_DEPTH)
+    if missing.any():
+        samples[missing] = np.nanmedian(around[:, missing], axis=0)
     return DepthGrid(samples.astype(np.float16), step)
+
+
+MIN_NEIGHBOURS_WITH_DEPTH = 3
+
+
+def _valid_metres(values: np.ndarray) -> np.ndarray:
+    values = np.asarray(values, dtype=np.float32)
+    result: np.ndarray = np.where(np.isfinite(values) & (values > 0), values, np.float32(np.nan))
+    return result
 
 
 @dataclass(frozen=True)

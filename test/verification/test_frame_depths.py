@@ -35,12 +35,13 @@ def test_the_grid_samples_every_step_th_pixel_half_a_step_in() -> None:
     pixels at rows and columns 2, 6, 10, ..., NaN where the image has none, in float16."""
     rows, columns = np.mgrid[0:24, 0:40]
     depth = ((rows * 100 + columns) / 100.0).astype(np.float32)
-    depth[6, 10] = 0.0  # no depth there
+    depth[6, 10] = 0.0  # a dropout
     grid = sample_depth_grid(depth, step=4)
     assert grid.values.shape == (6, 10) and grid.values.dtype == np.float16 and grid.offset == 2
     assert float(grid.values[0, 0]) == pytest.approx(2.02, rel=1e-3)  # pixel (row 2, column 2)
     assert float(grid.values[5, 9]) == pytest.approx(22.38, rel=1e-3)  # pixel (row 22, column 38)
-    assert np.isnan(grid.values[1, 2])  # pixel (row 6, column 10)
+    # Pixel (row 6, column 10) has none: its 3 x 3 neighbours' median, 6.10 (they are symmetric about it).
+    assert float(grid.values[1, 2]) == pytest.approx(6.10, rel=1e-3)
     # The step gives about 80 columns whatever the resolution.
     assert [grid_step_for(width) for width in (80, 320, 640, 1280, 1920)] == [1, 4, 8, 16, 24]
     assert sample_depth_grid(np.ones((480, 640), np.float32)).values.shape == (60, 80)
@@ -63,9 +64,10 @@ def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
     assert first is not None and second is not None
     np.testing.assert_allclose(first.keypoints, [9.0, 3.0, np.nan])  # (row 2, col 1), (row 0, col 3), outside
     np.testing.assert_allclose(second.keypoints, [109.0, 103.0, np.nan])
-    # A 4-pixel-wide image: step 1 (~80 columns at most), the whole image; 0 (no depth) becomes NaN.
+    # A 4-pixel-wide image: step 1 (~80 columns at most), the whole image; its one dropout (0 at the corner)
+    # takes the median of its three neighbours 1, 4 and 5.
     assert first.grid is not None and first.grid.step == 1
-    np.testing.assert_allclose(first.grid.values.astype(np.float32), np.where(depth > 0, depth, np.nan))
+    np.testing.assert_allclose(first.grid.values.astype(np.float32), np.where(depth > 0, depth, 4.0))
     store.add_depth(30, depth)
     store.add_features(30, keypoints)
     assert len(store) == 2 and store.get(10) is None
@@ -129,3 +131,16 @@ def test_a_corrupt_depth_chunk_is_named(tmp_path: Path) -> None:
         "grid_steps": np.array([4]), "grid_values": np.zeros(5, np.float16)})
     with pytest.raises(ModelError, match=r"depth-000000000\.npz: the depth grids"):
         FrameDepthFolder(tmp_path).load_into(FrameDepthStore(max_frames=2))
+
+
+def test_a_grid_pixel_in_a_dropout_takes_its_neighbours_median_and_a_large_hole_stays_one() -> None:
+    """A wall at 4 m with a sensor's scattered dropouts: a grid pixel that lost its depth gets its 3 x 3
+    neighbours' median; a hole of 5 x 5 pixels around a grid pixel stays a hole."""
+    depth = np.full((24, 40), 4.0, np.float32)
+    depth[2:4, 6:8] = 3.0  # neighbours of the grid pixel (row 2, column 6) at another depth
+    depth[2, 6] = 0.0  # the grid pixel itself dropped out: its 8 neighbours are 3, 3, 3 and five 4 s
+    depth[8:13, 12:17] = 0.0  # a hole around the grid pixel (row 10, column 14)
+    grid = sample_depth_grid(depth, step=4)
+    assert float(grid.values[0, 1]) == pytest.approx(4.0)  # median of (3, 3, 3, 4, 4, 4, 4, 4)
+    assert np.isnan(grid.values[2, 3])
+    assert np.count_nonzero(np.isnan(grid.values)) == 1
