@@ -22,7 +22,7 @@ With the depth at each keypoint and the camera intrinsics, both can be measured 
   query's pixels with depth, carried by the motion, land on the surface the place itself saw, within
   ``metric_depth_tolerance_m`` + ``metric_depth_relative_tolerance`` x depth -- the covisibility
   ground truth's own rule, occlusion included. The demo's one false closure (session 27) was the
-  same corner seen 45 degrees round with its pose right: 62 % of the query's keypoints fall inside
+  same corner seen 31 degrees round with its pose right: 62 % of the query's keypoints fall inside
   the place's image, but a building the place saw in front hides most of them, so 22 % of its
   surface is covisible, under the ground truth's 30 %.
 
