@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.io.atomic import atomic_write_text
+from aefabmap_ros.verification.frame_depths import agrees_with_surface, as_metres
 
 _UNIT_TOLERANCE = 1e-3
 
@@ -245,13 +246,6 @@ def grid_pixels(height: int, width: int, grid_step_px: int) -> tuple[np.ndarray,
     return np.arange(grid_step_px // 2, height, grid_step_px), np.arange(grid_step_px // 2, width, grid_step_px)
 
 
-def _as_metres(values: np.ndarray, depth_scale: float, dtype: type = np.float64) -> np.ndarray:
-    """Depth in metres; no depth (0, negative, NaN, inf) becomes NaN."""
-    metres = values.astype(dtype) / dtype(depth_scale)
-    result: np.ndarray = np.where(np.isfinite(metres) & (metres > 0), metres, dtype(np.nan))
-    return result
-
-
 @dataclass(frozen=True)
 class _PixelRays:
     """The pixels of a sampling grid and their rays K^-1 [u, v, 1] (x, y; z = 1), flattened."""
@@ -273,7 +267,7 @@ class _PixelRays:
 
     def lift(self, depth: np.ndarray, pose: np.ndarray, depth_scale: float, dtype: type) -> np.ndarray:
         """World points (M, 3) of the grid pixels of ``depth`` (H, W) that have depth: R (d K^-1 [u, 1]) + t."""
-        metres = _as_metres(depth[self.rows, self.columns], depth_scale, dtype)
+        metres = as_metres(depth[self.rows, self.columns], depth_scale, dtype)
         valid = np.isfinite(metres)
         metres, ray_x, ray_y = metres[valid], self.ray_x[valid], self.ray_y[valid]
         rotation: np.ndarray = pose[:, :3].astype(dtype)
@@ -379,20 +373,12 @@ def _agreeing_counts(
     inside = (z > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
     batch, point = np.nonzero(inside)
     u, v, z = u[batch, point], v[batch, point], z[batch, point]
-    # Bilinear interpolation of inverse depth: exact on planes (1/z is affine in the pixel coordinates
-    # of a plane), so oblique ground and walls agree at any distance; across a depth edge the mix lands
-    # between the two surfaces and agrees with neither. All four neighbours must have depth.
-    column0 = np.minimum(np.floor(u).astype(np.int64), width - 2)
-    row0 = np.minimum(np.floor(v).astype(np.int64), height - 2)
-    weight_u, weight_v = u - column0, v - row0
-    base = others[batch].astype(np.int64) * (height * width) + row0 * width + column0
-    inverse = np.zeros(u.size)
-    for d_row, d_column, weight in ((0, 0, (1 - weight_v) * (1 - weight_u)), (0, 1, (1 - weight_v) * weight_u),
-                                    (1, 0, weight_v * (1 - weight_u)), (1, 1, weight_v * weight_u)):
-        metres = _as_metres(depths_flat[base + d_row * width + d_column], depth_scale)
-        inverse += weight / metres  # NaN (no depth) poisons the sum: that point does not agree
-    with np.errstate(divide="ignore", invalid="ignore"):
-        agree = np.abs(1.0 / inverse - z) < tolerance_m + relative_tolerance * z
+    frame_base = others[batch].astype(np.int64) * (height * width)
+
+    def pixel_metres(rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        return as_metres(depths_flat[frame_base + rows * width + columns], depth_scale)
+
+    agree = agrees_with_surface(pixel_metres, u, v, (width, height), z, tolerance_m, relative_tolerance)
     if min_view_cosine is not None:
         # The angle at the point between the rays from i's and j's camera centres.
         points = world_points[point[agree]]

@@ -14,6 +14,7 @@ feature store, so the places seen before a restart keep their metric test.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -48,6 +49,39 @@ def depth_at_pixels(depth_m: np.ndarray, points: np.ndarray) -> np.ndarray:
     out = np.full(points.shape[0], np.nan, dtype=np.float32)
     out[inside] = depth_m[rows[inside], columns[inside]]
     return out
+
+
+def as_metres(values: np.ndarray, depth_scale: float = 1.0, dtype: type = np.float64) -> np.ndarray:
+    """Depth values divided by ``depth_scale`` (units per metre); no depth (0, negative, NaN, inf) becomes NaN."""
+    metres = values.astype(dtype) / dtype(depth_scale)
+    result: np.ndarray = np.where(np.isfinite(metres) & (metres > 0), metres, dtype(np.nan))
+    return result
+
+
+def agrees_with_surface(sample_metres: Callable[[np.ndarray, np.ndarray], np.ndarray], x: np.ndarray, y: np.ndarray,
+                        size: tuple[int, int], z: np.ndarray, tolerance_m: float,
+                        relative_tolerance: float) -> np.ndarray:
+    """(M,) bool: the points at sample coordinates (x, y) (columns, rows, within [0, width - 1] x
+    [0, height - 1] of a ``size`` = (width, height) array of depth samples) with depth ``z`` lie on the
+    sampled surface, within ``tolerance_m + relative_tolerance * z``. ``sample_metres(rows, columns)`` gives
+    the samples' depths (metres, NaN = none).
+
+    Inverse depth is interpolated bilinearly between the four samples around each point: exact on planes
+    (1/z is affine in the pixel coordinates of a plane), so oblique ground and walls agree at any distance;
+    across a depth edge the mix lands between the two surfaces and agrees with neither. All four samples
+    must have depth. The covisibility ground truth (on every pixel) and the metric test (on a grid) share it.
+    """
+    width, height = size
+    column0 = np.minimum(np.floor(x).astype(np.int64), width - 2)
+    row0 = np.minimum(np.floor(y).astype(np.int64), height - 2)
+    weight_x, weight_y = x - column0, y - row0
+    inverse = np.zeros(x.size)
+    for d_row, d_column, weight in ((0, 0, (1 - weight_y) * (1 - weight_x)), (0, 1, (1 - weight_y) * weight_x),
+                                    (1, 0, weight_y * (1 - weight_x)), (1, 1, weight_y * weight_x)):
+        inverse += weight / sample_metres(row0 + d_row, column0 + d_column)  # NaN (no depth) poisons the sum
+    with np.errstate(divide="ignore", invalid="ignore"):
+        agree: np.ndarray = np.abs(1.0 / inverse - z) < tolerance_m + relative_tolerance * z
+    return agree
 
 
 @dataclass(frozen=True)
@@ -94,8 +128,8 @@ def sample_depth_grid(depth_m: np.ndarray, step: int | None = None) -> DepthGrid
     step = grid_step_for(depth_m.shape[1]) if step is None else step
     height, width = depth_m.shape
     rows, columns = np.arange(step // 2, height, step), np.arange(step // 2, width, step)
-    around = np.stack([_valid_metres(depth_m[np.clip(rows + d_row, 0, height - 1)][:, np.clip(columns + d_column,
-                                                                                            0, width - 1)])
+    around = np.stack([as_metres(depth_m[np.ix_(np.clip(rows + d_row, 0, height - 1),
+                                                np.clip(columns + d_column, 0, width - 1))], dtype=np.float32)
                        for d_row in (0, -1, 1) for d_column in (0, -1, 1)])  # the grid pixel itself first
     samples = around[0]
     missing = ~np.isfinite(samples) & (np.isfinite(around).sum(axis=0) >= MIN_NEIGHBOURS_WITH_DEPTH)
@@ -106,11 +140,6 @@ def sample_depth_grid(depth_m: np.ndarray, step: int | None = None) -> DepthGrid
 
 MIN_NEIGHBOURS_WITH_DEPTH = 3
 
-
-def _valid_metres(values: np.ndarray) -> np.ndarray:
-    values = np.asarray(values, dtype=np.float32)
-    result: np.ndarray = np.where(np.isfinite(values) & (values > 0), values, np.float32(np.nan))
-    return result
 
 
 @dataclass(frozen=True)

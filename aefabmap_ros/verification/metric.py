@@ -64,7 +64,7 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.verification.frame_depths import DepthGrid
+from aefabmap_ros.verification.frame_depths import DepthGrid, agrees_with_surface
 from aefabmap_ros.verification.relative_pose import (
     CameraModel,
     RelativePose,
@@ -147,15 +147,7 @@ def view_overlap(query_keypoints: np.ndarray, depths: KeypointDepths, pose: Rela
     valid = np.isfinite(values) & (values > 0)
     if not valid.any():
         return 0.0
-    in_query = back_project(query_keypoints[valid, :2], values[valid], depths.camera)
-    in_place = (in_query - pose.translation) @ pose.rotation  # R^T (X - t), row by row
-    in_front = in_place[:, 2] > 0
-    if not in_front.any():
-        return 0.0
-    distortion = depths.camera.distortion if depths.camera.distortion.size else None
-    pixels, _ = cv2.projectPoints(in_place[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  depths.camera.matrix, distortion)
-    pixels = pixels.reshape(-1, 2)
+    pixels, _ = _carried_into_place(query_keypoints[valid, :2], values[valid], pose, depths.camera)
     width, height = depths.image_size
     inside = (pixels[:, 0] >= 0) & (pixels[:, 0] <= width - 1) & (pixels[:, 1] >= 0) & (pixels[:, 1] <= height - 1)
     return float(np.count_nonzero(inside)) / float(np.count_nonzero(valid))
@@ -176,27 +168,30 @@ def covisibility(query: DepthGrid, place: DepthGrid, pose: RelativePose, camera:
         return 0.0
     values = query.values[rows * QUERY_SUBSAMPLE, columns * QUERY_SUBSAMPLE]
     pixels = np.column_stack([query.offset + columns * step, query.offset + rows * step])
-    in_query = back_project(pixels.astype(np.float64), values.astype(np.float64), camera)
+    projected, depths = _carried_into_place(pixels.astype(np.float64), values.astype(np.float64), pose, camera)
+    agreeing = _agrees_with_grid(place, projected, depths, tolerance_m, relative_tolerance)
+    return float(np.count_nonzero(agreeing)) / float(rows.size)
+
+
+def _carried_into_place(pixels: np.ndarray, depths_m: np.ndarray, pose: RelativePose,
+                        camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """The query's ``pixels`` (M, 2) with depth, carried by ``pose`` into the place's camera: the (K, 2) pixels
+    and (K,) depths there of those that land in front of it."""
+    in_query = back_project(pixels, depths_m, camera)
     in_place = (in_query - pose.translation) @ pose.rotation  # R^T (X - t), row by row
     in_front = in_place[:, 2] > 0
     if not in_front.any():
-        return 0.0
+        return np.zeros((0, 2)), np.zeros(0)
     distortion = camera.distortion if camera.distortion.size else None
     projected, _ = cv2.projectPoints(in_place[in_front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                      camera.matrix, distortion)
-    agreeing = _agrees_with_grid(place, projected.reshape(-1, 2), in_place[in_front, 2], tolerance_m,
-                                 relative_tolerance)
-    return float(np.count_nonzero(agreeing)) / float(rows.size)
+    return projected.reshape(-1, 2), in_place[in_front, 2]
 
 
 def _agrees_with_grid(grid: DepthGrid, pixels: np.ndarray, depths_m: np.ndarray, tolerance_m: float,
                       relative_tolerance: float) -> np.ndarray:
-    """(M,) bool: the points at ``pixels`` with depth ``depths_m`` lie on the grid's surface there.
-
-    Inverse depth is interpolated bilinearly between the four grid samples around each pixel, as the
-    ground truth does between pixels: exact on a plane, so oblique ground and walls agree, while across a
-    depth edge the mix lies between the two surfaces and agrees with neither (all four must have depth).
-    """
+    """(M,) bool: the points at ``pixels`` with depth ``depths_m`` lie on the grid's surface there
+    (``frame_depths.agrees_with_surface``, the ground truth's interpolation, between grid samples)."""
     height, width = grid.values.shape
     # Rounding in the round trip through 3-D must not move a point on the grid's last row off it.
     grid_x = (pixels[:, 0] - grid.offset) / grid.step
@@ -205,17 +200,8 @@ def _agrees_with_grid(grid: DepthGrid, pixels: np.ndarray, depths_m: np.ndarray,
     agree = np.zeros(len(pixels), bool)
     if width < 2 or height < 2 or not inside.any():
         return agree
-    grid_x = np.clip(grid_x[inside], 0, width - 1)
-    grid_y = np.clip(grid_y[inside], 0, height - 1)
-    z = depths_m[inside]
-    column0 = np.minimum(np.floor(grid_x).astype(np.int64), width - 2)
-    row0 = np.minimum(np.floor(grid_y).astype(np.int64), height - 2)
-    weight_x, weight_y = grid_x - column0, grid_y - row0
     values = grid.values.astype(np.float64)
-    inverse = np.zeros(z.size)
-    for d_row, d_column, weight in ((0, 0, (1 - weight_y) * (1 - weight_x)), (0, 1, (1 - weight_y) * weight_x),
-                                    (1, 0, weight_y * (1 - weight_x)), (1, 1, weight_y * weight_x)):
-        inverse += weight / values[row0 + d_row, column0 + d_column]  # NaN (no depth) poisons the sum
-    with np.errstate(divide="ignore", invalid="ignore"):
-        agree[inside] = np.abs(1.0 / inverse - z) < tolerance_m + relative_tolerance * z
+    agree[inside] = agrees_with_surface(lambda rows, columns: values[rows, columns],
+                                        np.clip(grid_x[inside], 0, width - 1), np.clip(grid_y[inside], 0, height - 1),
+                                        (width, height), depths_m[inside], tolerance_m, relative_tolerance)
     return agree
