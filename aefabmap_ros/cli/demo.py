@@ -315,8 +315,10 @@ def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, reco
          "offline evaluation of the four methods (each also after geometric verification: + GV)")
     if recording is not None:
         print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)
-        _run(["aefabmap_ros.cli.evaluate", "--recording", recording, "--gt", gt,
-              "--out", args.out / "evaluation_online"], "evaluation of the recording")
+        # Frames by stamp: loop_gt.npz's stamps_ns (the bag's images' stamps, which --bag gives for older bags).
+        _run(["aefabmap_ros.cli.evaluate", "--recording", recording, "--gt", gt, "--bag", test / "bag",
+              "--topic", "/image", "--pose-truth", test / "groundtruth.tum", "--out", args.out / "evaluation_online"],
+             "evaluation of the recording")
 
 
 def run(args: argparse.Namespace) -> int:

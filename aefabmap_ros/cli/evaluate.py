@@ -9,6 +9,9 @@
     aefabmap_eval --images test/images --gt test/loop_gt.npz --model models/ae --model models/kmeans --out r/
     # a recorded run of the nodes (aefabmap_record: loop_closures, loop_closure_candidates, place_posteriors)
     aefabmap_eval --recording run.mcap_dir --gt test/loop_gt.npz --out r/
+    #   frames by stamp: the --gt file's stamps_ns, or --times FILE, or the images of --bag B --topic T
+    aefabmap_eval --recording run.mcap_dir --poses poses.txt --max-distance 10 --max-angle 30 \\
+        --times times.txt --pose-truth groundtruth.tum --out r/
 
 Per method: precision-recall curve, average precision, max F1, recall at 100 % precision, and the
 paper's accuracy (= precision) and recall at a fixed threshold: --threshold (FAB-MAP posterior,
@@ -42,6 +45,12 @@ places excluded by time, temporal consistency), verified as verifier_node does w
 given. Its table says what a backend would receive on /loop_closures: closures, false ones, revisit
 events closed and recall over revisiting frames.
 
+A recording is scored by stamp: a message's header stamp (its query image's) and matched_stamp /
+place_stamps (the matched places' images) name ground-truth frames, never its query_id, which
+counts only the frames that reached fabmap_node. Recall is given over all revisiting frames and
+over those the detector processed (a place_posteriors message); OUT/closures.csv lists every
+closure, its frames, truth and (--pose-truth) its relative pose's error.
+
 Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png, OUT/reliability.png (reliability
 diagram of the posterior the nodes publish: how often each frame's best place is right, per
 posterior bin, in the online chain) and
@@ -68,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     test = parser.add_argument_group("test sequence (a folder, or a bag topic)")
     test.add_argument("--images", type=Path, help="folder of test images (natural sort order)")
-    test.add_argument("--bag", type=Path, help="rosbag2 bag holding the test images")
+    test.add_argument("--bag", type=Path,
+                      help="rosbag2 bag holding the test images (with --recording: the frame stamps, read from it)")
     test.add_argument("--topic", default="/image", help="image topic of --bag (default: /image)")
     test.add_argument("--rate", type=float, default=10.0,
                       help="frame rate of --images in Hz: their stamps, which the online chain's time windows "
@@ -95,9 +105,20 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--train-on-test", action="store_true", help="train on the test sequence itself")
     train.add_argument("--model", type=Path, action="append", default=[],
                        help="an already trained model directory (repeatable)")
-    parser.add_argument("--recording", type=Path,
-                        help="evaluate a recorded run instead (bag with place_posteriors, loop_closure_candidates, "
-                        "loop_closures): each closure topic scored per closure and per revisit event")
+    recorded = parser.add_argument_group("a recorded run (--recording; frames found by image stamp)")
+    recorded.add_argument("--recording", type=Path,
+                          help="evaluate a recorded run instead (bag with place_posteriors, loop_closure_candidates, "
+                          "loop_closures): each closure topic scored per closure and per revisit event, every "
+                          "closure listed in OUT/closures.csv")
+    recorded.add_argument("--times", type=Path,
+                          help="the ground truth's frame stamps, one number of seconds per line (KITTI times.txt); "
+                          "default: the --gt file's stamps_ns, else the images of --bag/--topic")
+    recorded.add_argument("--pose-truth", type=Path,
+                          help="TUM file of camera-to-world poses (t x y z qx qy qz qw, e.g. aefabmap_synth's "
+                          "groundtruth.tum): each closure's relative pose scored against it")
+    recorded.add_argument("--frames-by-query-id", action="store_true",
+                          help="map messages to frames by query_id instead of stamp: right only for a recording of a "
+                          "lossless replay (every frame reached fabmap_node, in order)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
     parser.add_argument("--verify", action="store_true",

@@ -37,8 +37,10 @@ Each sequence DIR/<train|test>/ holds:
   camera_info.yaml        the camera in ROS camera_calibration_parsers' format (K, D = 0, R = I, P)
   loop_gt.npz             key "gt": (N, N) uint8 covisibility ground truth (gt[i, j] = 1: i revisits
                           j, DESIGN 9.2); `aefabmap_gt --depth depth --poses poses.txt --camera-info
-                          camera_info.yaml --times times.txt` on the folder reproduces it
-  loop_gt_poses.npz       key "gt": the pose-rule loop matrix (centres within 2.5 m, axes within 30 deg)
+                          camera_info.yaml --times times.txt` on the folder reproduces it; key
+                          "stamps_ns": (N,) int64, each row's stamp (the bag's image stamps)
+  loop_gt_poses.npz       key "gt": the pose-rule loop matrix (centres within 2.5 m, axes within 30 deg),
+                          and the same "stamps_ns"
   synth_config.json       every generator parameter, so the sequence can be regenerated
 
 The training sequence is rendered in another town (seed + 1000003) than the test sequence, so a
@@ -127,9 +129,9 @@ def camera_info_yaml(camera_matrix: np.ndarray, width: int, height: int, name: s
             f"rectification_matrix:{matrix(3, 3, np.eye(3))}\nprojection_matrix:{matrix(3, 4, projection)}\n")
 
 
-def _save_npz(path: Path, gt: np.ndarray) -> None:
+def _save_npz(path: Path, gt: np.ndarray, stamps_ns: np.ndarray) -> None:
     with open(path, "wb") as file:  # inside a fresh temporary directory: no reader can see it half-written
-        np.savez_compressed(file, gt=gt)
+        np.savez_compressed(file, gt=gt, stamps_ns=np.asarray(stamps_ns, dtype=np.int64))
 
 
 def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: Path, fmt: str, topic: str) -> None:
@@ -161,8 +163,9 @@ def write_sequence(sequence: SyntheticSequence, config: SynthConfig, directory: 
     atomic_write_bytes(directory / "times.txt", "".join(f"{t:.9f}\n" for t in seconds).encode())
     projection = np.hstack([sequence.camera_matrix, np.zeros((3, 1))]).reshape(12)
     atomic_write_bytes(directory / "calib.txt", ("P0: " + " ".join(f"{v:.12e}" for v in projection) + "\n").encode())
-    _save_npz(directory / "loop_gt.npz", sequence.gt)
-    _save_npz(directory / "loop_gt_poses.npz", sequence.gt_poses)
+    # The rows' stamps: those of the bag's images (header and log time), of groundtruth.tum and odometry.tum.
+    _save_npz(directory / "loop_gt.npz", sequence.gt, sequence.stamps_ns)
+    _save_npz(directory / "loop_gt_poses.npz", sequence.gt_poses, sequence.stamps_ns)
     atomic_write_bytes(directory / "synth_config.json", (json.dumps(asdict(config), indent=2) + "\n").encode())
 
 

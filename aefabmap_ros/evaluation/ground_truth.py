@@ -521,3 +521,21 @@ def load_gt_npz(path: Path) -> np.ndarray:
     if not np.isin(gt, (0, 1)).all():
         raise DataError(f"ground truth in {path} must hold only 0 and 1")
     return gt.astype(np.uint8)
+
+
+def load_gt_stamps(path: Path) -> np.ndarray | None:
+    """The frame stamps of a loop-matrix .npz (``stamps_ns``: (N,) int64 nanoseconds, one per row, as
+    aefabmap_gt and aefabmap_synth write them); None when the file has none."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "stamps_ns" not in data.files:
+                return None
+            stamps = np.asarray(data["stamps_ns"])
+    except FileNotFoundError as error:
+        raise DataError(f"ground-truth file not found: {path}") from error
+    except (OSError, ValueError) as error:
+        raise DataError(f"cannot read ground-truth file {path}: {error}") from error
+    if stamps.ndim != 1 or not np.issubdtype(stamps.dtype, np.integer):
+        raise DataError(f"stamps_ns in {path} must be a 1-D array of integer nanoseconds, got {stamps.dtype} "
+                        f"of shape {stamps.shape}")
+    return stamps.astype(np.int64)

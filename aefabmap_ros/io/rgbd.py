@@ -102,8 +102,9 @@ def _data_lines(path: Path, what: str) -> list[tuple[int, list[str]]]:
             if line.strip() and not line.lstrip().startswith("#")]
 
 
-def read_times(path: Path, num_frames: int) -> np.ndarray:
-    """(N,) int64 stamps from a file of one number of seconds per line (KITTI times.txt)."""
+def read_times(path: Path, num_frames: int, frames_of: str = "the folder") -> np.ndarray:
+    """(N,) int64 stamps from a file of one number of seconds per line (KITTI times.txt); ``frames_of``
+    names what has ``num_frames`` frames, for the error when the count differs."""
     stamps = []
     for number, fields in _data_lines(path, "times file"):
         if len(fields) != 1:
@@ -113,7 +114,7 @@ def read_times(path: Path, num_frames: int) -> np.ndarray:
         except ValueError as error:
             raise DataError(f"{path}:{number}: not a number ({fields[0]!r})") from error
     if len(stamps) != num_frames:
-        raise DataError(f"times file {path} has {len(stamps)} stamps but the folder has {num_frames} frames")
+        raise DataError(f"times file {path} has {len(stamps)} stamps but {frames_of} has {num_frames} frames")
     return np.asarray(stamps, dtype=np.int64)
 
 

@@ -1,16 +1,19 @@
 """aefabmap_eval: the four methods on a tiny synthetic sequence, --model, --train-on-test, recordings and
 every bad input (ERROR: ..., exit 1)."""
 
+import csv
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
-from aefabmap_ros.evaluation.metrics import evaluate_scores
+from aefabmap_ros.evaluation.metrics import evaluate_scores, event_scores
 from aefabmap_ros.verification.geometric import VerificationConfig
 
 FRAMES = 30
@@ -321,41 +324,73 @@ def test_error_unknown_config_key(base, tmp_path, capsys):
 # ------------------------------------------------------------------------------------------ recordings
 
 
-RecordedClosure = tuple[int, int, float] | tuple[int, int, float, int]  # query, place, probability[, inliers]
+START = 1_700_000_000_000_000_000
+PERIOD = 100_000_000
+
+
+def frame_stamp(frame: int) -> int:
+    return START + frame * PERIOD
+
+
+# query frame, matched frame, probability[, inliers[, T_q_m 4x4, metric]]
+RecordedClosure = tuple[Any, ...]
 
 
 def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
-                    closures: Mapping[str, Sequence[RecordedClosure]]) -> None:
-    """A recording with ``/place_posteriors`` and one LoopClosure topic per key of ``closures``."""
+                    closures: Mapping[str, Sequence[RecordedClosure]], query_ids: Mapping[int, int] | None = None,
+                    posterior_topic: str = "/place_posteriors") -> None:
+    """A recording with ``posterior_topic`` and one LoopClosure topic per key of ``closures``. Entries name
+    frames (stamped ``frame_stamp``); ``query_ids`` numbers them as fabmap_node did (default: the frame)."""
     from aefabmap_ros.io import bags
 
     types = bags.get_typestore().types
-    start = 1_700_000_000_000_000_000
-    period = 100_000_000
+    ids = query_ids or {}
     with bags.BagWriter(path) as writer:
-        writer.add_topic("/place_posteriors", "aefabmap_msgs/msg/PlacePosterior")
+        writer.add_topic(posterior_topic, "aefabmap_msgs/msg/PlacePosterior")
         for topic in closures:
             writer.add_topic(topic, "aefabmap_msgs/msg/LoopClosure")
-        for query, places, probabilities in posteriors:
+        for frame, places, probabilities in posteriors:
+            query = ids.get(frame, frame)
             message = types["aefabmap_msgs/msg/PlacePosterior"](
-                header=bags.make_header(start + query * period), query_id=query, assigned_place_id=query,
+                header=bags.make_header(frame_stamp(frame)), query_id=query, assigned_place_id=query,
                 current_place_id=query,
                 is_new_place=True, loop_closure_candidate=False, new_place_probability=1.0 - sum(probabilities),
-                place_ids=np.array(places, dtype=np.int64),
-                place_stamps=[bags.make_time(start + p * period) for p in places],
+                place_ids=np.array([ids.get(p, p) for p in places], dtype=np.int64),
+                place_stamps=[bags.make_time(frame_stamp(p)) for p in places],
                 probabilities=np.array(probabilities, dtype=np.float64),
                 log_likelihoods=np.zeros(len(places), dtype=np.float64),
             )
-            writer.write("/place_posteriors", start + query * period, message)
+            writer.write(posterior_topic, frame_stamp(frame), message)
         for topic, entries in closures.items():
-            for query, place, probability, *inliers in entries:
+            for frame, place, probability, *rest in entries:
+                pose = bags.no_pose_fields()
+                if len(rest) > 1:
+                    matrix, metric = rest[1], rest[2]
+                    x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
+                    pose.update(pose_available=True, pose_status=0, translation_metric=metric,
+                                pose=types["geometry_msgs/msg/Pose"](
+                                    position=types["geometry_msgs/msg/Point"](*(float(v) for v in matrix[:3, 3])),
+                                    orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)))
                 message = types["aefabmap_msgs/msg/LoopClosure"](
-                    header=bags.make_header(start + query * period), query_id=query, query_place_id=place,
-                    matched_place_id=place, matched_stamp=bags.make_time(start + place * period),
-                    probability=probability, log_likelihood=0.0, inliers=inliers[0] if inliers else -1,
-                    **bags.no_pose_fields(),
+                    header=bags.make_header(frame_stamp(frame)), query_id=ids.get(frame, frame),
+                    query_place_id=ids.get(place, place), matched_place_id=ids.get(place, place),
+                    matched_stamp=bags.make_time(frame_stamp(place)), probability=probability, log_likelihood=0.0,
+                    inliers=rest[0] if rest else -1, **pose,
                 )
-                writer.write(topic, start + query * period, message)
+                writer.write(topic, frame_stamp(frame), message)
+
+
+def save_gt(path: Path, gt: np.ndarray, stamps: bool = True) -> None:
+    """A ground-truth .npz; with its rows' stamps (``frame_stamp``), as aefabmap_gt and aefabmap_synth write it."""
+    if stamps:
+        np.savez(path, gt=gt, stamps_ns=np.array([frame_stamp(i) for i in range(gt.shape[0])], dtype=np.int64))
+    else:
+        np.savez(path, gt=gt)
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open() as file:
+        return list(csv.DictReader(file))
 
 
 def test_recording_metrics(tmp_path, capsys):
@@ -382,7 +417,7 @@ def test_recording_metrics(tmp_path, capsys):
     published = [(12, 0, 0.999, 57)]  # the verifier passed one true closure and held back the other two
     write_recording(tmp_path / "run", posteriors, {"/loop_closure_candidates": candidates,
                                                    "/loop_closures": published})
-    np.savez(tmp_path / "gt.npz", gt=gt)
+    save_gt(tmp_path / "gt.npz", gt)
     assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--threshold", "0.99",
                  "--out", str(tmp_path / "out"), "--quiet"]) == 0
     printed = capsys.readouterr().out
@@ -398,22 +433,37 @@ def test_recording_metrics(tmp_path, capsys):
     assert entry["accuracy_at_threshold"] == pytest.approx(0.75)
     assert entry["recall_at_threshold"] == pytest.approx(3 / 8)
     assert entry["recall_at_100_precision"] == 0.0  # the top-scoring proposal (18 -> 2) is wrong
-    assert results["place_posteriors"] == frames and results["event_gap_frames"] == 3
+    assert results["place_posteriors"] == results["frames_processed"] == frames and results["event_gap_frames"] == 3
+    assert results["frame_stamps"].startswith(f"the stamps_ns of {tmp_path / 'gt.npz'} (20 stamped frames")
     raw, verified = results["closures"]
     # Candidates: 12 -> 0 and 16 -> 4 true, 18 -> 2 false; the one event (12..19) closed; frames 12, 16 of 8.
     assert raw == {"role": "FAB-MAP candidates", "topic": "loop_closure_candidates", "closures": 3, "verified": 0,
                    "false_closures": 1, "precision": pytest.approx(2 / 3), "revisit_events": 1, "events_closed": 1,
                    "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 2,
-                   "recall_revisiting_frames": 0.25, "missed_revisiting_frames_with_a_true_place_ranked": 6}
+                   "recall_revisiting_frames": 0.25, "revisiting_frames_processed": 8,
+                   "revisiting_frames_processed_closed": 2, "recall_revisiting_frames_processed": 0.25,
+                   "missed_revisiting_frames_with_a_true_place_ranked": 6, "wrong_poses": None, "poses_checked": None}
     assert verified == {"role": "published", "topic": "loop_closures", "closures": 1, "verified": 1,
                         "false_closures": 0, "precision": 1.0, "revisit_events": 1, "events_closed": 1,
                         "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 1,
-                        "recall_revisiting_frames": 0.125, "missed_revisiting_frames_with_a_true_place_ranked": 7}
+                        "recall_revisiting_frames": 0.125, "revisiting_frames_processed": 8,
+                        "revisiting_frames_processed_closed": 1, "recall_revisiting_frames_processed": 0.125,
+                        "missed_revisiting_frames_with_a_true_place_ranked": 7, "wrong_poses": None,
+                        "poses_checked": None}
     # Every revisiting frame had its true place among its recorded top places: each miss is the decision's.
-    assert "| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) | 7 / 7 |" in printed
-    row = "| FAB-MAP candidates | `loop_closure_candidates` | 3 | 0 | 1 | 0.667 | 1 | 1 | 1.000 | 0.250 (2/8) | 6 / 6 |"
-    assert row in (tmp_path / "out" / "results.md").read_text()
+    assert ("| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) | 0.125 (1/8) "
+            "| 7 / 7 |") in printed
+    row = ("| FAB-MAP candidates | `loop_closure_candidates` | 3 | 0 | 1 | 0.667 | 1 | 1 | 1.000 | 0.250 (2/8) "
+           "| 0.250 (2/8) | 6 / 6 |")
+    markdown = (tmp_path / "out" / "results.md").read_text()
+    assert row in markdown
+    assert ("| `loop_closure_candidates` | 18 | 1700000001.800000000 | 2 | 1700000000.200000000 | 0.9995 | -1 |  |  |"
+            in markdown)  # the false closure, listed
     assert (tmp_path / "out" / "scores_recording.png").is_file()
+    listing = read_csv(tmp_path / "out" / "closures.csv")
+    assert [(r["topic"], r["query_frame"], r["matched_frame"], r["true"]) for r in listing] == [
+        ("loop_closure_candidates", "12", "0", "1"), ("loop_closure_candidates", "16", "4", "1"),
+        ("loop_closure_candidates", "18", "2", "0"), ("loop_closures", "12", "0", "1")]
 
 
 def _three_event_gt() -> np.ndarray:
@@ -430,7 +480,7 @@ def _three_event_gt() -> np.ndarray:
 def test_recording_events_and_an_older_recording(tmp_path, capsys):
     """An older recording (verified_loop_closures): its loop_closures are the candidates, its
     verified_loop_closures the published closures; both scored per revisit event, by hand."""
-    np.savez(tmp_path / "gt.npz", gt=_three_event_gt())
+    save_gt(tmp_path / "gt.npz", _three_event_gt())
     raw = [(13, 1, 0.999), (17, 5, 0.995), (26, 6, 0.999), (30, 3, 0.999), (35, 21, 0.999)]  # last two false
     verified = [(13, 1, 0.999, 40), (26, 7, 0.999, 33)]  # 26 moved to 7, also a true revisit
     write_recording(tmp_path / "old", [(i, [], []) for i in range(40)],
@@ -460,8 +510,186 @@ def test_recording_events_and_an_older_recording(tmp_path, capsys):
     assert (only["role"], only["closures"], only["verified"], only["events_closed"]) == ("published", 5, 0, 2)
 
 
+# Frames that never reached fabmap_node (a live camera's losses, a detection-rate policy), and the closures
+# of the frames that did, as (query frame, matched frame, probability, inliers): 15 -> 4 and 35 -> 21 are false.
+LOST = (3, 9, 10, 14, 16, 22, 26, 33)
+LOSSY_CLOSURES = [(12, 0, 0.999, 50), (13, 1, 0.99, 44), (15, 4, 0.98, 31), (17, 5, 0.999, 60), (25, 5, 0.97, 28),
+                  (27, 8, 0.999, 35), (35, 21, 0.999, 30)]
+
+
+def write_lossy_recording(path: Path, posterior_topic: str = "/place_posteriors") -> None:
+    received = [frame for frame in range(40) if frame not in LOST]
+    query_ids = {frame: index for index, frame in enumerate(received)}  # fabmap_node counts what it got
+    write_recording(path, [(frame, [], []) for frame in received], {"/loop_closures": LOSSY_CLOSURES},
+                    query_ids=query_ids, posterior_topic=posterior_topic)
+
+
+def test_a_recording_with_lost_frames_is_scored_by_stamp(tmp_path, capsys):
+    """Frames lost before fabmap_node renumber its query ids; by stamp, the closures land on their frames:
+    the figures are those of the same closures given as frame pairs to the metrics."""
+    gt = _three_event_gt()
+    save_gt(tmp_path / "gt.npz", gt)
+    write_lossy_recording(tmp_path / "run")
+    assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    results = read_results(tmp_path / "out")
+    (published,) = results["closures"]
+    pairs = [(query, matched) for query, matched, *_ in LOSSY_CLOSURES]
+    reference = event_scores(pairs, gt, 10)
+    assert (published["closures"], published["false_closures"]) == (reference.num_closures,
+                                                                     reference.num_false_closures) == (7, 2)
+    assert (published["revisit_events"], published["events_closed"]) == (reference.num_events,
+                                                                         reference.num_events_closed)
+    assert (published["revisiting_frames"], published["revisiting_frames_closed"]) == (
+        reference.num_revisiting_frames, reference.num_revisiting_frames_closed) == (10, 5)
+    assert published["precision"] == pytest.approx(5 / 7)
+    # Recall over the frames the detector processed: revisiting frames 14 and 26 never reached it.
+    assert results["frames_processed"] == 40 - len(LOST)
+    assert (published["revisiting_frames_processed"], published["revisiting_frames_processed_closed"]) == (8, 5)
+    assert published["recall_revisiting_frames_processed"] == pytest.approx(5 / 8)
+    listing = read_csv(tmp_path / "out" / "closures.csv")
+    assert [(int(r["query_frame"]), int(r["matched_frame"])) for r in listing] == pairs
+    assert [r["true"] for r in listing] == ["1", "1", "0", "1", "1", "1", "0"]
+    assert [r["query_stamp"] for r in listing][:2] == ["1700000001.200000000", "1700000001.300000000"]
+    assert [r["inliers"] for r in listing] == [str(entry[3]) for entry in LOSSY_CLOSURES]
+    # Read by query id, the same recording puts the closures on other rows (right only for a lossless replay).
+    assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--frames-by-query-id",
+                 "--out", str(tmp_path / "by_id"), "--quiet"]) == 0
+    (by_id,) = read_results(tmp_path / "by_id")["closures"]
+    assert by_id["false_closures"] != published["false_closures"]
+
+
+def test_frame_stamps_from_a_times_file_of_float_seconds_or_from_the_image_bag(tmp_path, capsys):
+    """--times (seconds, as floats: some 100 ns off the recorded stamps, matched within 1 ms) and --bag
+    (the images' header stamps) give the frames the gt file's stamps_ns gives."""
+    from aefabmap_ros.io import bags
+
+    gt = _three_event_gt()
+    save_gt(tmp_path / "stamped.npz", gt)
+    save_gt(tmp_path / "gt.npz", gt, stamps=False)
+    write_lossy_recording(tmp_path / "run")
+    (tmp_path / "times.txt").write_text("".join(f"{frame_stamp(i) / 1e9:.6f}\n" for i in range(40)))
+    bags.write_image_bag(tmp_path / "images", "/cam", [(frame_stamp(i), np.zeros((4, 4), np.uint8))
+                                                       for i in range(40)])
+    figures = {}
+    for name, extra in (("stamped", ["--gt", str(tmp_path / "stamped.npz")]),
+                        ("times", ["--gt", str(tmp_path / "gt.npz"), "--times", str(tmp_path / "times.txt")]),
+                        ("bag", ["--gt", str(tmp_path / "gt.npz"), "--bag", str(tmp_path / "images"),
+                                 "--topic", "/cam"])):
+        assert main(["--recording", str(tmp_path / "run"), *extra, "--out", str(tmp_path / name), "--quiet"]) == 0
+        results = read_results(tmp_path / name)
+        figures[name] = (results["closures"], read_csv(tmp_path / name / "closures.csv"))
+        assert results["frames_processed"] == 32
+    assert figures["times"] == figures["stamped"] == figures["bag"]
+    assert "--times" in read_results(tmp_path / "times")["frame_stamps"]
+    assert "within 1 ms" in read_results(tmp_path / "times")["frame_stamps"]
+    assert "/cam images of" in read_results(tmp_path / "bag")["frame_stamps"]
+
+
+def test_a_recording_without_frame_stamps_is_refused(tmp_path, capsys):
+    save_gt(tmp_path / "gt.npz", _three_event_gt(), stamps=False)
+    write_lossy_recording(tmp_path / "run")
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "matched to ground-truth frames by their image stamps, and no frame stamps were given" in err
+    assert "--times FILE" in err and "--bag BAG --topic TOPIC" in err and "stamps_ns" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_recorded_stamp_that_is_no_frame_is_refused(tmp_path, capsys):
+    gt = _three_event_gt()
+    write_lossy_recording(tmp_path / "run")
+    # A times file of seconds since the first frame (KITTI's, aefabmap_synth's): the recording's stamps are absolute.
+    save_gt(tmp_path / "gt.npz", gt, stamps=False)
+    (tmp_path / "times.txt").write_text("".join(f"{i / 10:.6f}\n" for i in range(40)))
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
+                     "--times", str(tmp_path / "times.txt"), "--out", str(tmp_path / "out")], capsys)
+    assert "32 recorded stamps match no frame of --times" in err  # the posteriors: the score matrix's first
+    assert "the first: place_posteriors query stamped 1700000000.000000000 s" in err
+    assert "seconds since the first frame" in err
+    # One frame of the gt's stamps differs from the recording's: its stamp matches no frame.
+    stamps = np.array([frame_stamp(i) for i in range(40)], dtype=np.int64)
+    stamps[5] += 1
+    np.savez(tmp_path / "off.npz", gt=gt, stamps_ns=stamps)
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "off.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "1 recorded stamp matches no frame" in err
+    assert "place_posteriors query stamped 1700000000.500000000 s" in err
+    # Frame 5 is only a closure's matched place when its posterior is not recorded: refused all the same.
+    received = [frame for frame in range(40) if frame not in (*LOST, 5)]
+    write_recording(tmp_path / "run5", [(frame, [], []) for frame in received], {"/loop_closures": LOSSY_CLOSURES})
+    err = run_error(["--recording", str(tmp_path / "run5"), "--gt", str(tmp_path / "off.npz"),
+                     "--out", str(tmp_path / "out")], capsys)
+    assert "2 recorded stamps match no frame" in err  # 17 -> 5 and 25 -> 5
+    assert "loop closure matched place stamped 1700000000.500000000 s" in err
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--times", "t.txt", "--bag", "b"], "--times FILE or --bag BAG, not both"),
+    (["--frames-by-query-id", "--times", "t.txt"], "give no --times or --bag with it"),
+])
+def test_recording_frame_options_that_do_not_fit(tmp_path, capsys, extra, message):
+    save_gt(tmp_path / "gt.npz", _three_event_gt())
+    write_lossy_recording(tmp_path / "run")
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), *extra,
+                     "--out", str(tmp_path / "out")], capsys)
+    assert message in err
+
+
+@pytest.mark.parametrize("extra", [["--times", "t.txt"], ["--pose-truth", "p.tum"], ["--frames-by-query-id"]])
+def test_recording_options_without_a_recording(base, capsys, extra):
+    err = run_error(["--images", str(base["test"] / "images"), "--gt", str(base["test"] / "loop_gt.npz"),
+                     "--train-on-test", *extra, "--out", str(base["out"])], capsys)
+    assert "go with --recording" in err
+
+
+def test_recording_topics_with_and_without_a_leading_slash(tmp_path, capsys):
+    """aefabmap_record stores the names it subscribed to (place_posteriors), ros2 bag record absolute ones."""
+    save_gt(tmp_path / "gt.npz", _three_event_gt())
+    write_lossy_recording(tmp_path / "relative", posterior_topic="place_posteriors")
+    assert main(["--recording", str(tmp_path / "relative"), "--gt", str(tmp_path / "gt.npz"),
+                 "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    results = read_results(tmp_path / "out")
+    assert results["frames_processed"] == 32 and results["closures"][0]["closures"] == 7
+    write_recording(tmp_path / "twice", [(1, [], [])], {"/loop_closures": [], "loop_closures": []})
+    err = run_error(["--recording", str(tmp_path / "twice"), "--gt", str(tmp_path / "gt.npz"),
+                     "--out", str(tmp_path / "out2")], capsys)
+    assert "has both '/loop_closures' and 'loop_closures': one topic recorded twice" in err
+
+
+def test_recording_with_a_pose_truth(tmp_path, capsys):
+    """--pose-truth: each closure's relative pose (T_q_m) against the TUM poses at its two stamps."""
+    from aefabmap_ros.evaluation.trajectory_error import tum_text
+
+    gt = _three_event_gt()
+    save_gt(tmp_path / "gt.npz", gt)
+    poses = np.tile(np.eye(4), (40, 1, 1))
+    poses[:, 0, 3] = np.arange(40) * 0.1  # the camera moves along its x axis, 0.1 m a frame, never turning
+    (tmp_path / "groundtruth.tum").write_text(tum_text(np.array([frame_stamp(i) for i in range(40)]) / 1e9, poses))
+    right = np.eye(4)
+    right[0, 3] = -1.2  # frame 0 seen from frame 12: 1.2 m along -x
+    wrong = np.eye(4)
+    wrong[:3, :3] = Rotation.from_euler("y", 10, degrees=True).as_matrix()
+    wrong[0, 3] = -1.2 - 0.3
+    closures = [(12, 0, 0.999, 50, right, True), (13, 1, 0.99, 44, wrong, True), (17, 5, 0.999, 60)]
+    write_recording(tmp_path / "run", [(i, [], []) for i in range(40)], {"/loop_closures": closures})
+    assert main(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--pose-truth",
+                 str(tmp_path / "groundtruth.tum"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "wrong poses (> 5 deg or > 0.2 m) / checked |" in printed and printed.count("| 1 / 2 |") == 1
+    (published,) = read_results(tmp_path / "out")["closures"]
+    assert (published["wrong_poses"], published["poses_checked"]) == (1, 2)
+    first, second, third = read_csv(tmp_path / "out" / "closures.csv")
+    assert float(first["rotation_error_deg"]) == pytest.approx(0.0, abs=1e-4) and first["pose_wrong"] == "0"
+    assert float(first["translation_error_m"]) == pytest.approx(0.0, abs=1e-5)
+    assert float(second["rotation_error_deg"]) == pytest.approx(10.0, abs=1e-4) and second["pose_wrong"] == "1"
+    assert float(second["translation_error_m"]) == pytest.approx(0.3, abs=1e-5)
+    assert third["pose_available"] == "0" and third["rotation_error_deg"] == ""
+    assert "Closures with a wrong relative pose" in (tmp_path / "out" / "results.md").read_text()
+
+
 def test_recording_of_two_layouts_at_once_is_refused(tmp_path, capsys):
-    np.savez(tmp_path / "gt.npz", gt=_three_event_gt())
+    save_gt(tmp_path / "gt.npz", _three_event_gt())
     write_recording(tmp_path / "mixed", [(13, [], [])], {"/loop_closure_candidates": [(13, 1, 0.999)],
                                                          "/verified_loop_closures": [(13, 1, 0.999, 40)]})
     err = run_error(["--recording", str(tmp_path / "mixed"), "--gt", str(tmp_path / "gt.npz"),
@@ -473,16 +701,16 @@ def test_recording_without_the_topics(tmp_path, capsys):
     from aefabmap_ros.io import bags
 
     bags.write_image_bag(tmp_path / "images", "/image", [(1, np.zeros((4, 4), np.uint8))])
-    np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
+    save_gt(tmp_path / "gt.npz", np.zeros((3, 3), np.uint8))
     err = run_error(["--recording", str(tmp_path / "images"), "--gt", str(tmp_path / "gt.npz"),
                      "--out", str(tmp_path / "out")], capsys)
     assert "has none of place_posteriors, loop_closures, loop_closure_candidates" in err
 
 
-def test_recording_with_query_beyond_the_ground_truth(tmp_path, capsys):
+def test_recording_by_query_id_with_a_query_beyond_the_ground_truth(tmp_path, capsys):
     write_recording(tmp_path / "run", [(0, [], []), (5, [0], [0.5])], {})
-    np.savez(tmp_path / "gt.npz", gt=np.zeros((3, 3), np.uint8))
-    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"),
+    save_gt(tmp_path / "gt.npz", np.zeros((3, 3), np.uint8), stamps=False)
+    err = run_error(["--recording", str(tmp_path / "run"), "--gt", str(tmp_path / "gt.npz"), "--frames-by-query-id",
                      "--out", str(tmp_path / "out")], capsys)
     assert "query id 5 outside the 3 frames" in err
 

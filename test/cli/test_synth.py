@@ -74,6 +74,11 @@ def test_writes_mcap_bag(tmp_path):
     np.testing.assert_array_equal(np.asarray(first.data).reshape(72, 96), png)
     stamps = [m.stamp_ns for m in messages]
     assert stamps == sorted(stamps) and stamps[1] - stamps[0] == 100_000_000
+    # The ground truth's rows carry the images' header stamps (aefabmap_eval --recording finds frames by them).
+    assert [m.message.header.stamp.sec * 10**9 + m.message.header.stamp.nanosec for m in messages] == stamps
+    for name in ("loop_gt.npz", "loop_gt_poses.npz"):
+        with np.load(directory / name) as data:
+            assert data["stamps_ns"].dtype == np.int64 and data["stamps_ns"].tolist() == stamps
     assert bags.list_topics(directory / "bag") == {"/cam": bags.IMAGE_TYPE, "/depth": bags.IMAGE_TYPE,
                                                    "/camera_info": bags.CAMERA_INFO_TYPE, "/odom": bags.ODOMETRY_TYPE}
     # The odometry topic is odometry.tum's drifting odometry, frame by frame, stamped like the images.
