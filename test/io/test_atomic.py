@@ -29,3 +29,29 @@ def test_atomic_open_replaces_on_success_and_keeps_the_old_file_on_error(tmp_pat
         file.write(b"new")
     assert target.read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["features.npz"]
+
+
+def test_a_save_keeps_the_files_mode_and_a_new_file_gets_the_umasks(tmp_path: Path) -> None:
+    """tempfile.mkstemp makes 0600 files: a 0644 map must not turn 0600 (unreadable to the group) by a save."""
+    import os
+    import stat
+
+    def mode(path: Path) -> int:
+        return stat.S_IMODE(path.stat().st_mode)
+
+    for existing in (0o644, 0o640, 0o600, 0o664, 0o444):
+        target = tmp_path / f"map_{existing:o}.npz"
+        target.write_bytes(b"old")
+        target.chmod(existing)
+        atomic_write_bytes(target, b"new")
+        assert target.read_bytes() == b"new" and mode(target) == existing, f"{existing:o} -> {mode(target):o}"
+    previous = os.umask(0o022)
+    try:
+        for umask, expected in ((0o022, 0o644), (0o077, 0o600), (0o002, 0o664)):
+            os.umask(umask)
+            fresh = tmp_path / f"fresh_{umask:o}.npz"
+            with atomic_open(fresh) as file:
+                file.write(b"first")
+            assert mode(fresh) == expected, f"umask {umask:o}: {mode(fresh):o}"
+    finally:
+        os.umask(previous)
