@@ -7,9 +7,11 @@ beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 --no-verify leaves the verifier out and remaps FAB-MAP's candidates onto ``loop_closures``
 (``inliers`` -1: not verified). With --map, the map and the verifier's feature store (folder
 ``<map>.features``) are saved and reloaded, so both survive a restart. Ctrl-C (or SIGTERM) stops
-every node cleanly; if one node dies, the others are stopped and the exit code is 1. The nodes die
-with the launcher (Linux): killed with SIGKILL, it leaves no node running that a relaunch would
-duplicate (two FAB-MAP nodes writing one map).
+every node cleanly; if one node dies, the others are stopped and the exit code is 1. It is 1 too when
+a node exits non-zero while stopping (its final save failed) or is still saving after --stop-timeout
+seconds and killed: each is named in an ERROR line. The nodes die with the launcher (Linux): killed
+with SIGKILL, it leaves no node running that a relaunch would duplicate (two FAB-MAP nodes writing one
+map).
 
 
 Each node process gets OMP_NUM_THREADS, OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and NUMBA_NUM_THREADS
@@ -60,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--backend", action="store_true",
                         help="also run pose_graph_node, the example SLAM backend (odometry on odom; "
                         "publishes pose_graph/path and map -> odom)")
+    parser.add_argument("--stop-timeout", type=float, default=STOP_TIMEOUT_S, metavar="SECONDS",
+                        help="on Ctrl-C / SIGTERM, wait this long for each node's final save before killing it "
+                        f"(default: {STOP_TIMEOUT_S:g})")
     return parser
 
 
@@ -113,9 +118,40 @@ def start_node(command: list[str], environment: dict[str, str]) -> subprocess.Po
     return subprocess.Popen(command, env=environment)
 
 
-def supervise(commands: list[list[str]]) -> int:
+# A node's final save (FAB-MAP's map, the verifier's feature store) can take a minute on a slow disk or a
+# loaded machine: a node killed in the middle of it keeps only its previous save.
+STOP_TIMEOUT_S = 120.0
+STOP_PROGRESS_S = 10.0  # how often the launcher says which nodes it is still waiting for
+
+
+def _node_name(command: list[str]) -> str:
+    """The node a command runs, for messages: the module after ``-m`` (its last part), else the program."""
+    if "-m" in command[:-1]:
+        return command[command.index("-m") + 1].rsplit(".", 1)[-1]
+    return Path(command[0]).name
+
+
+def supervise(commands: list[list[str]], stop_timeout_s: float = STOP_TIMEOUT_S) -> int:
+    """Run the node processes until one fails, all have ended, or the launcher gets SIGINT / SIGTERM; then
+    stop the others and return the exit code.
+
+    Stopping: every node still running gets SIGINT and up to ``stop_timeout_s`` to save its state and exit
+    (``--stop-timeout``); every ``STOP_PROGRESS_S`` the launcher prints which nodes it is waiting for, and a
+    node still running at the end is killed (SIGKILL). Further signals to the launcher meanwhile do not cut
+    the wait short.
+
+    Exit code 1 when a node failed while running, or exited non-zero after the stop began: a node stopped
+    by a signal exits 0 after a clean stop and 1 when its final save failed (nodes/common.py ``run_nodes``),
+    and a killed node saved nothing; each is named in ``ERROR: <node> exited with code N during shutdown
+    (its state may not be saved)``. A node that died of the SIGINT or SIGTERM itself (code -2 or -15) had
+    not yet installed its signal handlers -- ``run_nodes`` does that before it builds a node, and restores
+    them only after the final save -- so it was still starting, with nothing to save: not an error.
+    """
+    if not stop_timeout_s > 0:
+        raise ConfigError(f"--stop-timeout must be > 0 seconds, got {stop_timeout_s}")
     environment = child_environment(len(commands))
     processes = [start_node(command, environment) for command in commands]
+    name_of = {process: _node_name(command) for process, command in zip(processes, commands, strict=True)}
     stopping = False
 
     def stop(_signum: int, _frame: FrameType | None) -> None:
@@ -124,27 +160,53 @@ def supervise(commands: list[list[str]]) -> int:
 
     previous_handlers = {signum: signal.signal(signum, stop) for signum in (signal.SIGINT, signal.SIGTERM)}
     exit_code = 0
+    failed_while_running: list[subprocess.Popen[bytes]] = []
     try:
         while not stopping:
-            failed = [p for p in processes if p.poll() not in (None, 0)]
-            if failed:
+            failed_while_running = [p for p in processes if p.poll() not in (None, 0)]
+            if failed_while_running:
                 exit_code = 1
-                print(f"ERROR: a node exited with code {failed[0].returncode}: {failed[0].args!r}",
-                      file=sys.stderr)
+                for process in failed_while_running:
+                    print(f"ERROR: a node exited with code {process.returncode}: {process.args!r}",
+                          file=sys.stderr)
                 break
             if all(p.poll() is not None for p in processes):
                 break
             time.sleep(0.2)
     finally:
+        running = [p for p in processes if p.poll() is None]
+        for process in running:
+            process.send_signal(signal.SIGINT)  # nodes save state on a clean shutdown
+        started = time.monotonic()
+        reported = started
+        while running:
+            time.sleep(0.1)
+            running = [p for p in running if p.poll() is None]
+            waited = time.monotonic() - started
+            if running and waited >= stop_timeout_s:
+                for process in running:
+                    print(f"ERROR: {name_of[process]} (pid {process.pid}) still running "
+                          f"{stop_timeout_s:g} s after the stop request (--stop-timeout): killed", file=sys.stderr)
+                    process.kill()
+                    process.wait()
+                break
+            if running and time.monotonic() - reported >= STOP_PROGRESS_S:
+                reported = time.monotonic()
+                names = ", ".join(name_of[p] for p in running)
+                print(f"[launch] waiting for {names} to finish shutting down (saving state): {waited:.0f} s of "
+                      f"{stop_timeout_s:g} s (--stop-timeout)", file=sys.stderr, flush=True)
         for process in processes:
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)  # nodes save state on a clean shutdown
-        for process in processes:
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            code = process.returncode
+            if process in failed_while_running or code == 0:
+                continue
+            name = name_of[process]
+            if code in (-signal.SIGINT, -signal.SIGTERM):
+                print(f"[launch] {name} ended by {signal.Signals(-code).name} while still starting (nothing to "
+                      "save)", file=sys.stderr)
+                continue
+            exit_code = 1
+            print(f"ERROR: {name} exited with code {code} during shutdown (its state may not be saved)",
+                  file=sys.stderr)
         for signum, handler in previous_handlers.items():  # the caller's handling of Ctrl-C comes back
             signal.signal(signum, handler)
     return exit_code
@@ -187,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
     problem = params_file_problem(params)
     if problem is not None:
         raise ConfigError(problem)
-    return supervise(node_commands(args))
+    return supervise(node_commands(args), args.stop_timeout)
 
 
 def main(argv: list[str] | None = None) -> int:
