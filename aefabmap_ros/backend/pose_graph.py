@@ -12,6 +12,14 @@ This is the pattern a user copies into their own backend (pose_graph_node is its
   verifier's relative pose and covariance, behind a robust kernel (Cauchy) so that one wrong
   closure is down-weighted instead of dragging the graph.
 
+iSAM2 factors by Cholesky, on the normal equations: fast, but it squares the system's condition
+number, and a keyframe far from the anchor (30 km along a straight road, with the loop factors' 5 cm)
+makes the system look singular to it (gtsam's "indeterminate linear system"). A closure whose update
+fails so is added again by QR on a graph rebuilt from the factors kept before it (``factorization``
+is then "QR" for good: about 4x slower per closure, and exact where Cholesky gave up); a closure QR
+cannot take either is dropped (``solver_failed``), the graph as it was. Either way no gtsam error
+leaves the graph half updated.
+
 Keyframe poses are ``T_map_base``; ``map_to_odom`` is what a TF broadcaster publishes so that
 ``map -> odom -> base`` puts the robot on the optimised trajectory. No ROS import: gtsam and numpy only.
 """
@@ -26,6 +34,7 @@ from enum import Enum
 import gtsam
 import numpy as np
 
+from aefabmap_ros.backend.validation import covariance_problem, psd_part
 from aefabmap_ros.errors import ConfigError
 
 # Extra iSAM2 iterations after a closure, and the largest keyframe move (m) at which they stop.
@@ -40,8 +49,9 @@ class ClosureResult(Enum):
     WAITING = "waiting_for_odometry"  # its query is newer than the last odometry: retried when odometry comes
     UNKNOWN_STAMP = "unknown_stamp"  # an endpoint before the odometry buffer (or a dropped waiting closure)
     NO_POSE = "no_pose"  # the closure carries no relative pose
-    BAD_COVARIANCE = "bad_covariance"  # not a finite, symmetric positive-definite 6x6
+    BAD_COVARIANCE = "bad_covariance"  # not a finite, symmetric positive semi-definite 6x6 (validation.py)
     INCONSISTENT = "inconsistent_with_odometry"  # further from the graph than odometry drift can explain
+    SOLVER_FAILED = "solver_failed"  # iSAM2 could not take it, by Cholesky nor by QR: the graph is as before
 
 
 @dataclass(frozen=True)
@@ -184,8 +194,11 @@ def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
 
 
 def loop_factor_covariance(config: PoseGraphConfig, covariance_ros: np.ndarray) -> np.ndarray:
-    """A closure's covariance (ROS order x y z rot) in gtsam order, with the configured floor added."""
-    return _ros_to_gtsam_covariance(np.asarray(covariance_ros, dtype=np.float64)) + np.diag(
+    """A closure's covariance (ROS order x y z rot) in gtsam order, with the configured floor added.
+
+    The covariance is one ``validation.covariance_problem`` accepted: its round-off's negative
+    eigenvalues are cut to 0 first (``psd_part``), so with the floor it is positive definite."""
+    return _ros_to_gtsam_covariance(psd_part(covariance_ros)) + np.diag(
         [config.loop_min_sigma_rad ** 2] * 3 + [config.loop_min_sigma_m ** 2] * 3)
 
 
@@ -195,6 +208,15 @@ def odometry_disagreement(query_to_place: gtsam.Pose3, loop_covariance: np.ndarr
     relative pose (odometry's, or the graph's), under the closure's and the drift's covariances (gtsam order)."""
     residual = gtsam.Pose3.Logmap(query_to_place.between(predicted))
     return float(residual @ np.linalg.solve(loop_covariance + drift, residual))
+
+
+def _isam_params(factorization: str) -> gtsam.ISAM2Params:
+    params = gtsam.ISAM2Params()
+    # Relinearise every step: the robust kernel's weights change as the graph moves (see _update).
+    params.relinearizeSkip = 1
+    params.setRelinearizeThreshold(0.01)
+    params.setFactorization(factorization)
+    return params
 
 
 class PoseGraph:
@@ -207,12 +229,11 @@ class PoseGraph:
         self.counts: Counter[str] = Counter()
         self._waiting: list[Closure] = []
         self._chain_factors: dict[tuple[int, int], int] = {}  # (key before, key after) -> iSAM2 factor index
+        self._factors: dict[int, gtsam.NonlinearFactor] = {}  # iSAM2 factor index -> factor, the graph's own
         self._next_key = 0
-        params = gtsam.ISAM2Params()
-        # Relinearise every step: the robust kernel's weights change as the graph moves (see _update).
-        params.relinearizeSkip = 1
-        params.setRelinearizeThreshold(0.01)
-        self._isam = gtsam.ISAM2(params)
+        self.factorization = "CHOLESKY"  # "QR" once Cholesky failed on this graph (module docstring)
+        self.solver_error = ""  # gtsam's message of the last update that failed
+        self._isam = gtsam.ISAM2(_isam_params(self.factorization))
         self._estimate = gtsam.Values()
 
     # -- input --------------------------------------------------------------------------------------------
@@ -236,8 +257,7 @@ class PoseGraph:
 
     def _add_closure(self, closure: Closure) -> ClosureResult:
         covariance = np.asarray(closure.covariance, dtype=np.float64)
-        if covariance.shape != (6, 6) or not np.isfinite(covariance).all() \
-                or not np.allclose(covariance, covariance.T, atol=1e-9) or np.linalg.eigvalsh(covariance)[0] < 0:
+        if covariance.shape != (6, 6) or covariance_problem(covariance) is not None:
             return ClosureResult.BAD_COVARIANCE
         last = self.odometry.last_ns
         # No odometry yet waits too: a backend's callbacks may take a closure before the odometry queued ahead of it.
@@ -263,6 +283,28 @@ class PoseGraph:
         # long drift keeps most of its weight; one the graph later contradicts (other closures) loses it.
         scale = self.config.cauchy_scale * float(np.sqrt(np.trace(drift[3:, 3:] + loop_covariance[3:, 3:])
                                                          / np.trace(loop_covariance[3:, 3:])))
+        robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(scale),
+                                                gtsam.noiseModel.Gaussian.Covariance(loop_covariance))
+        # What a failed update must not leave changed (the estimate is replaced, never changed in place).
+        kept = (list(self.keyframes), dict(self._chain_factors), dict(self._factors), self._next_key, self._estimate)
+        while True:
+            try:
+                self._insert_closure(endpoints, closure.query_to_place, robust)
+                return ClosureResult.ADDED
+            except RuntimeError as exc:  # gtsam's IndeterminantLinearSystemException and kin
+                self.solver_error = " ".join(str(exc).split())
+                retry = self.factorization != "QR"
+                # The failed update left its factors inside iSAM2: start again from the graph kept before it.
+                self.keyframes, self._chain_factors, self._factors = list(kept[0]), dict(kept[1]), dict(kept[2])
+                self._next_key, self._estimate = kept[3], kept[4]
+                self._rebuild("QR")
+                if not retry:
+                    return ClosureResult.SOLVER_FAILED
+
+    def _insert_closure(self, endpoints: tuple[int, int], query_to_place: gtsam.Pose3,
+                        noise: gtsam.noiseModel.Base) -> None:
+        """Keyframes at both endpoints (made where missing) and the loop factor between them; one iSAM2 update.
+        A gtsam error leaves keyframes and iSAM2 half updated: the caller restores and rebuilds them."""
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         removed: list[int] = []
         tags: list[tuple[int, int] | None] = []  # per factor added: the keyframe pair of an odometry factor
@@ -274,12 +316,9 @@ class PoseGraph:
             keyframe = self._find_keyframe(stamp_ns) or self._new_keyframe(stamp_ns, graph, values, removed, tags)
             assert keyframe is not None  # resolvable, checked above
             keys.append(keyframe.key)
-        robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(scale),
-                                                gtsam.noiseModel.Gaussian.Covariance(loop_covariance))
-        graph.add(gtsam.BetweenFactorPose3(keys[0], keys[1], closure.query_to_place, robust))
+        graph.add(gtsam.BetweenFactorPose3(keys[0], keys[1], query_to_place, noise))
         tags.append(None)
         self._update(graph, values, removed, tags)
-        return ClosureResult.ADDED
 
     # -- output -------------------------------------------------------------------------------------------
 
@@ -360,12 +399,9 @@ class PoseGraph:
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, removed: list[int],
                 tags: list[tuple[int, int] | None]) -> None:
+        """One iSAM2 update and its extra iterations; the factors are recorded once all of it succeeded."""
         result = self._isam.update(graph, values, removed)
-        # iSAM2 numbers the new factors in the order they were added: remember the odometry factors' numbers
-        # so that a keyframe inserted later between two keyframes can remove the factor it splits.
-        for tag, index in zip(tags, result.getNewFactorsIndices(), strict=True):
-            if tag is not None:
-                self._chain_factors[tag] = int(index)
+        new_indices = [int(index) for index in result.getNewFactorsIndices()]
         # The Cauchy kernel is re-weighted at each relinearisation (IRLS): a true closure far from the
         # drifted estimate starts with a small weight and gains it as the graph moves towards it; a wrong one
         # stays far and keeps a small weight. A few more iterations, until the estimate settles.
@@ -375,6 +411,31 @@ class PoseGraph:
             keys = [keyframe.key for keyframe in self.keyframes]
             if _largest_change(before, self._isam.calculateEstimate(), keys) < SETTLED_M:
                 break
+        self._estimate = self._isam.calculateEstimate()
+        # iSAM2 numbers the new factors in the order they were added: remember the odometry factors' numbers
+        # so that a keyframe inserted later between two keyframes can remove the factor it splits.
+        for position, (tag, index) in enumerate(zip(tags, new_indices, strict=True)):
+            self._factors[index] = graph.at(position)
+            if tag is not None:
+                self._chain_factors[tag] = index
+        for index in removed:
+            self._factors.pop(index, None)
+
+    def _rebuild(self, factorization: str) -> None:
+        """A new iSAM2 (``factorization``) holding the recorded factors at the last estimate."""
+        self.factorization = factorization
+        self._isam = gtsam.ISAM2(_isam_params(factorization))
+        if not self._factors:
+            self._estimate = gtsam.Values()
+            return
+        old_indices = sorted(self._factors)
+        graph = gtsam.NonlinearFactorGraph()
+        for index in old_indices:
+            graph.add(self._factors[index])
+        result = self._isam.update(graph, self._estimate)
+        renumbered = dict(zip(old_indices, (int(index) for index in result.getNewFactorsIndices()), strict=True))
+        self._factors = {renumbered[index]: factor for index, factor in self._factors.items()}
+        self._chain_factors = {pair: renumbered[index] for pair, index in self._chain_factors.items()}
         self._estimate = self._isam.calculateEstimate()
 
 

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from aefabmap_ros.backend.pose_graph import pose_from_matrix
+from aefabmap_ros.backend.validation import covariance_problem, pose_problem, stamp_problem
 from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
@@ -148,6 +149,16 @@ def _fill_candidates(message: PlacePosterior, candidates: tuple[Candidate, ...])
     )
 
 
+def posterior_problem(message: PlacePosterior) -> str | None:
+    """Why a PlacePosterior's candidates cannot be read: ``place_ids``, ``place_stamps``, ``probabilities`` and
+    ``log_likelihoods`` are one entry per candidate, so they must have one length. None when they do."""
+    lengths = {name: len(getattr(message, name))
+               for name in ("place_ids", "place_stamps", "probabilities", "log_likelihoods")}
+    if len(set(lengths.values())) > 1:
+        return f"PlacePosterior of query {message.query_id}: candidate arrays differ in length {lengths}"
+    return None
+
+
 def recognition_to_posterior(recognition: Recognition, header: Any) -> PlacePosterior:
     message = PlacePosterior()
     message.header = copy_header(header)
@@ -215,8 +226,37 @@ def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
 
 
 def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
-    """A geometry_msgs/Pose as a gtsam Pose3."""
+    """A geometry_msgs/Pose as a gtsam Pose3 (one ``message_pose_problem`` accepted: scipy raises on the rest)."""
     return pose_from_matrix(pose_to_matrix(pose))
+
+
+def message_pose_problem(pose: Any, what: str = "pose") -> str | None:
+    """Why a geometry_msgs/Pose is not a usable pose (``validation.pose_problem``); None when it is."""
+    position, orientation = pose.position, pose.orientation
+    return pose_problem((position.x, position.y, position.z),
+                        (orientation.x, orientation.y, orientation.z, orientation.w), what)
+
+
+def odometry_problem(message: Any) -> str | None:
+    """Why a nav_msgs/Odometry cannot go into the pose graph or the odometry gate: its stamp or its pose
+    (its covariances are not used). None when it can."""
+    stamp = message.header.stamp
+    return stamp_problem(stamp.sec, stamp.nanosec, "odometry stamp") or message_pose_problem(
+        message.pose.pose, "odometry pose")
+
+
+def loop_closure_stamp_problem(message: LoopClosure) -> str | None:
+    """Why a LoopClosure's stamps (the query's and the matched place's) are not ROS times; None when they are."""
+    stamp, matched = message.header.stamp, message.matched_stamp
+    return stamp_problem(stamp.sec, stamp.nanosec, "closure stamp") or stamp_problem(
+        matched.sec, matched.nanosec, "closure matched_stamp")
+
+
+def loop_closure_pose_problem(message: LoopClosure) -> str | None:
+    """Why a LoopClosure's relative pose and covariance cannot go into the pose graph or the odometry gate
+    (``loop_closure_pose`` would raise on them, or feed NaN to the graph); None when they can."""
+    return message_pose_problem(message.pose, "closure pose") or covariance_problem(
+        message.pose_covariance, 6, "closure pose_covariance")
 
 
 def loop_closure_pose(message: LoopClosure) -> tuple[gtsam.Pose3, np.ndarray]:

@@ -13,8 +13,13 @@ The closures' poses are between camera frames, odometry is of its child (base) f
 ``base_to_camera`` ([x, y, z, qx, qy, qz, qw], the camera's pose in the base frame, T_base_camera;
 identity by default, for a camera that is the odometry's child frame) turns each closure into one
 between the two base poses (backend/pose_graph.py ``closure_in_base_frame``).
-Bad input is counted and dropped: odometry out of order, a closure without a pose, a closure to a
-stamp the odometry never covered, a closure the odometry drift cannot explain.
+Bad input is counted and dropped: odometry out of order, odometry with an unusable stamp or pose
+(``bad_odometry``: NaN, a quaternion whose norm is not 1, backend/validation.py), a closure without a
+pose, one with an unusable pose or covariance (``bad_closure_pose``) or stamp (``bad_closure_stamp``),
+a closure to a stamp the odometry never covered, a closure the odometry drift cannot explain, one the
+solver cannot take (``solver_failed``). Any other exception a message causes is counted by its type
+and dropped (``node_callback``): no message stops the node. Exit code 1 when the trajectory file
+cannot be written at shutdown.
 """
 
 from __future__ import annotations
@@ -39,8 +44,24 @@ from aefabmap_ros.backend.pose_graph import (
     trajectory_arrays,
 )
 from aefabmap_ros.io.atomic import atomic_write_text
-from aefabmap_ros.nodes.common import ODOMETRY_QOS, RESULT_QOS, DropCounter, declare_config, declare_parameter, run_node
-from aefabmap_ros.nodes.messages import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam, time_from_ns
+from aefabmap_ros.nodes.common import (
+    ODOMETRY_QOS,
+    RESULT_QOS,
+    DropCounter,
+    declare_config,
+    declare_parameter,
+    node_callback,
+    run_node,
+)
+from aefabmap_ros.nodes.messages import (
+    extrinsic_to_gtsam,
+    loop_closure_pose,
+    loop_closure_pose_problem,
+    loop_closure_stamp_problem,
+    odometry_problem,
+    pose_to_gtsam,
+    time_from_ns,
+)
 from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
@@ -49,7 +70,7 @@ except ImportError:  # pragma: no cover - depends on the installation
     TFMessage = None
 
 _DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureResult.INCONSISTENT,
-            ClosureResult.NO_POSE}
+            ClosureResult.NO_POSE, ClosureResult.SOLVER_FAILED}
 
 
 def gtsam_to_pose(pose3: gtsam.Pose3) -> Pose:
@@ -84,17 +105,31 @@ class PoseGraphNode(Node):
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
         self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
 
+    @node_callback
     def _on_odometry(self, message: Odometry) -> None:
+        problem = odometry_problem(message)
+        if problem is not None:
+            self.counter.drop("bad_odometry", problem)
+            return
         before = self.graph.counts["odometry_out_of_order"]
         results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose))
         if self.graph.counts["odometry_out_of_order"] > before:
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
         self._report(results, stamp_to_ns(message.header.stamp))
 
+    @node_callback
     def _on_loop_closure(self, message: LoopClosure) -> None:
         if not message.pose_available:
             self.counter.drop(ClosureResult.NO_POSE.value, f"closure of query {message.query_id} has no pose "
                               f"(pose_status {message.pose_status})")
+            return
+        problem = loop_closure_stamp_problem(message)
+        if problem is not None:
+            self.counter.drop("bad_closure_stamp", f"closure of query {message.query_id}: {problem}")
+            return
+        problem = loop_closure_pose_problem(message)
+        if problem is not None:
+            self.counter.drop("bad_closure_pose", f"closure of query {message.query_id}: {problem}")
             return
         pose, covariance = closure_in_base_frame(*loop_closure_pose(message), self.base_to_camera)
         closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp), pose, covariance)
@@ -102,7 +137,10 @@ class PoseGraphNode(Node):
 
     def _report(self, results: list[ClosureResult], stamp_ns: int) -> None:
         for result in results:
-            if result in _DROPPED:
+            if result is ClosureResult.SOLVER_FAILED:
+                self.counter.drop(result.value, f"loop closure near stamp {stamp_ns} dropped: iSAM2 could not take "
+                                  f"it ({self.graph.solver_error})")
+            elif result in _DROPPED:
                 self.counter.drop(result.value, f"loop closure near stamp {stamp_ns} dropped: {result.value}")
             else:
                 self.counter.ok(result.value)
@@ -128,14 +166,22 @@ class PoseGraphNode(Node):
         transform.transform.rotation = pose.orientation
         self.tf_publisher.publish(TFMessage(transforms=[transform]) if TFMessage is not None else transform)
 
-    def close(self) -> None:
+    def close(self) -> bool:
+        """Write the keyframe trajectory; False (the process then exits 1) when it cannot be written."""
+        saved = True
         if self.trajectory_file is not None:
             from aefabmap_ros.evaluation.trajectory_error import tum_text  # evo: loaded at shutdown only
 
             stamps_s, poses = trajectory_arrays(self.graph.trajectory())
-            atomic_write_text(self.trajectory_file, tum_text(stamps_s, poses))
-            self.get_logger().info(f"wrote {len(stamps_s)} keyframes to {self.trajectory_file}")
+            try:
+                atomic_write_text(self.trajectory_file, tum_text(stamps_s, poses))
+                self.get_logger().info(f"wrote {len(stamps_s)} keyframes to {self.trajectory_file}")
+            except OSError as exc:
+                saved = False
+                self.get_logger().error(f"FINAL SAVE FAILED: the keyframe trajectory not written to "
+                                        f"{self.trajectory_file} ({type(exc).__name__}: {exc})")
         self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}")
+        return saved
 
 
 def main(args: list[str] | None = None) -> int:

@@ -56,6 +56,14 @@ overlap and the query's depth lands on the place's surface): it accepts a candid
 refused for its share of the keypoints (counted as ``metric_test_accepted``) and refuses one it accepted
 whose views do not overlap or are not covisible (``metric_test_refused_no_view_overlap``); the image size
 it needs comes from the features messages.
+
+Malformed input is counted and dropped by name, the state kept as it was: a depth image of another size
+than its image (``depth_size_mismatch``: its pixels are not the keypoints'), a CameraInfo without usable
+intrinsics (``bad_camera_info``: K all zero, focal lengths not positive and finite; the previous
+intrinsics stay), a PlacePosterior whose candidate arrays differ in length (``bad_posterior``), odometry
+with an unusable stamp or pose (``bad_odometry``: NaN, a quaternion whose norm is not 1;
+backend/validation.py), and a closure whose pose the odometry gate cannot judge (``bad_closure_pose``).
+Any other exception a message causes is counted by its type (``node_callback``).
 """
 
 from __future__ import annotations
@@ -99,12 +107,15 @@ from aefabmap_ros.nodes.messages import (
     extrinsic_to_gtsam,
     fill_relative_pose,
     loop_closure_pose,
+    loop_closure_pose_problem,
     message_to_features,
+    odometry_problem,
     pose_to_gtsam,
+    posterior_problem,
     time_from_ns,
 )
 from aefabmap_ros.stamps import stamp_to_ns
-from aefabmap_ros.verification.frame_depths import FrameDepthFolder, FrameDepthStore
+from aefabmap_ros.verification.frame_depths import FrameDepthFolder, FrameDepthStore, depth_size_problem
 from aefabmap_ros.verification.geometric import (
     FeatureStore,
     FeatureStoreFolder,
@@ -279,7 +290,11 @@ class VerifierNode(Node):
             self.image_size = (int(message.image_width), int(message.image_height))
         stored = self.store.get(stamp_ns)
         if self.depths is not None and stored is not None:
-            self.depths.add_features(stamp_ns, stored.keypoints)
+            image_size = (int(message.image_width), int(message.image_height)) if message.image_width else None
+            try:
+                self.depths.add_features(stamp_ns, stored.keypoints, image_size)
+            except AefabmapError as exc:  # its depth image, come first, is of another size: not kept
+                self.counter.drop("depth_size_mismatch", f"frame at stamp {stamp_ns}: {exc}")
         self._verify_if_ready(stamp_ns)
 
     @node_callback
@@ -287,16 +302,29 @@ class VerifierNode(Node):
         if self.camera_fixed:
             return
         try:
-            self.camera = camera_info_to_model(message)
+            camera = camera_info_to_model(message)
         except AefabmapError as exc:
-            self.counter.drop("bad_camera_info", str(exc))
+            self.counter.drop("bad_camera_info", f"{exc}; the previous intrinsics are kept")
+            return
+        if camera is None:
+            self.counter.drop("bad_camera_info", f"CameraInfo K = {list(message.k)} has fx = 0 (an uncalibrated "
+                                                 "camera); the previous intrinsics are kept")
+            return
+        self.camera = camera
 
     @node_callback
     def _on_depth(self, message: Image) -> None:
         if self.depths is None:
             return
+        stamp_ns = stamp_to_ns(message.header.stamp)
+        # Checked before decoding; a depth image before any features is checked when its frame's features come.
+        problem = None if self.image_size is None else depth_size_problem(
+            (int(message.width), int(message.height)), self.image_size)
+        if problem is not None:
+            self.counter.drop("depth_size_mismatch", f"depth image at stamp {stamp_ns}: {problem}")
+            return
         try:
-            self.depths.add_depth(stamp_to_ns(message.header.stamp), depth_message_to_metres(message))
+            self.depths.add_depth(stamp_ns, depth_message_to_metres(message))
         except AefabmapError as exc:
             self.counter.drop("bad_depth", str(exc))
             return
@@ -305,6 +333,10 @@ class VerifierNode(Node):
     @node_callback
     def _on_odometry(self, message: Odometry) -> None:
         if self.odometry_gate is None:
+            return
+        problem = odometry_problem(message)
+        if problem is not None:  # the gate would interpolate NaN between its neighbours
+            self.counter.drop("bad_odometry", problem)
             return
         if not self.odometry_gate.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
@@ -347,6 +379,10 @@ class VerifierNode(Node):
         if not closure.pose_available:
             self.counter.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")
             return GateDecision.REFUSE
+        problem = loop_closure_pose_problem(closure)
+        if problem is not None:
+            self.counter.drop("bad_closure_pose", f"{text}: {problem}")
+            return GateDecision.REFUSE
         result, distance = gate.check(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp),
                                       *loop_closure_pose(closure))
         if result is GateResult.CONSISTENT:
@@ -383,6 +419,10 @@ class VerifierNode(Node):
 
     @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
+        problem = posterior_problem(message)
+        if problem is not None:  # re-ranking and tracking index the four arrays by one rank
+            self.counter.drop("bad_posterior", problem)
+            return
         stamp_ns = stamp_to_ns(message.header.stamp)
         if message.query_id >= 0 and message.current_place_id >= 0:
             self.timeline.add(stamp_ns, int(message.current_place_id))

@@ -41,6 +41,16 @@ def depth_image_to_metres(image: np.ndarray, encoding: str) -> np.ndarray:
     return metres
 
 
+def depth_size_problem(depth_size: tuple[int, int], image_size: tuple[int, int]) -> str | None:
+    """Why a depth image of ``depth_size`` (width, height) cannot give the depths of an ``image_size`` image's
+    keypoints: an aligned depth image has the image's pixels, and any other size would read each keypoint's
+    depth at another point of the scene. None when the sizes agree."""
+    if tuple(depth_size) == tuple(image_size):
+        return None
+    return (f"depth image {depth_size[0]}x{depth_size[1]} is not the size of its image {image_size[0]}x"
+            f"{image_size[1]} (depth must be aligned to the image, pixel for pixel)")
+
+
 def depth_at_pixels(depth_m: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N,) float32 depth at each (x, y) pixel (nearest pixel); NaN outside the image or where none."""
     columns = np.rint(points[:, 0]).astype(np.int64)
@@ -206,14 +216,22 @@ class FrameDepthStore:
         self._images[stamp_ns] = depth_m
         _trim(self._images, self.max_images)
 
-    def add_features(self, stamp_ns: int, keypoints: np.ndarray) -> None:
-        """The keypoints as stored for this frame (the feature store's, so the depths align with them)."""
+    def add_features(self, stamp_ns: int, keypoints: np.ndarray, image_size: tuple[int, int] | None = None) -> None:
+        """The keypoints as stored for this frame (the feature store's, so the depths align with them).
+
+        ``image_size`` (width, height) is the frame's image: a depth image of another size waiting for these
+        keypoints is discarded and DataError names both sizes; the keypoints then wait for a depth image that fits."""
         image = self._images.pop(stamp_ns, None)
+        problem = None
         if image is not None:
-            self._keep(stamp_ns, FrameDepths.sample(image, keypoints))
-            return
+            problem = None if image_size is None else depth_size_problem((image.shape[1], image.shape[0]), image_size)
+            if problem is None:
+                self._keep(stamp_ns, FrameDepths.sample(image, keypoints))
+                return
         self._waiting_keypoints[stamp_ns] = keypoints
         _trim(self._waiting_keypoints, self.max_images)
+        if problem is not None:
+            raise DataError(problem)
 
     def _keep(self, stamp_ns: int, depths: FrameDepths) -> None:
         self._depths.pop(stamp_ns, None)

@@ -81,12 +81,18 @@ class CameraModel:
         if self.matrix.shape != (3, 3) or not np.isfinite(self.matrix).all() or self.matrix[0, 0] <= 0 \
                 or self.matrix[1, 1] <= 0:
             raise DataError(f"camera matrix must be a finite 3x3 with positive focal lengths, got {self.matrix}")
+        if not np.isfinite(self.distortion).all():
+            raise DataError(f"distortion coefficients must be finite, got {self.distortion}")
 
 
 def camera_info_to_model(message: Any) -> CameraModel | None:
     """``sensor_msgs/CameraInfo`` (a ROS message or a rosbags one: its ``k`` and ``d``) -> intrinsics; None for
-    an uncalibrated camera (K all zero)."""
-    matrix = np.asarray(message.k, dtype=np.float64).reshape(3, 3)
+    an uncalibrated camera (K all zero; taken to be one whenever fx is 0). DataError for a K of another size,
+    non-finite or non-positive focal lengths, non-finite values or distortion coefficients."""
+    values = np.asarray(message.k, dtype=np.float64).reshape(-1)
+    if values.size != 9:
+        raise DataError(f"CameraInfo K has {values.size} values, not 9")
+    matrix = values.reshape(3, 3)
     if matrix[0, 0] == 0.0:
         return None
     return CameraModel(matrix, np.asarray(message.d, dtype=np.float64))

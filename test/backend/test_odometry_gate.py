@@ -65,3 +65,16 @@ def test_a_camera_mounted_off_the_base_is_judged_in_the_base_frame():
     assert gate.check(10 * SECOND, 0, camera_truth, CLOSURE_COVARIANCE)[0] is GateResult.CONSISTENT
     # The base-frame pose read as if it were the camera's is 10 m off to the side: refused.
     assert gate.check(10 * SECOND, 0, base_truth, CLOSURE_COVARIANCE)[0] is GateResult.INCONSISTENT
+
+
+def test_odometry_at_the_int32_limit_and_out_of_order() -> None:
+    """Stamps up to the last ROS time (sec 2**31 - 1, nanosec 999999999) interpolate; out of order is refused."""
+    last_ns = (2**31 - 1) * SECOND + 999_999_999
+    gate = OdometryGate(CONFIG, gtsam.Pose3())
+    for second in range(11):
+        assert gate.add_odometry(last_ns - (10 - second) * SECOND,
+                                 gtsam.Pose3(gtsam.Rot3(), np.array([float(second), 0.0, 0.0])))
+    assert not gate.add_odometry(last_ns - 5 * SECOND, gtsam.Pose3())  # out of order: ignored
+    truth = gtsam.Pose3(gtsam.Rot3(), np.array([-9.5, 0.0, 0.0]))  # from 10 s to 0.5 s: interpolated
+    result, distance = gate.check(last_ns, last_ns - 10 * SECOND + SECOND // 2, truth, CLOSURE_COVARIANCE)
+    assert result is GateResult.CONSISTENT and distance == pytest.approx(0.0, abs=1e-9)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -14,6 +15,7 @@ from aefabmap_ros.backend.pose_graph import (
     OdometryBuffer,
     PoseGraph,
     PoseGraphConfig,
+    interpolate,
     trajectory_arrays,
 )
 from aefabmap_ros.errors import ConfigError
@@ -202,3 +204,93 @@ def test_a_closure_before_any_odometry_waits_for_it() -> None:
     for index in range(41):
         results += graph.add_odometry(stamp(index), odometry[index])
     assert results == [ClosureResult.ADDED]
+
+
+def test_a_graph_cholesky_cannot_factor_is_solved_by_qr() -> None:
+    """A keyframe 30 km from the anchor along a straight road, tied by a loop factor of 5 cm: the normal
+    equations look singular to Cholesky (gtsam's indeterminate system). The closure is added by QR on the
+    graph rebuilt without it, and later closures use QR too."""
+    graph = PoseGraph(PoseGraphConfig())
+    poses = [gtsam.Pose3(gtsam.Rot3(), np.array([x, 0.0, 0.0])) for x in (0.0, 1000.0, 2000.0, 30_000.0)]
+    for index, pose in enumerate(poses):
+        graph.add_odometry(index * SECOND, pose)
+    covariance = np.diag([0.02**2] * 3 + [0.005**2] * 3)
+    assert graph.add_closure(Closure(2 * SECOND, SECOND, poses[2].between(poses[1]), covariance)) \
+        is ClosureResult.ADDED
+    assert graph.factorization == "CHOLESKY"  # 2 km: still fine
+    assert graph.add_closure(Closure(3 * SECOND, 0, poses[3].between(poses[0]), covariance)) is ClosureResult.ADDED
+    assert graph.factorization == "QR" and "Indeterminate" in graph.solver_error
+    estimated = dict(graph.trajectory())
+    assert sorted(estimated) == [0, SECOND, 2 * SECOND, 3 * SECOND]
+    for index, pose in enumerate(poses):
+        assert np.linalg.norm(estimated[index * SECOND].translation() - pose.translation()) < 1e-3
+    assert graph.add_closure(Closure(3 * SECOND, 2 * SECOND, poses[3].between(poses[2]), covariance)) \
+        is ClosureResult.ADDED
+
+
+def test_a_closure_the_solver_refuses_leaves_the_graph_as_it_was(monkeypatch: pytest.MonkeyPatch) -> None:
+    truth = square_truth()
+    graph = graph_with_odometry(drifting_odometry(truth))
+    assert graph.add_closure(closure(truth, 40, 0)) is ClosureResult.ADDED
+    before = [(stamp_ns, pose.translation().tolist()) for stamp_ns, pose in graph.trajectory()]
+    real_update = PoseGraph._update
+    calls = []
+
+    def failing_update(self: PoseGraph, *args: Any) -> None:
+        calls.append(self.factorization)
+        real_update(self, *args)  # the factors go into iSAM2, as when gtsam fails half way through
+        raise RuntimeError("Indeterminate linear system detected while working near variable 3")
+
+    monkeypatch.setattr(PoseGraph, "_update", failing_update)
+    assert graph.add_closure(closure(truth, 60, 20)) is ClosureResult.SOLVER_FAILED
+    assert calls == ["CHOLESKY", "QR"] and graph.counts["solver_failed"] == 1
+    after = [(stamp_ns, pose.translation().tolist()) for stamp_ns, pose in graph.trajectory()]
+    assert [s for s, _ in after] == [s for s, _ in before]  # no keyframe of the refused closure left behind
+    assert np.allclose([p for _, p in after], [p for _, p in before], atol=1e-6)
+    monkeypatch.setattr(PoseGraph, "_update", real_update)
+    assert graph.add_closure(closure(truth, 60, 20)) is ClosureResult.ADDED  # the rebuilt graph goes on
+    assert len(graph.trajectory()) == len(before) + 2 and graph.add_closure(closure(truth, 70, 30)) \
+        is ClosureResult.ADDED
+
+
+def test_a_covariance_a_hair_off_positive_semi_definite_is_added() -> None:
+    """A covariance computed in single precision: a rank-deficient one has eigenvalues of -1e-7 of its
+    largest. Accepted (within round-off) and cut to positive semi-definite before the floor is added."""
+    truth = square_truth()
+    graph = graph_with_odometry(drifting_odometry(truth))
+    direction = np.array([0.6, 0.8, 0.0])
+    covariance = np.diag([0.02**2] * 3 + [0.005**2] * 3)
+    covariance[:3, :3] += 1e6 * np.outer(direction, direction)
+    rng = np.random.default_rng(0)
+    basis = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    covariance += (basis * np.array([-1e-1, 0, 0, 0, 0, 0])) @ basis.T  # -1e-7 of the largest eigenvalue
+    covariance = (covariance + covariance.T) / 2
+    assert np.linalg.eigvalsh(covariance)[0] < 0
+    end = len(truth) - 1
+    result = graph.add_closure(Closure(stamp(end), stamp(0), truth[end].between(truth[0]), covariance))
+    assert result is ClosureResult.ADDED
+    assert all(np.isfinite(pose.matrix()).all() for _, pose in graph.trajectory())
+
+
+def test_stamps_at_the_int32_limit_interpolate() -> None:
+    """The last stamp a ROS time holds (sec 2**31 - 1, nanosec 999999999): odometry around it interpolates,
+    a closure to it is added, and a sample out of order there is refused."""
+    last_ns = (2**31 - 1) * SECOND + 999_999_999
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    start = last_ns - (len(truth) - 1) * SECOND
+    graph = PoseGraph(PoseGraphConfig())
+    for index, pose in enumerate(odometry):
+        graph.add_odometry(start + index * SECOND, pose)
+    graph.add_odometry(last_ns, odometry[-1])  # the same stamp again
+    assert graph.odometry.last_ns == last_ns and graph.counts["odometry_out_of_order"] == 1
+    middle = graph.odometry.pose_at(last_ns - SECOND // 2)
+    assert middle is not None
+    assert middle[0].equals(interpolate(odometry[-2], odometry[-1], 0.5), 1e-9)
+    end = len(truth) - 1
+    relative = truth[end].between(truth[0])
+    assert graph.add_closure(Closure(last_ns, start, relative, np.diag([0.02**2] * 3 + [0.005**2] * 3))) \
+        is ClosureResult.ADDED
+    stamps_s, _ = trajectory_arrays(graph.trajectory())
+    assert stamps_s[-1] == pytest.approx(last_ns / 1e9)
+    assert graph.odometry.pose_at(last_ns + 1) is None

@@ -133,3 +133,111 @@ def test_pose_graph_node_publishes_map_to_odom_on_tf() -> None:
         assert (transform.header.frame_id, transform.child_frame_id) == ("map", "odom")
     finally:
         node.destroy_node()
+
+
+def _broken_odometry(index: int, pose: Any, field: str) -> Odometry:
+    message = _odometry(index, pose)
+    if field == "nan_w":
+        message.pose.pose.orientation.w = float("nan")
+    elif field == "zero_quaternion":
+        message.pose.pose.orientation.x = message.pose.pose.orientation.y = 0.0
+        message.pose.pose.orientation.z = message.pose.pose.orientation.w = 0.0
+    elif field == "inf_position":
+        message.pose.pose.position.x = float("inf")
+    elif field == "nanosec":
+        message.header.stamp.nanosec = 1_500_000_000
+    return message
+
+
+def test_pose_graph_node_counts_malformed_odometry_and_closures_and_goes_on(tmp_path: Path) -> None:
+    """Each malformed kind is counted by its name and dropped; the valid odometry and closure that follow make
+    the keyframes and the path as if the malformed ones had never come."""
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    end = len(truth) - 1
+    node = PoseGraphNode()
+    try:
+        paths: list[Any] = []
+        node.path_publisher.publish = paths.append
+        node.tf_publisher.publish = lambda _message: None
+        for index, pose in enumerate(odometry):
+            if index == 10:
+                for field in ("nan_w", "zero_quaternion", "inf_position", "nanosec"):
+                    node._on_odometry(_broken_odometry(index, pose, field))
+            node._on_odometry(_odometry(index, pose))
+        true_pose = truth[end].between(truth[0])
+        broken: list[Any] = []
+        for change in ("nan_pose", "zero_quaternion", "nan_covariance", "not_psd", "asymmetric"):
+            closure = _closure(end, 0, true_pose)
+            if change == "nan_pose":
+                closure.pose.position.y = float("nan")
+            elif change == "zero_quaternion":
+                closure.pose.orientation.x = closure.pose.orientation.y = 0.0
+                closure.pose.orientation.z = closure.pose.orientation.w = 0.0
+            else:
+                covariance = np.array(closure.pose_covariance).reshape(6, 6)
+                if change == "nan_covariance":
+                    covariance[3, 3] = float("nan")
+                elif change == "not_psd":
+                    covariance[0, 0] = -1.0
+                else:
+                    covariance[0, 5] = 0.5
+                closure.pose_covariance = list(covariance.reshape(36))
+            broken.append(closure)
+        late = _closure(end, 0, true_pose)
+        late.matched_stamp.nanosec = 2_000_000_000
+        for closure in broken:
+            node._on_loop_closure(closure)
+        node._on_loop_closure(late)
+        counts = node.counter.counts
+        assert counts["dropped_bad_odometry"] == 4 and counts["dropped_bad_closure_pose"] == 5
+        assert counts["dropped_bad_closure_stamp"] == 1
+        assert node.graph.counts["odometry"] == len(odometry) and not paths and not node.graph.keyframes
+        node._on_loop_closure(_closure(end, 0, true_pose))  # a valid one: the loop closes
+        assert counts["added"] == 1 and len(paths) == 1 and len(paths[0].poses) == 2
+        last = paths[0].poses[-1].pose.position
+        assert np.linalg.norm(np.array([last.x, last.y, last.z]) - truth[end].translation()) < 0.1
+        assert not any(key.startswith("dropped_") and key not in {"dropped_bad_odometry", "dropped_bad_closure_pose",
+                                                                 "dropped_bad_closure_stamp"} for key in counts)
+    finally:
+        node.destroy_node()
+
+
+def test_pose_graph_node_survives_any_exception_in_its_callbacks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exception the checks did not foresee is counted by its type and dropped (node_callback): the node lives."""
+    truth = square_truth()
+    odometry = drifting_odometry(truth)
+    end = len(truth) - 1
+    node = PoseGraphNode()
+    try:
+        paths: list[Any] = []
+        node.path_publisher.publish = paths.append
+        node.tf_publisher.publish = lambda _message: None
+        for index, pose in enumerate(odometry):
+            node._on_odometry(_odometry(index, pose))
+        real = node.graph.add_closure
+
+        def exploding(_closure: Any) -> Any:
+            raise ValueError("a bug no check foresaw")
+
+        monkeypatch.setattr(node.graph, "add_closure", exploding)
+        node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        assert node.counter.counts["dropped_ValueError"] == 1
+        monkeypatch.setattr(node.graph, "add_closure", real)
+        node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        assert node.counter.counts["added"] == 1 and len(paths) == 1
+    finally:
+        node.destroy_node()
+
+
+def test_pose_graph_node_reports_a_trajectory_it_cannot_write(tmp_path: Path) -> None:
+    """close() is False (the process exits 1) when the trajectory file cannot be written; True when it can."""
+    blocked = tmp_path / "not_a_folder"
+    blocked.write_text("a file where the trajectory's folder should be")
+    for path, written in ((blocked / "keyframes.tum", False), (tmp_path / "keyframes.tum", True)):
+        node = PoseGraphNode(parameter_overrides=[Parameter("trajectory_file", value=str(path))])
+        try:
+            assert node.close() is written
+            assert path.exists() is written
+        finally:
+            node.destroy_node()

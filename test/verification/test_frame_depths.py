@@ -16,6 +16,7 @@ from aefabmap_ros.verification.frame_depths import (
     FrameDepthFolder,
     FrameDepthStore,
     depth_image_to_metres,
+    depth_size_problem,
     grid_step_for,
     sample_depth_grid,
 )
@@ -71,6 +72,25 @@ def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
     store.add_depth(30, depth)
     store.add_features(30, keypoints)
     assert len(store) == 2 and store.get(10) is None
+
+
+def test_a_depth_image_of_another_size_than_its_image_is_not_sampled() -> None:
+    """A 4 x 3 depth image for a frame whose image is 8 x 6: its pixels are not the keypoints'. Refused when
+    the keypoints come (DataError naming both sizes); they wait for a depth image that fits."""
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
+    keypoints = np.array([[1.0, 2.0]], dtype=np.float32)
+    assert depth_size_problem((4, 3), (4, 3)) is None
+    store = FrameDepthStore(max_frames=2)
+    store.add_depth(10, depth)
+    with pytest.raises(DataError, match="depth image 4x3 is not the size of its image 8x6"):
+        store.add_features(10, keypoints, image_size=(8, 6))
+    assert store.get(10) is None
+    store.add_depth(10, np.ones((6, 8), np.float32))
+    kept = store.get(10)
+    assert kept is not None and kept.keypoints.tolist() == [1.0]
+    store.add_depth(20, depth)
+    store.add_features(20, keypoints, image_size=(4, 3))  # the right size
+    assert store.get(20) is not None
 
 
 def test_frame_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> None:

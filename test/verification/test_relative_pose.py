@@ -223,3 +223,23 @@ def test_a_far_facade_gets_its_pose_from_the_query_depths(seed: int, threshold_p
     # Depths that fit no motion (a broken depth image) change nothing: PnP's own solution stays.
     broken = rng.uniform(5.0, 60.0, 40)
     assert error(pnp_pose(noisy[0], noisy[1], place[:, 2], CAMERA, config, broken)) == reprojection_only
+
+
+def test_camera_info_to_intrinsics() -> None:
+    """None for an uncalibrated camera (fx 0); DataError, naming it, for what cannot be intrinsics."""
+    from types import SimpleNamespace
+
+    from aefabmap_ros.verification.relative_pose import camera_info_to_model
+
+    k = [500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0]
+    camera = camera_info_to_model(SimpleNamespace(k=k, d=[0.1, 0.0, 0.0, 0.0, 0.0]))
+    assert camera is not None and camera.matrix[0, 0] == 500.0
+    assert camera_info_to_model(SimpleNamespace(k=[0.0] * 9, d=[])) is None
+    for k_values, d_values, expected in (
+        (k[:8], [], "K has 8 values, not 9"),
+        ([-500.0, *k[1:]], [], "positive focal lengths"),
+        ([float("nan"), *k[1:]], [], "positive focal lengths"),
+        (k, [0.1, float("inf")], "distortion coefficients must be finite"),
+    ):
+        with pytest.raises(DataError, match=expected):
+            camera_info_to_model(SimpleNamespace(k=k_values, d=d_values))
