@@ -34,11 +34,11 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob(f"{PACKAGE}/config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob(f"{PACKAGE}/config/*.yaml") + glob(f"{PACKAGE}/config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
     # The YAML files are package data too: the CLIs find them beside the code in every kind of install.
-    package_data={PACKAGE: ["config/*.yaml", "py.typed"]},
+    package_data={PACKAGE: ["config/*.yaml", "config/*.xml", "py.typed"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="aefabmap_ros developers",

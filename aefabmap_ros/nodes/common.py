@@ -24,7 +24,7 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 from aefabmap_ros.errors import AefabmapError, ConfigError
@@ -56,17 +56,6 @@ def result_qos(depth: int) -> QoSProfile:
 def pipeline_qos(depth: int) -> QoSProfile:
     """Between our own nodes: reliable, so a replayed bag is processed frame for frame."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def image_qos(kind: str, depth: int) -> QoSProfile:
-    """``sensor_data`` (best effort, what cameras publish) or ``reliable`` (lossless bag replay)."""
-    if kind == "sensor_data":
-        profile = qos_profile_sensor_data
-        return QoSProfile(history=profile.history, depth=depth, reliability=profile.reliability,
-                          durability=profile.durability)
-    if kind == "reliable":
-        return pipeline_qos(depth)
-    raise ConfigError(f"parameter image_qos={kind!r} must be 'sensor_data' or 'reliable'")
 
 
 def declare_parameter(node: Node, name: str, default: Any, description: str) -> Any:
@@ -222,7 +211,9 @@ class DropCounter:
 
 
 def counted_subscription(node: Node, message_type: Any, topic: str, callback: Callable[[Any], None],
-                         qos: QoSProfile, counter: DropCounter) -> Any:
+                         qos: QoSProfile, counter: DropCounter,
+                         on_incompatible_qos: Callable[[Any], None] | None = None,
+                         on_lost: Callable[[int], None] | None = None) -> Any:
     """``node.create_subscription`` that also counts, on ``counter``, the messages DDS lost before the callback.
 
     A best-effort sample lost on the way, or one pushed out of the reader's KEEP_LAST queue while the
@@ -240,6 +231,8 @@ def counted_subscription(node: Node, message_type: Any, topic: str, callback: Ca
         if lost:
             counter.drop("before_callback", f"{lost} message(s) on {subscription.topic_name} never reached the node "
                          "(reader queue full while busy, or lost on the way)", count=lost)
+            if on_lost is not None:
+                on_lost(lost)
         callback(message)
 
     def on_message_lost(info: Any) -> None:
@@ -247,7 +240,7 @@ def counted_subscription(node: Node, message_type: Any, topic: str, callback: Ca
 
     subscription = node.create_subscription(
         message_type, topic, on_message, qos,
-        event_callbacks=SubscriptionEventCallbacks(message_lost=on_message_lost))
+        event_callbacks=SubscriptionEventCallbacks(message_lost=on_message_lost, incompatible_qos=on_incompatible_qos))
     return subscription
 
 

@@ -62,6 +62,7 @@ from aefabmap_ros.nodes.messages import (
     pose_to_gtsam,
     time_from_ns,
 )
+from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import stamp_to_ns
 
 try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
@@ -101,7 +102,14 @@ class PoseGraphNode(Node):
             self.tf_publisher = self.create_publisher(TFMessage, "/tf", RESULT_QOS)
         else:
             self.tf_publisher = self.create_publisher(TransformStamped, "pose_graph/map_to_odom", RESULT_QOS)
-        self.create_subscription(Odometry, "odom", self._on_odometry, ODOMETRY_QOS)
+        sensor_qos = check_sensor_qos(declare_parameter(
+            self, "sensor_qos", "auto",
+            "QoS of the odom subscription: auto (reliable, moving to best effort once a publisher offers only that, "
+            "as drivers often do), best_effort (= sensor_data) or reliable.",
+        ), "sensor_qos")
+        self.odometry = SensorInput(self, Odometry, "odom", self._on_odometry, policy=sensor_qos,
+                                    depth=ODOMETRY_QOS.depth, counter=self.counter,
+                                    without_it="no keyframes: the graph is built on odometry")
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
         self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
 
@@ -180,7 +188,8 @@ class PoseGraphNode(Node):
                 saved = False
                 self.get_logger().error(f"FINAL SAVE FAILED: the keyframe trajectory not written to "
                                         f"{self.trajectory_file} ({type(exc).__name__}: {exc})")
-        self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}")
+        self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}; "
+                               f"{self.odometry.summary()}")
         return saved
 
 

@@ -114,6 +114,7 @@ from aefabmap_ros.nodes.messages import (
     posterior_problem,
     time_from_ns,
 )
+from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.frame_depths import FrameDepthFolder, FrameDepthStore, depth_size_problem
 from aefabmap_ros.verification.geometric import (
@@ -222,6 +223,11 @@ class VerifierNode(Node):
             "camera is the base frame), for the odometry gate.",
         ))
         drift_model = declare_config(self, PoseGraphConfig, only=ODOMETRY_GATE_SETTINGS)
+        sensor_qos = check_sensor_qos(declare_parameter(
+            self, "sensor_qos", "auto",
+            "QoS of the camera_info, depth and odom subscriptions: auto (reliable, moving to best effort once a "
+            "publisher offers only that, as drivers often do), best_effort (= sensor_data) or reliable.",
+        ), "sensor_qos")
         if max_frames < 1 or max_features < 0 or self.max_pending < 1:
             raise ConfigError(f"verifier_node: max_stored_frames ({max_frames}) and max_pending "
                               f"({self.max_pending}) must be >= 1, max_stored_features ({max_features}) >= 0")
@@ -252,11 +258,21 @@ class VerifierNode(Node):
         # posteriors of the frames it has yet to reach.
         counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, result_qos(depth),
                              self.counter)
-        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, pipeline_qos(depth))
+        # The robot's own sensor topics: they connect to a best-effort driver as to a reliable replay.
+        self.inputs: list[SensorInput] = []
+        if not self.camera_fixed:
+            self.inputs.append(SensorInput(self, CameraInfo, "camera_info", self._on_camera_info, policy=sensor_qos,
+                                           depth=depth, counter=self.counter,
+                                           without_it="closures get no relative pose (set camera_matrix, or remap "
+                                           "camera_info to the camera's)"))
         if depth_topic:
-            counted_subscription(self, Image, depth_topic, self._on_depth, pipeline_qos(depth), self.counter)
+            self.inputs.append(SensorInput(self, Image, depth_topic, self._on_depth, policy=sensor_qos, depth=depth,
+                                           counter=self.counter,
+                                           without_it="no metric poses and no metric test (monocular poses only)"))
         if self.odometry_gate is not None:
-            counted_subscription(self, Odometry, "odom", self._on_odometry, ODOMETRY_QOS, self.counter)
+            self.inputs.append(SensorInput(self, Odometry, "odom", self._on_odometry, policy=sensor_qos,
+                                           depth=ODOMETRY_QOS.depth, counter=self.counter,
+                                           without_it="closures are published without the odometry gate"))
         if self.rerank or self.track.enabled:
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, result_qos(depth),
                                  self.counter)
@@ -648,7 +664,8 @@ class VerifierNode(Node):
         self.get_logger().info(
             f"verifier_node: {len(self.store)} frames stored ({self.store.nbytes / 2**20:.1f} MiB"
             f"{'' if saved else ', NOT all saved'}), {len(self.pending)} closures still waiting; "
-            f"{self.counter.summary()}"
+            f"{self.counter.summary()}; " + ("; ".join(sensor_input.summary() for sensor_input in self.inputs)
+                                              or "no sensor inputs")
         )
         return saved
 
