@@ -49,7 +49,7 @@ from aefabmap_ros.nodes.launch_table import DETECTION_NODES, threads_per_process
 
 PARAMS = """
 feature_node:
-  ros__parameters: {image_qos: reliable, queue_depth: 1000}
+  ros__parameters: {image_qos: reliable, queue_depth: 1000, drop_when_busy: false, detection_rate_hz: 0.0}
 quantizer_node:
   ros__parameters: {queue_depth: 1000, drop_when_busy: false}
 fabmap_node:
@@ -199,7 +199,7 @@ def throughput(setup: Setup, model_dir: Path, bag: Path, work: Path, num_frames:
         _stop([record, launch])
         for log in logs:
             log.close()
-    arrivals = np.array([m.log_time_ns for m in read_messages(recording, ["place_posteriors"])], dtype=np.float64)
+    arrivals = np.array([m.log_time_ns for m in read_messages(recording, ["/place_posteriors"])], dtype=np.float64)
     rate = 0.0 if arrivals.size < 2 else (arrivals.size - 1) / ((arrivals[-1] - arrivals[0]) / 1e9)
     return RunResult(rate, int(arrivals.size), num_frames, usage)
 

@@ -2,8 +2,9 @@
 
 Messages go out as the bag's own CDR bytes, with their original header stamps, paced by the bag's
 log times divided by ``--rate``. ``--lockstep TOPIC`` publishes the next image only once the
-pipeline answered the previous one on TOPIC (e.g. place_posteriors), so a replay is lossless and
-its results reproducible on any machine, however slow.
+pipeline answered the previous one on TOPIC (e.g. place_posteriors), or announced it skipped on
+``--lockstep-skipped`` (feature_node's detection rate), so a replay is lossless and its results
+reproducible on any machine, however slow.
 
 ``--with TOPIC`` (repeatable) also publishes another topic of the bag, on the same name, in bag
 order: each message goes out before the image with the same or a later log time (e.g. a frame's
@@ -55,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for subscribers")
     parser.add_argument("--lockstep", metavar="TOPIC", default="",
                         help="after each image, wait for one message on TOPIC (e.g. place_posteriors)")
+    parser.add_argument("--lockstep-skipped", metavar="TOPIC", default="aefabmap/skipped_frames",
+                        help="with --lockstep: a message here (std_msgs/Header) answers an image too: feature_node "
+                        "announces the frames it skips by its detection rate there (default: aefabmap/skipped_frames)")
     parser.add_argument("--lockstep-timeout", type=float, default=10.0,
                         help="seconds to wait for the lockstep answer before moving on (default: 10)")
     parser.add_argument("--queue-depth", type=int, default=100,
@@ -224,9 +228,13 @@ class Replayer:
         self.answers = 0
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
+            from std_msgs.msg import Header
 
             self.answer_subscription = self.node.create_subscription(
                 PlacePosterior, args.lockstep, self._on_answer, 100, raw=True)
+            if args.lockstep_skipped:  # each image is answered once: a posterior, or its announced skip
+                self.skipped_subscription = self.node.create_subscription(
+                    Header, args.lockstep_skipped, self._on_answer, 1000, raw=True)
 
     def _on_answer(self, _message: bytes) -> None:
         self.answers += 1
@@ -262,6 +270,8 @@ class Replayer:
             # The answer topic must be connected too, or the first answer is lost: a publisher in the graph
             # (count_publishers) is not yet a matched one, which a just-restarted node showed.
             self._spin_until(lambda: self.answer_subscription.get_publisher_count() > 0, self.args.wait_timeout)
+            if self.args.lockstep_skipped:
+                self._spin_until(lambda: self.skipped_subscription.get_publisher_count() > 0, 5.0)
 
     def _why_no_subscriber(self) -> str:
         """Name subscribers of another message type on our topic (they never match us), else the usual cause."""

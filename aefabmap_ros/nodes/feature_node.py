@@ -4,11 +4,15 @@ The compressed topic follows image_transport's convention: it is the *resolved* 
 ``/compressed``, so remapping ``image:=/camera/image_raw`` moves it to ``/camera/image_raw/compressed``;
 a frame that arrives on both is processed once.
 
-With ``image_qos`` sensor_data (a live camera) frames are dropped at the door: the subscription
-only hands the newest frame to a worker thread through a one-frame gate, a frame that arrives while
-the previous one still waits replaces it (counted as ``dropped_busy``), so no queue builds up and
-the delay from image to result stays bounded. With reliable QoS (bag replay) every frame is
-processed, in order.
+Which frames are processed: ``detection_rate_hz`` picks frames by their stamps (at most that many a
+second; the others are skipped, counted as ``skipped_detection_rate``), the same frames in a replay as
+live. With ``drop_when_busy`` (a live camera) a frame that arrives while the previous one still waits
+for extraction replaces it (``dropped_busy``), so no queue builds up and the delay from image to
+result stays bounded; without it (a lossless replay) every frame taken is processed, in order. Every
+frame not processed is announced on ``aefabmap/skipped_frames`` (``std_msgs/Header``: the frame's
+stamp, ``frame_id`` the reason), so a lockstep replay is answered for it and a recording accounts for
+every frame. ``image_qos`` connects to the camera's publisher, best effort or reliable
+(nodes/sensor_inputs.py).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from typing import Any
 from aefabmap_msgs.msg import Features
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import Header
 
 from aefabmap_ros.errors import AefabmapError, ConfigError, ImageTooLargeError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
@@ -26,17 +31,16 @@ from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     DropCounter,
-    counted_subscription,
     declare_config,
     declare_parameter,
-    image_qos,
     node_callback,
     pipeline_qos,
     run_node,
 )
-from aefabmap_ros.nodes.frame_gate import FrameHandOff
+from aefabmap_ros.nodes.frame_gate import DetectionRate, FrameHandOff
 from aefabmap_ros.nodes.launch_table import compressed_topic
 from aefabmap_ros.nodes.messages import features_to_message
+from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
 
 
@@ -48,11 +52,23 @@ class FeatureNode(Node):
             "Model directory; when set, its feature settings are used so features match the vocabulary "
             "(the feature parameters below are then ignored).",
         )
-        qos_kind = declare_parameter(
-            self, "image_qos", "sensor_data",
-            "QoS of the image subscription: sensor_data (cameras; frames arriving while busy are "
-            "dropped, counted, never queued) or reliable (bag replay; every frame is processed).",
+        qos_kind = check_sensor_qos(declare_parameter(
+            self, "image_qos", "auto",
+            "QoS of the image subscriptions: auto (reliable, moving to best effort once a publisher offers only "
+            "that, as camera drivers do), best_effort (= sensor_data) or reliable.",
+        ), "image_qos")
+        drop_when_busy = declare_parameter(
+            self, "drop_when_busy", True,
+            "A frame arriving while the previous one still waits for extraction replaces it (counted, never "
+            "queued; a live camera). false: every frame taken is processed, in order (a lossless replay).",
         )
+        detection_rate_hz = declare_parameter(
+            self, "detection_rate_hz", 10.0,
+            "Process at most about this many frames a second, chosen by their stamps (0 = every frame); the "
+            "others are skipped and counted.",
+        )
+        if not detection_rate_hz >= 0:
+            raise ConfigError(f"feature_node: parameter detection_rate_hz={detection_rate_hz} must be >= 0")
         depth = declare_parameter(self, "queue_depth", 10, "Queue depth of subscriptions and publications.")
         subscribe_compressed = declare_parameter(
             self, "subscribe_compressed", True,
@@ -69,27 +85,42 @@ class FeatureNode(Node):
         self.config = load_model(model_dir).feature_config if model_dir else parameter_config
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
+        self.skipped_publisher = self.create_publisher(Header, "aefabmap/skipped_frames", pipeline_qos(max(depth, 100)))
         self.transports = TransportDeduplicator()
-        # sensor_data: extraction in a worker that takes the newest frame; reliable: in the callback.
-        self.frames: FrameHandOff[Any] = FrameHandOff(self._on_image, "feature_worker",
-                                                      newest_only=qos_kind == "sensor_data")
-        counted_subscription(self, Image, "image", partial(self._on_frame, transport="raw"), image_qos(qos_kind, depth),
-                             self.counter)
+        self.detection_rate = DetectionRate(detection_rate_hz)
+        # drop_when_busy: extraction in a worker that takes the newest frame; otherwise in the callback.
+        self.frames: FrameHandOff[Any] = FrameHandOff(self._on_image, "feature_worker", newest_only=drop_when_busy,
+                                                      on_replaced=partial(self._announce_skipped, reason="busy"))
+        without = "no frame is processed"
+        self.inputs = [SensorInput(self, Image, "image", partial(self._on_frame, transport="raw"), policy=qos_kind,
+                                   depth=depth, counter=self.counter, without_it=without)]
         if subscribe_compressed:
-            counted_subscription(self, CompressedImage, compressed_topic(self.resolve_topic_name("image")),
-                                 partial(self._on_frame, transport="compressed"), image_qos(qos_kind, depth),
-                                 self.counter)
-        self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image)")
+            self.inputs.append(SensorInput(
+                self, CompressedImage, compressed_topic(self.resolve_topic_name("image")),
+                partial(self._on_frame, transport="compressed"), policy=qos_kind, depth=depth, counter=self.counter,
+                without_it=without, silent_after_s=float("inf")))  # raw or compressed: one of them is enough
+        rate = f"at most {detection_rate_hz:g} frames/s" if detection_rate_hz else "every frame"
+        self.get_logger().info(f"extracting {self.config.type} features (max {self.config.max_features} per image), "
+                               f"{rate}{', dropping frames while busy' if drop_when_busy else ''}")
 
     @node_callback
     def _on_frame(self, message: Any, transport: str = "raw") -> None:
         """A frame from one transport: skipped if the other brought it already; else extracted now (bag
         replay), or handed to the worker (live camera), replacing -- and dropping -- one still waiting."""
-        if self.transports.is_duplicate(stamp_to_ns(message.header.stamp), transport):
+        stamp_ns = stamp_to_ns(message.header.stamp)
+        if self.transports.is_duplicate(stamp_ns, transport):
             self.counter.ok(f"skipped_{transport}_copies")  # the other transport brought this frame already
+            return
+        if not self.detection_rate.take(stamp_ns):
+            self.counter.ok("skipped_detection_rate")
+            self._announce_skipped(message, reason="detection_rate")
             return
         if not self.frames.submit(message):
             self.counter.drop("busy", "a newer frame arrived before feature extraction took the previous one")
+
+    def _announce_skipped(self, message: Any, reason: str) -> None:
+        """The frame's stamp on aefabmap/skipped_frames: it will have no features, posterior or closure."""
+        self.skipped_publisher.publish(Header(stamp=message.header.stamp, frame_id=reason))
 
     def destroy_node(self) -> None:
         self.frames.stop()
@@ -113,7 +144,8 @@ class FeatureNode(Node):
 
     def close(self) -> bool:
         self.frames.stop()  # the frame in hand is finished first (one still waiting is not), so counts are final
-        self.get_logger().info(f"feature_node: {self.counter.summary()}")
+        inputs = "; ".join(sensor_input.summary() for sensor_input in self.inputs)
+        self.get_logger().info(f"feature_node: {self.counter.summary()}; {inputs}")
         return True
 
 

@@ -29,13 +29,17 @@ class LatestFrameGate(Generic[ItemT]):
 
     def offer(self, item: ItemT) -> bool:
         """Hand over a frame; False when it replaced one the worker had not taken (that one is dropped)."""
+        return self.swap(item) is None
+
+    def swap(self, item: ItemT) -> ItemT | None:
+        """Hand over a frame; returns the one it replaced (dropped), None when none was waiting."""
         with self._condition:
-            replaced = self._waiting is not None
-            if replaced:
+            replaced = self._waiting
+            if replaced is not None:
                 self.dropped += 1
             self._waiting = item
             self._condition.notify()
-            return not replaced
+            return replaced
 
     def take(self, timeout_s: float | None = None) -> ItemT | None:
         """The waiting frame (removed from the gate), waiting up to ``timeout_s``; None if none came
@@ -69,6 +73,10 @@ class LatestFrameWorker(Generic[ItemT]):
         """Hand over a frame; False when it replaced one the worker had not taken (that one is dropped)."""
         return self.gate.offer(item)
 
+    def swap(self, item: ItemT) -> ItemT | None:
+        """Hand over a frame; returns the one it replaced (dropped), None when none was waiting."""
+        return self.gate.swap(item)
+
     def stop(self, timeout_s: float = 10.0) -> None:
         """Finish the frame in hand (one still waiting is not processed), then end the thread."""
         self.gate.close()
@@ -85,8 +93,10 @@ class FrameHandOff(Generic[ItemT]):
     (every message, in order: bag replay), or, with ``newest_only``, through a ``LatestFrameWorker``
     (a live camera: a message still waiting when a newer one arrives is dropped)."""
 
-    def __init__(self, process: Callable[[ItemT], None], name: str, *, newest_only: bool) -> None:
+    def __init__(self, process: Callable[[ItemT], None], name: str, *, newest_only: bool,
+                 on_replaced: Callable[[ItemT], None] | None = None) -> None:
         self._process = process
+        self._on_replaced = on_replaced  # told of each message dropped for a newer one
         self.worker: LatestFrameWorker[ItemT] | None = LatestFrameWorker(process, name) if newest_only else None
 
     def submit(self, item: ItemT) -> bool:
@@ -94,9 +104,38 @@ class FrameHandOff(Generic[ItemT]):
         if self.worker is None:
             self._process(item)
             return True
-        return self.worker.offer(item)
+        replaced = self.worker.swap(item)
+        if replaced is not None and self._on_replaced is not None:
+            self._on_replaced(replaced)
+        return replaced is None
 
     def stop(self) -> None:
         """Finish the frame in hand (one still waiting is not processed); nothing to do without a worker."""
         if self.worker is not None:
             self.worker.stop()
+
+
+class DetectionRate:
+    """Which frames are processed at ``rate_hz`` at most (0 = every frame), decided by the frames' stamps.
+
+    A loop-closure front end does not need every frame of a 30 Hz camera: neighbouring frames see the same
+    scene, and a pipeline that tries to process them all on a small computer drops at random wherever it
+    is busy. Deciding by stamp makes the choice the same in a lossless replay and live, whatever the load.
+    A frame is taken when it is at least 90 % of a period after the last one taken, so a camera's timing
+    jitter does not push every other frame out (30 Hz at 10 Hz takes every third frame, not every fourth);
+    a stamp earlier than the last one taken (a bag looped, a clock reset) starts afresh.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz >= 0:
+            raise ValueError(f"detection rate {rate_hz} Hz must be >= 0")
+        self.min_interval_ns = round(0.9e9 / rate_hz) if rate_hz > 0 else 0
+        self._last_ns: int | None = None
+
+    def take(self, stamp_ns: int) -> bool:
+        """True when the frame stamped ``stamp_ns`` is to be processed (and it becomes the last one taken)."""
+        last = self._last_ns
+        if last is not None and last <= stamp_ns < last + self.min_interval_ns:
+            return False
+        self._last_ns = stamp_ns
+        return True

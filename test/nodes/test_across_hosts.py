@@ -91,7 +91,7 @@ def test_feature_node_on_another_host_feeds_the_rest_of_the_suite(tmp_path: Path
                                                                    two_hosts: tuple[Host, Host]) -> None:
     robot, base = two_hosts
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
-    params = ["-p", f"model_dir:={revisit_data.model_dir}", "-p", "image_qos:=reliable"]
+    params = ["-p", f"model_dir:={revisit_data.model_dir}", "-p", "image_qos:=reliable", "-p", "drop_when_busy:=false"]
     with (
         LoggedProcess(tmp_path / "feature.log", "aefabmap_ros.nodes.feature_node", "--ros-args", *params,
                       prefix=robot.prefix, env=env) as feature,

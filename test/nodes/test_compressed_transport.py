@@ -52,7 +52,7 @@ def _compressed_bag(path: Path, topic: str, frames: list[tuple[int, np.ndarray]]
 
 def _feature_node(tmp_path: Path, name: str, *ros_args: str) -> LoggedProcess:
     return LoggedProcess(tmp_path / f"{name}.log", "aefabmap_ros.nodes.feature_node", "--ros-args",
-                         "-p", "image_qos:=reliable", "-p", "queue_depth:=50", *ros_args)
+                         "-p", "image_qos:=reliable", "-p", "drop_when_busy:=false", "-p", "queue_depth:=50", *ros_args)
 
 
 def _replay(tmp_path: Path, name: str, bag: Path, *args: str) -> LoggedProcess:

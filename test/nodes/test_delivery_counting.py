@@ -45,6 +45,7 @@ def test_feature_node_counts_images_its_reader_queue_overwrote(qos_kind: str, re
     processed, dropped at the door (camera QoS), or counted as lost before the callback."""
     node = FeatureNode(parameter_overrides=[
         Parameter("image_qos", value=qos_kind), Parameter("queue_depth", value=DEPTH),
+        Parameter("drop_when_busy", value=qos_kind == "sensor_data"),
         Parameter("subscribe_compressed", value=False)])
     camera = rclpy.create_node("test_camera")
     executor = SingleThreadedExecutor()

@@ -176,7 +176,8 @@ def test_feature_node_processes_a_frame_once_when_both_transports_bring_it(revis
     import cv2
 
     # reliable: frames are extracted in the callback (sensor_data hands them to a worker thread)
-    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), image_qos="reliable"))
+    node = FeatureNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), image_qos="reliable",
+                                                   drop_when_busy=False))
     try:
         out = Captured(node.publisher)
         gray = _first_frames(revisit_data, 1)[0]
