@@ -28,7 +28,10 @@ def _nodes(context: Any) -> list[Node]:
     options = SuiteOptions(model_dir=value("model_dir"), map_file=value("map_file"),
                            image_topic=value("image_topic"), image_qos=value("image_qos"),
                            verify=parse_bool(value("verify"), "verify"),
-                           backend=parse_bool(value("backend"), "backend"))
+                           backend=parse_bool(value("backend"), "backend"),
+                           camera_info_topic=value("camera_info_topic"), depth_topic=value("depth_topic"),
+                           odom_topic=value("odom_topic"), closures_topic=value("closures_topic"),
+                           sensor_qos=value("sensor_qos"))
     params_file = value("params_file")
     nodes = suite_nodes(options)
     # Each process's share of the cores for torch/OpenBLAS/numba pools, unless the user set them.
@@ -53,7 +56,17 @@ def generate_launch_description() -> LaunchDescription:
                               description="map file to save to / reload from (the verifier's features beside it)"),
         DeclareLaunchArgument("image_topic", default_value="image", description="camera image topic"),
         DeclareLaunchArgument("image_qos", default_value="",
-                              description="sensor_data or reliable ('' = the parameter file's)"),
+                              description="auto, best_effort or reliable ('' = the parameter file's)"),
+        DeclareLaunchArgument("camera_info_topic", default_value="",
+                              description="CameraInfo topic ('' = beside image_topic, image_transport's convention)"),
+        DeclareLaunchArgument("depth_topic", default_value="",
+                              description="aligned depth image topic ('' = the parameter file's depth_topic)"),
+        DeclareLaunchArgument("odom_topic", default_value="", description="odometry topic ('' = odom)"),
+        DeclareLaunchArgument("closures_topic", default_value="",
+                              description="topic of the verified loop closures ('' = loop_closures)"),
+        DeclareLaunchArgument("sensor_qos", default_value="",
+                              description="auto, best_effort or reliable for camera_info, depth and odometry "
+                              "('' = the parameter file's)"),
         DeclareLaunchArgument("verify", default_value="true",
                               description="run verifier_node: only geometrically verified closures on loop_closures; "
                               "false: FAB-MAP's raw closures on loop_closures (inliers -1)"),

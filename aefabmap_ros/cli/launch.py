@@ -53,8 +53,25 @@ def build_parser() -> argparse.ArgumentParser:
                         help="parameter YAML (default: the aefabmap.yaml shipped in the package)")
     parser.add_argument("--map", type=Path, default=None, help="map file to save to / reload from")
     parser.add_argument("--image-topic", default="image", help="camera image topic (default: image)")
-    parser.add_argument("--image-qos", choices=("sensor_data", "reliable"), default=None,
-                        help="override the image subscription QoS")
+    parser.add_argument("--image-qos", choices=("auto", "best_effort", "sensor_data", "reliable"), default=None,
+                        help="override the image subscription QoS (reliable also processes every frame, in order: "
+                        "a lossless replay)")
+    topics = parser.add_argument_group("the robot's topics (every input and output can be renamed)")
+    topics.add_argument("--camera-info-topic", default="",
+                        help="sensor_msgs/CameraInfo for the verifier's poses (default: beside the image topic, "
+                        "image_transport's convention: /cam/rgb/image_raw -> /cam/rgb/camera_info)")
+    topics.add_argument("--depth-topic", default="",
+                        help="aligned depth image (16UC1 mm or 32FC1 m): metric poses and the metric test "
+                        "(default: the parameter file's depth_topic)")
+    topics.add_argument("--odom-topic", default="",
+                        help="nav_msgs/Odometry for the odometry gate and the backend (default: odom)")
+    topics.add_argument("--closures-topic", default="",
+                        help="where verified loop closures are published (default: loop_closures)")
+    topics.add_argument("--sensor-qos", choices=("auto", "best_effort", "sensor_data", "reliable"), default=None,
+                        help="QoS of the camera_info, depth and odometry subscriptions (default: the parameter "
+                        "file's, auto: adapts to the publishers)")
+    topics.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
+                        help="any other topic, for every node (repeatable), e.g. place_posteriors:=/lc/posteriors")
     parser.add_argument("--pipeline", action="store_true", help="run all three nodes in one process instead")
     parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
                         help="run verifier_node: only geometrically verified closures on loop_closures (default); "
@@ -80,7 +97,10 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     params = args.params or default_params_file()
     nodes = suite_nodes(SuiteOptions(model_dir=str(args.model), map_file=str(args.map) if args.map else "",
                                      image_topic=args.image_topic, image_qos=args.image_qos or "",
-                                     verify=args.verify, backend=args.backend))
+                                     verify=args.verify, backend=args.backend,
+                                     camera_info_topic=args.camera_info_topic, depth_topic=args.depth_topic,
+                                     odom_topic=args.odom_topic, closures_topic=args.closures_topic,
+                                     sensor_qos=args.sensor_qos or "", remaps=tuple(args.remap)))
     if not args.pipeline:
         return [[sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
                 for node in nodes]

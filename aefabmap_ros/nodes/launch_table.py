@@ -35,7 +35,11 @@ THREAD_LIMIT_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_TH
 
 @dataclass(frozen=True)
 class SuiteOptions:
-    """What a user chooses when starting the suite (command-line options / launch arguments)."""
+    """What a user chooses when starting the suite (command-line options / launch arguments).
+
+    Topic options name the robot's own topics; '' keeps the default: camera_info beside the image topic
+    (image_transport's convention), the parameter file's depth_topic, ``odom``, ``loop_closures``.
+    """
 
     model_dir: str
     map_file: str = ""  # '' = the map stays in memory
@@ -43,6 +47,12 @@ class SuiteOptions:
     image_qos: str = ""  # '' = the parameter file's value
     verify: bool = True
     backend: bool = False  # also start pose_graph_node, the example SLAM backend (odometry on ``odom``)
+    camera_info_topic: str = ""
+    depth_topic: str = ""
+    odom_topic: str = ""
+    closures_topic: str = ""
+    sensor_qos: str = ""  # verifier's and backend's camera_info/depth/odom QoS; '' = the parameter file's value
+    remaps: tuple[str, ...] = ()  # further FROM:=TO remaps, given to every node
 
 
 @dataclass(frozen=True)
@@ -74,26 +84,54 @@ def parse_bool(value: str, what: str) -> bool:
     raise ConfigError(f"{what}={value!r} must be true or false")
 
 
+def camera_info_beside(image_topic: str) -> str:
+    """image_transport's camera_info topic of an image topic: ``/cam/rgb/image_raw`` -> ``/cam/rgb/camera_info``."""
+    namespace, _, _name = image_topic.rstrip("/").rpartition("/")
+    if not namespace:
+        return "/camera_info" if image_topic.startswith("/") else "camera_info"
+    return f"{namespace}/camera_info"
+
+
+def parse_remaps(remaps: tuple[str, ...]) -> dict[str, str]:
+    """``FROM:=TO`` strings -> {FROM: TO}; a ConfigError names one without ``:=`` or with an empty side."""
+    parsed = {}
+    for remap in remaps:
+        source, separator, target = remap.partition(":=")
+        if not separator or not source.strip() or not target.strip():
+            raise ConfigError(f"remap {remap!r} must be FROM:=TO (e.g. odom:=/odometry/filtered)")
+        parsed[source.strip()] = target.strip()
+    return parsed
+
+
 def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     """The nodes to start, in start order, with what each gets beyond the parameter file."""
     image: dict[str, str] = {"image_qos": options.image_qos} if options.image_qos else {}
-    # The quantizer follows the image QoS: a live camera's frames may be dropped at every stage, a
-    # lossless replay's at none.
-    words: dict[str, str] = (
-        {"drop_when_busy": str(options.image_qos == "sensor_data").lower()} if options.image_qos else {}
+    # A live camera's frames may be dropped at every stage when busy, a lossless replay's at none.
+    busy: dict[str, str] = (
+        {"drop_when_busy": str(options.image_qos not in ("reliable",)).lower()} if options.image_qos else {}
     )
+    sensors: dict[str, str] = {"sensor_qos": options.sensor_qos} if options.sensor_qos else {}
     fabmap: dict[str, str] = {"map_file": options.map_file} if options.map_file else {}
+    extra = parse_remaps(options.remaps)
+    closures = options.closures_topic or CLOSURES_TOPIC
+    odometry = {"odom": options.odom_topic} if options.odom_topic else {}
+    published = {CLOSURES_TOPIC: closures} if closures != CLOSURES_TOPIC else {}
     nodes = [
-        NodeLaunch("feature_node", {"model_dir": options.model_dir, **image}, {"image": options.image_topic}),
-        NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **words}),
+        NodeLaunch("feature_node", {"model_dir": options.model_dir, **image, **busy},
+                   {"image": options.image_topic, **extra}),
+        NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **busy}, dict(extra)),
         NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap},
-                   {} if options.verify else {CANDIDATES_TOPIC: CLOSURES_TOPIC}),
+                   {**extra, **({} if options.verify else {CANDIDATES_TOPIC: closures})}),
     ]
     if options.verify:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
-        nodes.append(NodeLaunch(VERIFIER_NODE, store))
+        depth = {"depth_topic": options.depth_topic} if options.depth_topic else {}
+        camera_info = options.camera_info_topic or camera_info_beside(options.image_topic)
+        beside = {"camera_info": camera_info} if camera_info != "camera_info" else {}
+        nodes.append(NodeLaunch(VERIFIER_NODE, {**store, **depth, **sensors},
+                                {**extra, **beside, **odometry, **published}))
     if options.backend:
-        nodes.append(NodeLaunch(BACKEND_NODE))
+        nodes.append(NodeLaunch(BACKEND_NODE, dict(sensors), {**extra, **odometry, **published}))
     return nodes
 
 

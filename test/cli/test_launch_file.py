@@ -19,6 +19,7 @@ from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC
 from test.conftest import REPO_ROOT
 
 LAUNCH_FILE = REPO_ROOT / "launch" / "aefabmap.launch.py"
+TOPIC_ARGUMENTS = ("camera_info_topic", "depth_topic", "odom_topic", "closures_topic", "sensor_qos")
 SHARE_PARAMS = "/opt/share/aefabmap_ros/config/aefabmap.yaml"  # what the stand-in FindPackageShare resolves to
 
 
@@ -163,6 +164,12 @@ CASES = [  # (ros2 launch arguments, the same choice for aefabmap_launch)
     ({"model_dir": "/m", "verify": "0", "map_file": "/maps/office.npz"},
      ["--model", "/m", "--no-verify", "--map", "/maps/office.npz"]),
     ({"model_dir": "/m", "backend": "true"}, ["--model", "/m", "--backend"]),
+    ({"model_dir": "/m", "backend": "true", "image_topic": "/camera/rgb/image_raw",
+      "camera_info_topic": "/camera/rgb/info", "depth_topic": "/camera/depth_registered/image_raw",
+      "odom_topic": "/odometry/filtered", "closures_topic": "/slam/loops", "sensor_qos": "best_effort"},
+     ["--model", "/m", "--backend", "--image-topic", "/camera/rgb/image_raw", "--camera-info-topic",
+      "/camera/rgb/info", "--depth-topic", "/camera/depth_registered/image_raw", "--odom-topic",
+      "/odometry/filtered", "--closures-topic", "/slam/loops", "--sensor-qos", "best_effort"]),
 ]
 
 
@@ -202,13 +209,13 @@ def test_launch_file_with_the_real_launch_packages() -> None:
     description = _load_launch_file().generate_launch_description()
     arguments = {a.name: a for a in description.entities if isinstance(a, actions.DeclareLaunchArgument)}
     assert set(arguments) == {"model_dir", "params_file", "map_file", "image_topic", "image_qos", "verify",
-                              "backend"}
+                              "backend", *TOPIC_ARGUMENTS}
     context = real_launch.LaunchContext()
     assert utilities.perform_substitutions(context, arguments["verify"].default_value) == "true"
     (opaque,) = [e for e in description.entities if isinstance(e, actions.OpaqueFunction)]
     context.launch_configurations.update({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "",
                                           "image_topic": "image", "image_qos": "", "verify": "true",
-                                          "backend": "false"})
+                                          "backend": "false", **dict.fromkeys(TOPIC_ARGUMENTS, "")})
     assert len(opaque.execute(context)) == 4
     context.launch_configurations["verify"] = "false"
     assert len(opaque.execute(context)) == 3
@@ -224,7 +231,7 @@ def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file:
     description = launch_file.generate_launch_description()
     (opaque,) = [e for e in description.entities if isinstance(e, _OpaqueFunction)]
     context = _Context({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "", "image_topic": "image",
-                        "image_qos": "", "verify": "true", "backend": "false"})
+                        "image_qos": "", "verify": "true", "backend": "false", **dict.fromkeys(TOPIC_ARGUMENTS, "")})
     nodes = opaque.execute(context)
     share = str(threads_per_process(len(nodes)))
     for node in nodes:

@@ -4,19 +4,21 @@ from __future__ import annotations
 
 import pytest
 
-from aefabmap_ros.nodes.launch_table import SuiteOptions, suite_nodes
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.nodes.launch_table import SuiteOptions, camera_info_beside, suite_nodes
 
 
 def _parameters(options: SuiteOptions, node: str) -> dict[str, str]:
     return next(launch.parameters for launch in suite_nodes(options) if launch.name == node)
 
 
-@pytest.mark.parametrize(("image_qos", "drop_when_busy"), [("sensor_data", "true"), ("reliable", "false")])
-def test_the_quantizer_drops_frames_exactly_when_the_camera_subscription_does(image_qos: str,
-                                                                             drop_when_busy: str) -> None:
+@pytest.mark.parametrize(("image_qos", "drop_when_busy"),
+                         [("sensor_data", "true"), ("auto", "true"), ("best_effort", "true"), ("reliable", "false")])
+def test_the_stages_drop_frames_exactly_when_the_camera_subscription_does(image_qos: str, drop_when_busy: str) -> None:
     """A live camera's frames may be dropped at every stage; a lossless replay must lose none at any."""
     options = SuiteOptions(model_dir="/m", image_qos=image_qos)
     assert _parameters(options, "feature_node")["image_qos"] == image_qos
+    assert _parameters(options, "feature_node")["drop_when_busy"] == drop_when_busy
     assert _parameters(options, "quantizer_node")["drop_when_busy"] == drop_when_busy
 
 
@@ -24,3 +26,40 @@ def test_without_an_image_qos_choice_both_nodes_keep_the_parameter_files_values(
     options = SuiteOptions(model_dir="/m")
     assert "image_qos" not in _parameters(options, "feature_node")
     assert _parameters(options, "quantizer_node") == {"model_dir": "/m"}
+
+
+def _remaps(options: SuiteOptions, node: str) -> dict[str, str]:
+    return next(launch.remaps for launch in suite_nodes(options) if launch.name == node)
+
+
+@pytest.mark.parametrize(("image_topic", "camera_info"), [
+    ("/camera/rgb/image_raw", "/camera/rgb/camera_info"), ("image", "camera_info"), ("/image", "/camera_info"),
+    ("cam/image/", "cam/camera_info")])
+def test_camera_info_is_found_beside_the_image_as_image_transport_names_it(image_topic: str, camera_info: str) -> None:
+    assert camera_info_beside(image_topic) == camera_info
+
+
+def test_every_input_and_output_of_a_robot_can_be_renamed() -> None:
+    options = SuiteOptions(model_dir="/m", backend=True, image_topic="/camera/rgb/image_raw",
+                           depth_topic="/camera/depth_registered/image_raw", odom_topic="/odometry/filtered",
+                           closures_topic="/slam/loop_closures", sensor_qos="best_effort",
+                           remaps=("place_posteriors:=/lc/posteriors",))
+    assert _remaps(options, "feature_node") == {"image": "/camera/rgb/image_raw",
+                                                "place_posteriors": "/lc/posteriors"}
+    assert _remaps(options, "verifier_node") == {
+        "camera_info": "/camera/rgb/camera_info", "odom": "/odometry/filtered",
+        "loop_closures": "/slam/loop_closures", "place_posteriors": "/lc/posteriors"}
+    assert _remaps(options, "pose_graph_node") == {
+        "odom": "/odometry/filtered", "loop_closures": "/slam/loop_closures", "place_posteriors": "/lc/posteriors"}
+    assert _parameters(options, "verifier_node") == {"depth_topic": "/camera/depth_registered/image_raw",
+                                                     "sensor_qos": "best_effort"}
+    assert _parameters(options, "pose_graph_node") == {"sensor_qos": "best_effort"}
+    explicit = SuiteOptions(model_dir="/m", image_topic="/camera/rgb/image_raw", camera_info_topic="/calib/info")
+    assert _remaps(explicit, "verifier_node") == {"camera_info": "/calib/info"}
+    unverified = SuiteOptions(model_dir="/m", verify=False, closures_topic="/slam/loop_closures")
+    assert _remaps(unverified, "fabmap_node") == {"loop_closure_candidates": "/slam/loop_closures"}
+
+
+def test_a_remap_without_its_two_sides_is_refused_by_name() -> None:
+    with pytest.raises(ConfigError, match="remap 'odom' must be FROM:=TO"):
+        suite_nodes(SuiteOptions(model_dir="/m", remaps=("odom",)))
