@@ -88,12 +88,14 @@ def record(args: argparse.Namespace) -> int:
         with bags.BagWriter(args.output, storage=args.storage, overwrite=args.overwrite) as writer:
             for topic in args.topics:
                 msgtype = _resolve_type(node, topic)
-                writer.add_topic(topic, msgtype)
-                counts[topic] = 0
+                # Stored under its full name (/loop_closures), as ros2 bag record stores topics.
+                name = node.resolve_topic_name(topic)
+                writer.add_topic(name, msgtype)
+                counts[name] = 0
 
-                def on_message(data: bytes, topic: str = topic) -> None:
-                    writer.write(topic, time.time_ns(), data)
-                    counts[topic] += 1
+                def on_message(data: bytes, name: str = name) -> None:
+                    writer.write(name, time.time_ns(), data)
+                    counts[name] += 1
                     last_arrival[0] = time.monotonic()
 
                 node.create_subscription(ros_message_class(msgtype), topic, on_message, 100, raw=True)

@@ -37,6 +37,7 @@ fabmap_node:
 feature_node:
   ros__parameters:
     image_qos: reliable
+    drop_when_busy: false
 """
 
 
@@ -59,7 +60,7 @@ Closure = tuple[int, int, float, int]  # (query stamp, matched stamp, probabilit
 
 def _closures(recording: Path, topic: str) -> list[Closure]:
     return [(m.stamp_ns, stamp_to_ns(m.message.matched_stamp), float(m.message.probability), int(m.message.inliers))
-            for m in read_messages(recording, [topic])]
+            for m in read_messages(recording, [f"/{topic}"])]  # recorded under its full name
 
 
 def _record_replay(tmp_path: Path, bag: Path, name: str, closure_topics: tuple[str, ...]) -> dict[str, list[Closure]]:
@@ -71,7 +72,7 @@ def _record_replay(tmp_path: Path, bag: Path, name: str, closure_topics: tuple[s
         _replay(tmp_path, bag, name)
         time.sleep(1.0)  # the last closure's verification runs after its posterior was answered
         assert recorder.stop(signal.SIGINT) == 0, recorder.log()
-    posteriors = list(read_messages(recording, ["place_posteriors"]))
+    posteriors = list(read_messages(recording, ["/place_posteriors"]))
     assert len(posteriors) > 0
     return {topic: _closures(recording, topic) for topic in closure_topics}
 
