@@ -23,6 +23,7 @@ import argparse
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import threading
@@ -62,6 +63,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--skip-ros", action="store_true", help="offline evaluation only (no ROS nodes)")
     parser.add_argument("--quick", action="store_true",
                         help="a small, fast version (fewer and smaller frames, small vocabularies)")
+    parser.add_argument("--live", action="store_true",
+                        help="replay as a robot publishes: in real time, with the sensor-data QoS, and the shipped "
+                        "aefabmap.yaml (the default replays in lockstep with demo.yaml: every frame, none lost)")
+    parser.add_argument("--driver-default-dds", action="store_true",
+                        help="with --live: the replay (the camera driver) keeps Fast DDS's default transports, which "
+                        "lose most best-effort messages over 512 KiB; by default it runs with the shipped "
+                        "config/fastdds_large_messages.xml, as a driver of large images should")
+    parser.add_argument("--online-only", action="store_true",
+                        help="score only the online run (no offline evaluation of the four methods)")
+    parser.add_argument("--models", type=Path, default=None,
+                        help="where the vocabularies are trained (once) and found (default OUT/models)")
+    parser.add_argument("--test", type=Path, default=None,
+                        help="another test sequence folder made by aefabmap_synth (bag/, loop_gt.npz, poses.txt, "
+                        "groundtruth.tum), e.g. --preset dense-video (default: the demo's own town)")
     return parser
 
 
@@ -94,15 +109,16 @@ def make_bags(args: argparse.Namespace) -> tuple[Path, Path]:
 
 def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
     models = {}
-    (args.out / "models").mkdir(parents=True, exist_ok=True)
+    folder: Path = args.models or args.out / "models"
+    folder.mkdir(parents=True, exist_ok=True)
     for kind in ("autoencoder", "kmeans"):
-        out = args.out / "models" / kind
+        out = folder / kind
         if (out / "metadata.json").is_file():
             print(f"    using the {kind} model in {out}")
         else:
             command: list[str | Path] = ["aefabmap_ros.cli.train", "--bag", train / "bag", "--topic", "/image",
                                          "--vocabulary", kind, "--size", str(args.size), "--out", out,
-                                         "--overwrite", "--work-dir", args.out / "models" / ".work",
+                                         "--overwrite", "--work-dir", folder / ".work",
                                          "--config", shipped_config("demo_train.yaml")]
             _run(command, f"training the {kind} vocabulary and Chow-Liu tree")
         models[kind] = out
@@ -117,6 +133,8 @@ class ClosurePrinter:
         import rclpy
         from aefabmap_msgs.msg import LoopClosure, PlacePosterior
         from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import Image
 
         self._rclpy = rclpy
         self._stamps = stamps_ns
@@ -130,6 +148,11 @@ class ClosurePrinter:
         self.node.create_subscription(LoopClosure, CLOSURES_TOPIC, self._on_closure, 100)
         self.node.create_subscription(LoopClosure, CANDIDATES_TOPIC, self._on_candidate, 100)
         self.node.create_subscription(PlacePosterior, POSTERIORS_TOPIC, self._on_posterior, 100)
+        # When each image went out (its stamp read from the serialized message: nothing is deserialized), for the
+        # latency from image to /loop_closures.
+        self.image_arrivals_ns: dict[int, int] = {}
+        self.closure_latencies_s: list[float] = []
+        self.node.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, raw=True)
         self.backend = BackendCheck(self.node, stamps_ns, poses) if poses is not None else None
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -143,6 +166,9 @@ class ClosurePrinter:
 
     def _frame(self, stamp: Any) -> int:
         return int(np.searchsorted(self._stamps, stamp_to_ns(stamp)))
+
+    def _on_image(self, data: bytes) -> None:
+        self.image_arrivals_ns[serialized_header_stamp_ns(data)] = time.monotonic_ns()
 
     def _on_posterior(self, _message: Any) -> None:
         self.posteriors += 1
@@ -158,6 +184,9 @@ class ClosurePrinter:
         self.candidates.append(self._judged(message))
 
     def _on_closure(self, message: Any) -> None:
+        sent_ns = self.image_arrivals_ns.get(stamp_to_ns(message.header.stamp))
+        if sent_ns is not None:
+            self.closure_latencies_s.append((time.monotonic_ns() - sent_ns) / 1e9)
         query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
         if self.backend is not None:
@@ -169,6 +198,17 @@ class ClosurePrinter:
         print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}, "
               f"{pose}  ({verdict})", flush=True)
 
+    def wait_until_quiet(self, idle_s: float, at_most_s: float) -> None:
+        """Give the nodes time to finish the last frames: until nothing arrived for ``idle_s``."""
+        deadline = time.monotonic() + at_most_s
+        seen: tuple[int, int, int] | None = None
+        while time.monotonic() < deadline:
+            now = (self.posteriors, len(self.closures), len(self.candidates))
+            if now == seen:
+                return
+            seen = now
+            time.sleep(idle_s)
+
     def summary(self, min_gap: int) -> str:
         """Published closures, false ones and revisit events closed; the raw candidates for comparison."""
         in_range = [(q, m) for q, m, _ in self.closures if q < len(self._gt) and m < len(self._gt)]
@@ -178,7 +218,8 @@ class ClosurePrinter:
         return (f"    {len(self.closures)} loop closures published on /{CLOSURES_TOPIC} (verified), {false} false; "
                 f"{events.num_events_closed} of {events.num_events} revisit events closed\n"
                 f"    {len(self.candidates)} raw FAB-MAP candidates on /{CANDIDATES_TOPIC}, {false_candidates} false; "
-                f"{self.posteriors} posteriors")
+                f"{self.posteriors} posteriors\n    {latency_summary(self.closure_latencies_s)}")
+
 
     def close(self) -> None:
         self._stop.set()
@@ -186,6 +227,23 @@ class ClosurePrinter:
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
+
+
+def latency_summary(latencies_s: list[float]) -> str:
+    """Image to /loop_closures: median, p95 and max over the closures whose image was seen going out."""
+    if not latencies_s:
+        return "latency image -> /loop_closures: no closure to time"
+    p50, p95 = np.percentile(latencies_s, [50, 95])
+    return (f"latency image -> /loop_closures over {len(latencies_s)} closures: median {p50:.3f} s, p95 {p95:.3f} s, "
+            f"max {max(latencies_s):.3f} s")
+
+
+def serialized_header_stamp_ns(data: bytes) -> int:
+    """The header stamp of a serialized message that starts with a std_msgs/Header (CDR: 4 bytes of
+    encapsulation, then int32 sec and uint32 nanosec, little-endian when the encapsulation says so)."""
+    order = "<" if data[1] == 1 else ">"
+    sec, nanosec = struct.unpack_from(f"{order}iI", data, 4)
+    return int(sec) * 1_000_000_000 + int(nanosec)
 
 
 def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s: float) -> None:
@@ -210,10 +268,11 @@ def _stop(process: subprocess.Popen[bytes], grace_s: float = 20.0) -> None:
 
 
 def _demo_params(args: argparse.Namespace, backend_dir: Path) -> Path:
-    """aefabmap_ros/config/demo.yaml plus where the backend writes its keyframe trajectory."""
+    """aefabmap_ros/config/demo.yaml (--live: the shipped aefabmap.yaml, as on a robot) plus where the backend
+    writes its keyframe trajectory."""
     import yaml
 
-    params = yaml.safe_load(shipped_config("demo.yaml").read_text())
+    params = yaml.safe_load(shipped_config("aefabmap.yaml" if args.live else "demo.yaml").read_text())
     params.setdefault("pose_graph_node", {}).setdefault("ros__parameters", {})["trajectory_file"] = \
         str(backend_dir / "keyframes.tum")
     path: Path = args.out / "demo_params.yaml"
@@ -246,7 +305,8 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                 (logs / "injected_backend.log").open("w") as injected_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(map_file), "--backend"], stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
+                 "--map", str(map_file), "--backend", "--depth-topic", "/depth"],
+                stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", CLOSURES_TOPIC,
                  CANDIDATES_TOPIC, POSTERIORS_TOPIC, "--wait-publishers", "120"],
@@ -269,9 +329,13 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
             companions = [argument for topic in COMPANION_TOPICS
                           for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
+            # Lockstep: each image once the last was answered (every frame, none lost). Live: the bag's own pace
+            # with a camera driver's QoS; nobody waits for the nodes.
+            pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                            *companions, "--lockstep", "place_posteriors", "--quiet"], check=True)
-            time.sleep(1.0)  # the last closure's delivery to the printer and the backends
+                            *companions, *pace, "--wait-subscribers", "2", "--quiet"],  # + the printer
+                           check=True, env=_driver_environment(args))
+            printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
             for process in reversed(processes):
                 process.send_signal(signal.SIGINT)
                 process.wait(timeout=60)
@@ -292,6 +356,15 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     return recording
 
 
+def _driver_environment(args: argparse.Namespace) -> dict[str, str]:
+    """The replay stands in for the camera driver: live, it gets the shared memory large images need (unless
+    --driver-default-dds or the user's own Fast DDS profile)."""
+    environment = dict(os.environ)
+    if args.live and not args.driver_default_dds:
+        environment.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(shipped_config("fastdds_large_messages.xml")))
+    return environment
+
+
 def print_backend_result(test: Path, backend_dir: Path) -> None:
     """The ATE before and after closures (and with the injected wrong one), or why there is none."""
     keyframes, injected = backend_dir / "keyframes.tum", backend_dir / "keyframes_injected.tum"
@@ -309,10 +382,11 @@ def print_backend_result(test: Path, backend_dir: Path) -> None:
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
     gt = test / "loop_gt.npz"
     # Verified with the bag's depth, as verifier_node verifies it in the online run (the metric test).
-    _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
-          "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--depth-topic", "/depth",
-          "--camera-info-topic", "/camera_info", "--out", args.out / "evaluation"],
-         "offline evaluation of the four methods (each also after geometric verification: + GV)")
+    if not args.online_only:
+        _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
+              "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--depth-topic", "/depth",
+              "--camera-info-topic", "/camera_info", "--out", args.out / "evaluation"],
+             "offline evaluation of the four methods (each also after geometric verification: + GV)")
     if recording is not None:
         print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)
         # Frames by stamp: loop_gt.npz's stamps_ns (the bag's images' stamps, which --bag gives for older bags).
@@ -332,6 +406,8 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     _step("1/4 sample bags")
     train, test = make_bags(args)
+    if args.test is not None:
+        test = args.test
     _step("2/4 vocabularies and Chow-Liu trees (trained on the training town only)")
     models = train_models(args, train)
     recording = None

@@ -68,10 +68,29 @@ def test_closure_printer_summary_counts_published_false_and_events() -> None:
     printer.posteriors = 30
     printer.closures = [(11, 2, True), (25, 0, False)]
     printer.candidates = [(11, 2, True), (12, 9, False), (25, 0, False)]
+    printer.closure_latencies_s = [0.1, 0.2, 0.3, 0.4, 1.0]
     assert printer.summary(min_gap=5).splitlines() == [
         "    2 loop closures published on /loop_closures (verified), 1 false; 1 of 2 revisit events closed",
         "    3 raw FAB-MAP candidates on /loop_closure_candidates, 2 false; 30 posteriors",
+        "    latency image -> /loop_closures over 5 closures: median 0.300 s, p95 0.880 s, max 1.000 s",
     ]
+
+
+def test_the_image_stamp_is_read_from_the_serialized_message_as_rclpy_serializes_it() -> None:
+    import pytest
+
+    pytest.importorskip("rclpy")
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from aefabmap_ros.cli.demo import latency_summary, serialized_header_stamp_ns
+
+    for message in (Image(height=2, width=2, encoding="mono8", step=2, data=bytes(4)), CompressedImage(format="png")):
+        message.header.stamp = Time(sec=1_700_000_123, nanosec=456_789_012)
+        message.header.frame_id = "camera"
+        assert serialized_header_stamp_ns(serialize_message(message)) == 1_700_000_123_456_789_012
+    assert latency_summary([]) == "latency image -> /loop_closures: no closure to time"
 
 
 def test_ate_figures_compare_odometry_and_closures_on_the_keyframe_stamps(tmp_path: Path) -> None:
