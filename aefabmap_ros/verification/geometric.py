@@ -38,7 +38,7 @@ on the dense video (recall 0.632 -> 0.635), a gain not yet confirmed through the
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -414,10 +414,11 @@ class Reranked:
 
 
 def rerank_by_inliers(
-    candidates: Sequence[CandidateT], verify: Callable[[CandidateT], Verification], require_best: bool = False,
+    candidates: Iterable[CandidateT], verify: Callable[[CandidateT], Verification], require_best: bool = False,
     first: int = 0,
 ) -> Reranked | None:
-    """Verify ``candidates`` (ranked best first); the accepted one with the most inliers wins.
+    """Verify ``candidates`` (ranked best first; an iterable may stop early); the accepted one with the most
+    inliers wins.
 
     Ranks in the result index ``candidates``. Ties in inliers go to the better-ranked candidate. With
     ``require_best`` a rejected best candidate rejects the query and nothing else is tried (the
