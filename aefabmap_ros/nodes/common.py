@@ -210,10 +210,10 @@ class DropCounter:
         return ", ".join(f"{key}={value}" for key, value in sorted(self.counts.items())) or "no input"
 
 
-def counted_subscription(node: Node, message_type: Any, topic: str, callback: Callable[[Any], None],
+def counted_subscription(node: Node, message_type: Any, topic: str, callback: Callable[..., None],
                          qos: QoSProfile, counter: DropCounter,
                          on_incompatible_qos: Callable[[Any], None] | None = None,
-                         on_lost: Callable[[int], None] | None = None) -> Any:
+                         on_lost: Callable[[int], None] | None = None, pass_source_time: bool = False) -> Any:
     """``node.create_subscription`` that also counts, on ``counter``, the messages DDS lost before the callback.
 
     A best-effort sample lost on the way, or one pushed out of the reader's KEEP_LAST queue while the
@@ -233,7 +233,10 @@ def counted_subscription(node: Node, message_type: Any, topic: str, callback: Ca
                          "(reader queue full while busy, or lost on the way)", count=lost)
             if on_lost is not None:
                 on_lost(lost)
-        callback(message)
+        if pass_source_time:  # when the publisher sent it (its wall clock, ns): the age of what waited in the queue
+            callback(message, int(info["source_timestamp"]))
+        else:
+            callback(message)
 
     def on_message_lost(info: Any) -> None:
         counter.counts["dds_reported_lost"] += int(info.total_count_change)

@@ -68,7 +68,9 @@ Any other exception a message causes is counted by its type (``node_callback``).
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import time
+from collections import OrderedDict, deque
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from enum import Enum
 from pathlib import Path
@@ -79,6 +81,7 @@ from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
 
 from aefabmap_ros.backend.odometry_gate import GateResult, OdometryGate
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
@@ -193,6 +196,12 @@ class VerifierNode(Node):
         self.max_pending = declare_parameter(
             self, "max_pending", 100, "Loop closures waiting for their query's features (and posterior) at most."
         )
+        self.max_lag_s = declare_parameter(
+            self, "max_lag_s", 0.25,
+            "A closure verified more than this long after its query's features were sent is checked against its "
+            "detection only (no re-ranking) and loop tracking waits, so the verifier catches up with a live camera "
+            "instead of falling behind during a revisit (seconds; 0 = never: a lockstep replay, reproducible).",
+        )
         store_dir = declare_parameter(
             self, "store_dir", "",
             "Folder the feature store (with each frame's place, for loop tracking) is saved to and reloaded from "
@@ -248,12 +257,19 @@ class VerifierNode(Node):
         self.track = LoopTrack(self.config.track_seconds, self.config.track_island_seconds)
         self.odometry_gate = OdometryGate(drift_model, base_to_camera) if odometry_gate else None
         self.posteriors: OrderedDict[int, PlacePosterior] = OrderedDict()  # query stamp -> posterior
+        # Features stamp -> when feature_node sent them (wall clock ns, as DDS stamps them): how far behind the verifier
+        # is, the time they waited in its queue included (max_lag_s).
+        self.arrivals: dict[int, int] = {}
+        self.delays_s: deque[float] = deque(maxlen=10_000)  # from a query's features sent to its closure going out
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
         features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
-                                        self.counter)
+                                        self.counter, pass_source_time=True)
         # A place whose features the verifier never heard cannot be verified.
         report_when_connected(self, features, "features")
+        if depth_topic:  # the depth images of frames feature_node skips wait for no features
+            self.create_subscription(Header, "aefabmap/skipped_frames", self._on_skipped_frame,
+                                     pipeline_qos(max(depth, 100)))
         # As deep as the features queue: a verifier behind during a revisit must not lose the candidates and
         # posteriors of the frames it has yet to reach.
         counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, result_qos(depth),
@@ -294,7 +310,7 @@ class VerifierNode(Node):
         )
 
     @node_callback
-    def _on_features(self, message: Features) -> None:
+    def _on_features(self, message: Features, sent_ns: int | None = None) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
         try:
             self.store.add(stamp_ns, message_to_features(message))
@@ -302,6 +318,9 @@ class VerifierNode(Node):
             self.counter.drop("bad_features", str(exc))
             return
         self.store_saver.mark_changed()
+        self.arrivals[stamp_ns] = time.time_ns() if sent_ns is None else sent_ns
+        while len(self.arrivals) > POSTERIOR_HISTORY:
+            del self.arrivals[next(iter(self.arrivals))]
         if message.image_width and message.image_height:  # one camera: its images' size, for the metric test
             self.image_size = (int(message.image_width), int(message.image_height))
         stored = self.store.get(stamp_ns)
@@ -327,6 +346,11 @@ class VerifierNode(Node):
                                                  "camera); the previous intrinsics are kept")
             return
         self.camera = camera
+
+    @node_callback
+    def _on_skipped_frame(self, message: Header) -> None:
+        if self.depths is not None:
+            self.depths.skip_frame(stamp_to_ns(message.stamp))
 
     @node_callback
     def _on_depth(self, message: Image) -> None:
@@ -384,6 +408,9 @@ class VerifierNode(Node):
         if decision is GateDecision.PUBLISH:
             self.track.accept(stamp_to_ns(closure.header.stamp), stamp_to_ns(closure.matched_stamp))  # idempotent
             self.publisher.publish(closure)
+            sent_ns = self.arrivals.get(stamp_to_ns(closure.header.stamp))
+            if sent_ns is not None:
+                self.delays_s.append((time.time_ns() - sent_ns) / 1e9)
 
     def _odometry_decision(self, closure: LoopClosure) -> GateDecision:
         """The odometry gate on one verified closure (always PUBLISH when it is off or inactive); refusals are
@@ -507,6 +534,9 @@ class VerifierNode(Node):
         query = self.store.get(query_ns)
         if query is None or not self.track.is_active(query_ns):
             return
+        if self._behind(query_ns):
+            self.counter.ok("tracking_skipped_behind")
+            return
         try:
             tried: set[int] = set()
             match = self._track_candidates(query_ns, query, posterior, tried)
@@ -532,6 +562,20 @@ class VerifierNode(Node):
                                f"{match.verification.inliers} inliers of {match.verification.matches} matches",
                                throttle_duration_sec=LOG_THROTTLE_S)
         self._publish_if_consistent(closure)
+
+    def _within_lag(self, query_ns: int, candidates: list[PlaceToVerify]) -> Iterator[PlaceToVerify]:
+        """The detection, then the other candidates while the verifier is not behind (max_lag_s): re-ranking
+        stops where the time is spent, so a closure is published within about max_lag_s of its features."""
+        for rank, candidate in enumerate(candidates):
+            if rank > 0 and self._behind(query_ns):
+                self.counter.ok("reranking_cut_short_behind")
+                return
+            yield candidate
+
+    def _behind(self, query_ns: int) -> bool:
+        """More than max_lag_s since the query's features were sent: the verifier is behind the camera."""
+        sent_ns = self.arrivals.get(query_ns)
+        return bool(self.max_lag_s) and sent_ns is not None and time.time_ns() - sent_ns > self.max_lag_s * 1e9
 
     def _track_candidates(self, query_ns: int, query: CoreFeatures, posterior: PlacePosterior,
                           tried: set[int]) -> TrackedMatch | None:
@@ -599,8 +643,8 @@ class VerifierNode(Node):
             return
         try:
             outcome = rerank_by_inliers(
-                candidates, lambda candidate: self._verify_pair(query_ns, query, candidate), require_best=True
-            )
+                self._within_lag(query_ns, candidates), lambda candidate: self._verify_pair(query_ns, query, candidate),
+                require_best=True)
         except AefabmapError as exc:
             self.counter.drop("unverifiable", str(exc))
             return
@@ -664,10 +708,19 @@ class VerifierNode(Node):
         self.get_logger().info(
             f"verifier_node: {len(self.store)} frames stored ({self.store.nbytes / 2**20:.1f} MiB"
             f"{'' if saved else ', NOT all saved'}), {len(self.pending)} closures still waiting; "
-            f"{self.counter.summary()}; " + ("; ".join(sensor_input.summary() for sensor_input in self.inputs)
+            f"{self.counter.summary()}; {delay_summary(self.delays_s)}; "
+            + ("; ".join(sensor_input.summary() for sensor_input in self.inputs)
                                               or "no sensor inputs")
         )
         return saved
+
+
+def delay_summary(delays_s: Sequence[float]) -> str:
+    """From a query's features being sent to its closure going out: median, p95 and max."""
+    if not delays_s:
+        return "no closure published"
+    p50, p95 = np.percentile(delays_s, [50, 95])
+    return f"features -> published closure: median {p50:.3f} s, p95 {p95:.3f} s, max {max(delays_s):.3f} s"
 
 
 def _camera_from_parameter(values: list[float]) -> CameraModel | None:

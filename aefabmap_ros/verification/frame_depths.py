@@ -164,6 +164,11 @@ class FrameDepths:
         return FrameDepths(depth_at_pixels(depth_m, keypoints), sample_depth_grid(depth_m))
 
 
+# Skipped frames remembered, for a depth image that arrives after its frame's skip was announced: at 30 Hz about
+# ten seconds.
+SKIPPED_REMEMBERED = 300
+
+
 class FrameDepthStore:
     """The FrameDepths of recent frames, by image stamp.
 
@@ -182,6 +187,7 @@ class FrameDepthStore:
         self._images: dict[int, np.ndarray] = {}
         self._waiting_keypoints: dict[int, np.ndarray] = {}
         self._unsaved: dict[int, None] = {}  # stamps sampled since the last save, in order (an ordered set)
+        self._skipped: dict[int, None] = {}  # recent frames announced as skipped (an ordered set)
 
     def __len__(self) -> int:
         return len(self._depths)
@@ -208,7 +214,16 @@ class FrameDepthStore:
             self._depths[stamp] = depths
         _trim(self._depths, self.max_frames)
 
+    def skip_frame(self, stamp_ns: int) -> None:
+        """A frame the detector will not process (feature_node's detection rate): its depth image, come or to
+        come, is not kept, so the images waiting are those of frames whose features are on their way."""
+        self._images.pop(stamp_ns, None)
+        self._skipped[stamp_ns] = None
+        _trim(self._skipped, SKIPPED_REMEMBERED)
+
     def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
+        if stamp_ns in self._skipped:
+            return
         keypoints = self._waiting_keypoints.pop(stamp_ns, None)
         if keypoints is not None:
             self._keep(stamp_ns, FrameDepths.sample(depth_m, keypoints))
@@ -313,6 +328,6 @@ def _read_grids(chunk: Path, arrays: dict[str, np.ndarray], num_frames: int) -> 
     return grids
 
 
-def _trim(frames: dict[int, FrameDepths] | dict[int, np.ndarray], limit: int) -> None:
+def _trim(frames: dict[int, FrameDepths] | dict[int, np.ndarray] | dict[int, None], limit: int) -> None:
     while len(frames) > limit:
         del frames[next(iter(frames))]

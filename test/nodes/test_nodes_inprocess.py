@@ -628,6 +628,37 @@ def test_verifier_node_moves_a_closure_to_the_best_verified_candidate() -> None:
         node.destroy_node()
 
 
+@pytest.mark.parametrize("max_lag_s", [0.25, 0.0])
+def test_a_verifier_behind_the_camera_checks_the_detection_only_and_waits_with_tracking(max_lag_s: float) -> None:
+    """Features sent 10 s ago: past max_lag_s the closure is decided by its detection (FAB-MAP's place 1, not the
+    better view 3 re-ranking finds) and tracking waits; max_lag_s 0 (a lockstep replay) re-ranks however late."""
+    import time
+
+    from test.verification.test_geometric import _two_views
+
+    query, place, shared = _two_views(seed=24)
+    _, unrelated, _ = _two_views(seed=25)
+    node = VerifierNode(parameter_overrides=_params(max_lag_s=max_lag_s, track_seconds=5.0))
+    try:
+        verified = Captured(node.publisher)
+        long_ago_ns = time.time_ns() - 10_000_000_000
+        for sec, features in ((1, _weaker_view(place, shared, 35)), (2, unrelated), (3, place), (4, query),
+                              (5, query)):
+            node._on_features(_features_message(features, sec), long_ago_ns)
+        node._on_loop_closure(_closure(4, 1, query_id=40))
+        node._on_posterior(_posterior(4, [1, 2, 3]))
+        node._on_posterior(_posterior(5, [3, 1], candidate=False))  # a frame loop tracking would verify
+        counts = node.counter.counts
+        if max_lag_s:
+            assert [(m.query_id, m.matched_place_id) for m in verified.messages] == [(40, 1)]
+            assert counts["reranking_cut_short_behind"] == 1 and counts["tracking_skipped_behind"] == 1
+        else:
+            assert [(m.query_id, m.matched_place_id) for m in verified.messages] == [(40, 3), (0, 3)]
+            assert "reranking_cut_short_behind" not in counts and "tracking_skipped_behind" not in counts
+    finally:
+        node.destroy_node()
+
+
 def test_verifier_node_tracks_a_verified_loop_through_frames_without_a_candidate() -> None:
     from test.verification.test_geometric import _two_views
 

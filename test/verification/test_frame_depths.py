@@ -74,6 +74,26 @@ def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
     assert len(store) == 2 and store.get(10) is None
 
 
+def test_the_depth_of_a_skipped_frame_is_not_kept_whether_it_came_before_or_after_the_skip() -> None:
+    """A 30 Hz depth stream beside a 10 Hz detector: the images waiting must be those of frames to come."""
+    depth = np.ones((3, 4), dtype=np.float32)
+    keypoints = np.array([[1.0, 1.0]], dtype=np.float32)
+    store = FrameDepthStore(max_frames=10, max_images=2)
+    store.add_depth(30, depth)  # a frame to be processed, its features late
+    store.add_depth(10, depth)
+    store.skip_frame(10)  # announced after its depth came: dropped, so it pushes nothing out
+    store.add_depth(20, depth)
+    store.skip_frame(20)
+    store.skip_frame(50)  # announced before its depth comes: never kept
+    store.add_depth(50, depth)
+    store.add_depth(40, depth)
+    store.add_features(30, keypoints)
+    assert 30 in store  # without the skips, 10, 20, 50 and 40 would have pushed it out of the 2 waiting
+    for stamp in (10, 20, 50):
+        store.add_features(stamp, keypoints)
+        assert stamp not in store
+
+
 def test_a_depth_image_of_another_size_than_its_image_is_not_sampled() -> None:
     """A 4 x 3 depth image for a frame whose image is 8 x 6: its pixels are not the keypoints'. Refused when
     the keypoints come (DataError naming both sizes); they wait for a depth image that fits."""
