@@ -152,6 +152,7 @@ class ClosurePrinter:
         # latency from image to /loop_closures.
         self.image_arrivals_ns: dict[int, int] = {}
         self.closure_latencies_s: list[float] = []
+        self.posterior_latencies_s: list[float] = []  # the detection alone (features, words, FAB-MAP)
         self.node.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, raw=True)
         self.backend = BackendCheck(self.node, stamps_ns, poses) if poses is not None else None
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -167,10 +168,19 @@ class ClosurePrinter:
     def _frame(self, stamp: Any) -> int:
         return int(np.searchsorted(self._stamps, stamp_to_ns(stamp)))
 
-    def _on_image(self, data: bytes) -> None:
-        self.image_arrivals_ns[serialized_header_stamp_ns(data)] = time.monotonic_ns()
+    # The middleware's own times (the publisher's clock when it sent, ours when the sample arrived; one machine,
+    # one clock), not this printer's callback times: a busy printer would add its own queue to the figures.
+    def _on_image(self, data: bytes, info: Any) -> None:
+        self.image_arrivals_ns[serialized_header_stamp_ns(data)] = int(info["source_timestamp"])
 
-    def _on_posterior(self, _message: Any) -> None:
+    def _latency_s(self, message: Any, info: Any) -> float | None:
+        sent_ns = self.image_arrivals_ns.get(stamp_to_ns(message.header.stamp))
+        return None if sent_ns is None else (int(info["received_timestamp"]) - sent_ns) / 1e9
+
+    def _on_posterior(self, message: Any, info: Any) -> None:
+        latency = self._latency_s(message, info)
+        if latency is not None:
+            self.posterior_latencies_s.append(latency)
         self.posteriors += 1
         if self.posteriors % 50 == 0:
             print(f"    ... {self.posteriors}/{len(self._stamps)} images processed", flush=True)
@@ -183,10 +193,10 @@ class ClosurePrinter:
     def _on_candidate(self, message: Any) -> None:
         self.candidates.append(self._judged(message))
 
-    def _on_closure(self, message: Any) -> None:
-        sent_ns = self.image_arrivals_ns.get(stamp_to_ns(message.header.stamp))
-        if sent_ns is not None:
-            self.closure_latencies_s.append((time.monotonic_ns() - sent_ns) / 1e9)
+    def _on_closure(self, message: Any, info: Any) -> None:
+        latency = self._latency_s(message, info)
+        if latency is not None:
+            self.closure_latencies_s.append(latency)
         query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
         if self.backend is not None:
@@ -218,7 +228,8 @@ class ClosurePrinter:
         return (f"    {len(self.closures)} loop closures published on /{CLOSURES_TOPIC} (verified), {false} false; "
                 f"{events.num_events_closed} of {events.num_events} revisit events closed\n"
                 f"    {len(self.candidates)} raw FAB-MAP candidates on /{CANDIDATES_TOPIC}, {false_candidates} false; "
-                f"{self.posteriors} posteriors\n    {latency_summary(self.closure_latencies_s)}")
+                f"{self.posteriors} posteriors\n    {latency_summary(self.closure_latencies_s)}\n"
+                f"    {latency_summary(self.posterior_latencies_s, 'place_posteriors', 'posterior')}")
 
 
     def close(self) -> None:
@@ -229,12 +240,12 @@ class ClosurePrinter:
         self._rclpy.try_shutdown(context=self.context)
 
 
-def latency_summary(latencies_s: list[float]) -> str:
-    """Image to /loop_closures: median, p95 and max over the closures whose image was seen going out."""
+def latency_summary(latencies_s: list[float], topic: str = "loop_closures", what: str = "closure") -> str:
+    """Image to ``topic``: median, p95 and max over the messages whose image was seen going out."""
     if not latencies_s:
-        return "latency image -> /loop_closures: no closure to time"
+        return f"latency image -> /{topic}: no {what} to time"
     p50, p95 = np.percentile(latencies_s, [50, 95])
-    return (f"latency image -> /loop_closures over {len(latencies_s)} closures: median {p50:.3f} s, p95 {p95:.3f} s, "
+    return (f"latency image -> /{topic} over {len(latencies_s)} {what}s: median {p50:.3f} s, p95 {p95:.3f} s, "
             f"max {max(latencies_s):.3f} s")
 
 

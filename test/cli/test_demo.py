@@ -69,10 +69,12 @@ def test_closure_printer_summary_counts_published_false_and_events() -> None:
     printer.closures = [(11, 2, True), (25, 0, False)]
     printer.candidates = [(11, 2, True), (12, 9, False), (25, 0, False)]
     printer.closure_latencies_s = [0.1, 0.2, 0.3, 0.4, 1.0]
+    printer.posterior_latencies_s = []
     assert printer.summary(min_gap=5).splitlines() == [
         "    2 loop closures published on /loop_closures (verified), 1 false; 1 of 2 revisit events closed",
         "    3 raw FAB-MAP candidates on /loop_closure_candidates, 2 false; 30 posteriors",
         "    latency image -> /loop_closures over 5 closures: median 0.300 s, p95 0.880 s, max 1.000 s",
+        "    latency image -> /place_posteriors: no posterior to time",
     ]
 
 
