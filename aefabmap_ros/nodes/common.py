@@ -195,15 +195,12 @@ class DropCounter:
     def __init__(self, node: Node) -> None:
         self._node = node
         self.counts: Counter[str] = Counter()
-        self._lock = threading.Lock()  # a node may take its sensor inputs on a thread of their own
 
     def ok(self, what: str = "processed") -> None:
-        with self._lock:
-            self.counts[what] += 1
+        self.counts[what] += 1
 
     def drop(self, reason: str, detail: str, count: int = 1) -> None:
-        with self._lock:
-            self.counts[f"dropped_{reason}"] += count
+        self.counts[f"dropped_{reason}"] += count
         self._node.get_logger().warning(
             f"dropped input ({reason}, {self.counts[f'dropped_{reason}']} so far): {detail}",
             throttle_duration_sec=LOG_THROTTLE_S,
@@ -216,8 +213,7 @@ class DropCounter:
 def counted_subscription(node: Node, message_type: Any, topic: str, callback: Callable[..., None],
                          qos: QoSProfile, counter: DropCounter,
                          on_incompatible_qos: Callable[[Any], None] | None = None,
-                         on_lost: Callable[[int], None] | None = None, pass_source_time: bool = False,
-                         callback_group: Any = None) -> Any:
+                         on_lost: Callable[[int], None] | None = None, pass_source_time: bool = False) -> Any:
     """``node.create_subscription`` that also counts, on ``counter``, the messages DDS lost before the callback.
 
     A best-effort sample lost on the way, or one pushed out of the reader's KEEP_LAST queue while the
@@ -246,7 +242,7 @@ def counted_subscription(node: Node, message_type: Any, topic: str, callback: Ca
         counter.counts["dds_reported_lost"] += int(info.total_count_change)
 
     subscription = node.create_subscription(
-        message_type, topic, on_message, qos, callback_group=callback_group,
+        message_type, topic, on_message, qos,
         event_callbacks=SubscriptionEventCallbacks(message_lost=on_message_lost, incompatible_qos=on_incompatible_qos))
     return subscription
 
@@ -305,7 +301,7 @@ class PeriodicSave:
         return True
 
 
-def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = None, threads: int = 1) -> int:
+def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = None) -> int:
     """The Jazzy ``main()`` pattern for one node or several in one process (multi-threaded executor).
 
     Init, build every node, spin, and always close, destroy and shut down. SIGINT and SIGTERM only
@@ -325,8 +321,8 @@ def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = N
 
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     nodes: list[Any] = []
-    executor: Executor = (MultiThreadedExecutor(num_threads=max(2, len(factories), threads))
-                          if len(factories) > 1 or threads > 1 else SingleThreadedExecutor())
+    executor: Executor = (MultiThreadedExecutor(num_threads=max(2, len(factories))) if len(factories) > 1
+                          else SingleThreadedExecutor())
     exit_code = 0
     CALLBACKS.reopen()
     try:
@@ -356,6 +352,5 @@ def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = N
     return exit_code
 
 
-def run_node(factory: Callable[[], Any], args: list[str] | None = None, threads: int = 1) -> int:
-    """One node; ``threads`` > 1 for a node whose callback groups may run side by side."""
-    return run_nodes([factory], args, threads)
+def run_node(factory: Callable[[], Any], args: list[str] | None = None) -> int:
+    return run_nodes([factory], args)

@@ -65,14 +65,13 @@ class SensorInput:
 
     def __init__(self, node: Node, message_type: Any, topic: str, callback: Callable[[Any], None], *,
                  policy: str, depth: int, counter: DropCounter, without_it: str,
-                 silent_after_s: float = SILENT_AFTER_S, callback_group: Any = None) -> None:
+                 silent_after_s: float = SILENT_AFTER_S) -> None:
         self._node = node
         self._message_type = message_type
         self._callback = callback
         self._depth = depth
         self._counter = counter
         self._without_it = without_it
-        self._callback_group = callback_group
         self.policy = policy
         self.topic = node.resolve_topic_name(topic)
         self.best_effort = policy == "best_effort"
@@ -87,8 +86,7 @@ class SensorInput:
     def _subscribe(self) -> Any:
         return counted_subscription(self._node, self._message_type, self.topic, self._on_message,
                                     sensor_profile(self.best_effort, self._depth), self._counter,
-                                    on_incompatible_qos=self._on_incompatible_qos, on_lost=self._on_lost,
-                                    callback_group=self._callback_group)
+                                    on_incompatible_qos=self._on_incompatible_qos, on_lost=self._on_lost)
 
     def _on_lost(self, count: int) -> None:
         self.lost += count

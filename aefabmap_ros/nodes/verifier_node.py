@@ -68,21 +68,17 @@ Any other exception a message causes is counted by its type (``node_callback``).
 
 from __future__ import annotations
 
-import functools
-import queue
-import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from enum import Enum
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar, cast
+from typing import Any, NamedTuple
 
 import numpy as np
 from aefabmap_msgs.msg import Features, LoopClosure, PlacePosterior
 from nav_msgs.msg import Odometry
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
@@ -141,25 +137,6 @@ from aefabmap_ros.verification.relative_pose import (
     camera_info_to_model,
     relative_pose,
 )
-
-# How often the closures waiting for odometry are looked at when no other message comes (seconds).
-INTAKE_PERIOD_S = 0.05
-
-CallbackT = TypeVar("CallbackT", bound=Callable[..., None])
-
-
-def holding_state(callback: CallbackT) -> CallbackT:
-    """A verifier callback that reads or changes its stores: it runs with ``state_lock`` held, after applying
-    what the sensor inputs brought meanwhile."""
-
-    @functools.wraps(callback)
-    def locked(self: Any, *args: Any, **kwargs: Any) -> None:
-        with self.state_lock:
-            self._apply_intake()
-            callback(self, *args, **kwargs)
-
-    return cast(CallbackT, locked)
-
 
 # Posteriors kept by query stamp: a closure is published right after its query's posterior, so
 # only the last few are ever looked up; the rest bounds memory when no closures come.
@@ -297,31 +274,21 @@ class VerifierNode(Node):
         # posteriors of the frames it has yet to reach.
         counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, result_qos(depth),
                              self.counter)
-        # The robot's own sensor topics: they connect to a best-effort driver as to a reliable replay. They are taken
-        # on a thread of their own (verifier_node runs two): during a revisit one verification takes longer than a
-        # 30-200 Hz odometry or depth stream's period, and taken one message per executor round beside it their
-        # queues grew by seconds, holding back the odometry gate and pushing depth images out before their features
-        # came. What they bring waits in ``intake`` until the verification in hand is done (``state_lock``).
-        self.intake_group = MutuallyExclusiveCallbackGroup()
-        self.state_lock = threading.Lock()
-        self.intake: queue.SimpleQueue[tuple[str, int, Any]] = queue.SimpleQueue()
-        self.create_timer(INTAKE_PERIOD_S, self._on_intake_timer)  # closures waiting for odometry, in quiet times
+        # The robot's own sensor topics: they connect to a best-effort driver as to a reliable replay.
         self.inputs: list[SensorInput] = []
         if not self.camera_fixed:
             self.inputs.append(SensorInput(self, CameraInfo, "camera_info", self._on_camera_info, policy=sensor_qos,
                                            depth=depth, counter=self.counter,
                                            without_it="closures get no relative pose (set camera_matrix, or remap "
-                                           "camera_info to the camera's)", callback_group=self.intake_group))
+                                           "camera_info to the camera's)"))
         if depth_topic:
             self.inputs.append(SensorInput(self, Image, depth_topic, self._on_depth, policy=sensor_qos, depth=depth,
                                            counter=self.counter,
-                                           without_it="no metric poses and no metric test (monocular poses only)",
-                                           callback_group=self.intake_group))
+                                           without_it="no metric poses and no metric test (monocular poses only)"))
         if self.odometry_gate is not None:
             self.inputs.append(SensorInput(self, Odometry, "odom", self._on_odometry, policy=sensor_qos,
                                            depth=ODOMETRY_QOS.depth, counter=self.counter,
-                                           without_it="closures are published without the odometry gate",
-                                           callback_group=self.intake_group))
+                                           without_it="closures are published without the odometry gate"))
         if self.rerank or self.track.enabled:
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, result_qos(depth),
                                  self.counter)
@@ -343,7 +310,6 @@ class VerifierNode(Node):
         )
 
     @node_callback
-    @holding_state
     def _on_features(self, message: Features, sent_ns: int | None = None) -> None:
         stamp_ns = stamp_to_ns(message.header.stamp)
         try:
@@ -379,10 +345,9 @@ class VerifierNode(Node):
             self.counter.drop("bad_camera_info", f"CameraInfo K = {list(message.k)} has fx = 0 (an uncalibrated "
                                                  "camera); the previous intrinsics are kept")
             return
-        self._take_in("camera_info", 0, camera)
+        self.camera = camera
 
     @node_callback
-    @holding_state
     def _on_skipped_frame(self, message: Header) -> None:
         if self.depths is not None:
             self.depths.skip_frame(stamp_to_ns(message.stamp))
@@ -399,11 +364,11 @@ class VerifierNode(Node):
             self.counter.drop("depth_size_mismatch", f"depth image at stamp {stamp_ns}: {problem}")
             return
         try:
-            depth_m = depth_message_to_metres(message)
+            self.depths.add_depth(stamp_ns, depth_message_to_metres(message))
         except AefabmapError as exc:
             self.counter.drop("bad_depth", str(exc))
             return
-        self._take_in("depth", stamp_ns, depth_m)
+        self.store_saver.mark_changed()  # a frame's depths may come after its features were saved
 
     @node_callback
     def _on_odometry(self, message: Odometry) -> None:
@@ -413,52 +378,11 @@ class VerifierNode(Node):
         if problem is not None:  # the gate would interpolate NaN between its neighbours
             self.counter.drop("bad_odometry", problem)
             return
-        self._take_in("odometry", stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose))
-
-    def _take_in(self, kind: str, stamp_ns: int, payload: Any) -> None:
-        """A sensor input's contribution: applied now when no verification is in hand, else by the next one."""
-        self.intake.put((kind, stamp_ns, payload))
-        if self.state_lock.acquire(blocking=False):
-            try:
-                self._apply_intake()
-            finally:
-                self.state_lock.release()
-
-    @node_callback
-    def _on_intake_timer(self) -> None:
-        with self.state_lock:
-            self._apply_intake()
-
-    def _apply_intake(self) -> None:
-        """What the sensor inputs brought, in order (call with ``state_lock`` held); then the closures that
-        waited for odometry and that it now reaches."""
-        odometry_came = False
-        while True:
-            try:
-                kind, stamp_ns, payload = self.intake.get_nowait()
-            except queue.Empty:
-                break
-            if kind == "camera_info":
-                self.camera = payload
-            elif kind == "depth" and self.depths is not None:
-                try:
-                    self.depths.add_depth(stamp_ns, payload)
-                except AefabmapError as exc:
-                    self.counter.drop("bad_depth", str(exc))
-                    continue
-                self.store_saver.mark_changed()  # a frame's depths may come after its features were saved
-            elif kind == "odometry" and self.odometry_gate is not None:
-                if self.odometry_gate.add_odometry(stamp_ns, payload):
-                    odometry_came = True
-                else:
-                    self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
-        if odometry_came:
-            self._release_awaiting()
-
-    def _release_awaiting(self) -> None:
-        """Judge the closures the odometry now reaches; the others keep waiting, in order, without their poses
-        converted again for every odometry message."""
-        assert self.odometry_gate is not None
+        if not self.odometry_gate.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
+            self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+            return
+        # Only the closures this odometry reaches can be judged now; the others keep waiting, in order, without
+        # their poses converted again for every odometry message.
         reached: list[LoopClosure] = []
         still_waiting: list[LoopClosure] = []
         for closure in self.awaiting_odometry:
@@ -537,7 +461,6 @@ class VerifierNode(Node):
         return None if frame_depths is None else frame_depths.keypoints[keypoint_rows].astype(np.float64)
 
     @node_callback
-    @holding_state
     def _on_posterior(self, message: PlacePosterior) -> None:
         problem = posterior_problem(message)
         if problem is not None:  # re-ranking and tracking index the four arrays by one rank
@@ -553,7 +476,6 @@ class VerifierNode(Node):
         self._verify_if_ready(stamp_ns)
 
     @node_callback
-    @holding_state
     def _on_loop_closure(self, message: LoopClosure) -> None:
         query_ns = stamp_to_ns(message.header.stamp)
         self.pending[query_ns] = message
@@ -773,10 +695,6 @@ class VerifierNode(Node):
                 self.get_logger().info(f"reloaded the places of {len(self.timeline)} frames for loop tracking")
 
     def _save_store(self, _folder: Path) -> None:
-        with self.state_lock:  # the sensor inputs' thread may be adding depths
-            self._save_stores()
-
-    def _save_stores(self) -> None:
         if self.store_folder is not None:
             self.store_folder.save(self.store)
         if self.depth_folder is not None and self.depths is not None:
@@ -818,7 +736,7 @@ def _camera_from_parameter(values: list[float]) -> CameraModel | None:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(VerifierNode, args, threads=2)  # verification, and the sensor inputs beside it
+    return run_node(VerifierNode, args)
 
 
 if __name__ == "__main__":

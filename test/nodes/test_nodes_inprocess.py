@@ -16,7 +16,6 @@ msg = pytest.importorskip("aefabmap_msgs.msg")
 from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CompressedImage, Image  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
 
 from aefabmap_ros.errors import ConfigError, ModelError, VocabularyMismatchError  # noqa: E402  # noqa: E402
 from aefabmap_ros.fabmap.config import FabMapConfig  # noqa: E402
@@ -1159,29 +1158,5 @@ def test_fabmap_node_answers_a_frame_once_when_publishing_its_candidate_fails(
         assert node.counter.counts["dropped_RuntimeError"] == 1
         assert [p.query_id for p in posteriors.messages] == [0]  # one answer, the real one
         assert node.map_saver.unsaved_changes  # the place it made is saved at the next period
-    finally:
-        node.destroy_node()
-
-
-def test_verifier_sensor_inputs_never_wait_for_a_verification_and_are_applied_after_it() -> None:
-    """While a verification holds the stores, odometry and depth are taken in at once and queued; the next
-    callback that reads the stores applies them first, in order."""
-    from nav_msgs.msg import Odometry
-
-    node = VerifierNode(parameter_overrides=_params(depth_topic="/depth"))
-    try:
-        assert node.odometry_gate is not None and node.depths is not None
-        with node.state_lock:  # a verification in hand
-            for sec in range(1, 101):
-                odometry = Odometry()
-                odometry.header.stamp = Time(sec=sec)
-                odometry.pose.pose.orientation.w = 1.0
-                node._on_odometry(odometry)
-            depth = _image(bytes(4 * 4 * 2), "16UC1", 4, 4, 8, sec=7)
-            node._on_depth(depth)
-            assert node.odometry_gate.odometry.last_ns is None  # nothing applied under the verification
-        node._on_skipped_frame(Header(stamp=Time(sec=50)))  # any callback that holds the stores applies them
-        assert node.odometry_gate.odometry.last_ns == 100 * 10**9
-        assert node.intake.empty()
     finally:
         node.destroy_node()
