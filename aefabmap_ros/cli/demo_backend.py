@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from aefabmap_ros.verification.relative_pose import PoseError, relative_pose_error
+from aefabmap_ros.verification.relative_pose import PoseError, pose_message_to_matrix, relative_pose_error
 
 INJECTED_TOPIC = "demo/loop_closures_injected"
 INJECTED_NODE = "pose_graph_injected"
@@ -84,9 +84,8 @@ class BackendCheck:
         if not message.pose_available or not known:
             self.errors.without_pose += 1
             return
-        from aefabmap_ros.nodes.messages import pose_to_matrix
 
-        error = relative_pose_error(self._poses[query], self._poses[place], pose_to_matrix(message.pose))
+        error = relative_pose_error(self._poses[query], self._poses[place], pose_message_to_matrix(message.pose))
         (self.errors.metric if message.translation_metric else self.errors.monocular).append(error)
         if self.injection is None and self._relayed >= INJECT_AFTER_CLOSURES:
             self._inject(message, query, place)

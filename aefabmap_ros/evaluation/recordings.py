@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.metrics import (
@@ -41,7 +40,7 @@ from aefabmap_ros.evaluation.reports import (
     recall_cell,
 )
 from aefabmap_ros.stamps import stamp_to_ns
-from aefabmap_ros.verification.relative_pose import PoseError, relative_pose_error
+from aefabmap_ros.verification.relative_pose import PoseError, pose_message_to_matrix, relative_pose_error
 
 # A stamp read from a file of float seconds (a times file) matches the frame within this much.
 FLOAT_SECONDS_TOLERANCE_NS = 1_000_000
@@ -283,15 +282,6 @@ def read_pose_truth(path: Path) -> PoseTruth:
     return PoseTruth(stamps[order], poses, str(path))
 
 
-def pose_matrix(pose: Any) -> np.ndarray:
-    """A geometry_msgs/Pose as a 4x4 matrix."""
-    q = pose.orientation
-    matrix = np.eye(4)
-    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
-    return matrix
-
-
 def closure_pose_error(message: Any, truth: PoseTruth) -> PoseError | None:
     """Error of a LoopClosure's relative pose (T_q_m: the matched place's camera in the query camera's
     frame) against the truth at its two stamps; None without a pose or without truth at either stamp."""
@@ -301,7 +291,7 @@ def closure_pose_error(message: Any, truth: PoseTruth) -> PoseError | None:
     matched = truth.pose_at(stamp_to_ns(message.matched_stamp))
     if query is None or matched is None:
         return None
-    return relative_pose_error(query, matched, pose_matrix(message.pose))
+    return relative_pose_error(query, matched, pose_message_to_matrix(message.pose))
 
 
 def pose_is_wrong(error: PoseError, metric: bool) -> bool:

@@ -12,5 +12,6 @@ __all__ = [
     "pipeline",
     "pose_graph_node",
     "quantizer_node",
+    "sensor_inputs",
     "verifier_node",
 ]

@@ -22,7 +22,7 @@ from aefabmap_ros.backend.validation import covariance_problem, pose_problem, st
 from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
-from aefabmap_ros.verification.relative_pose import PoseOutcome
+from aefabmap_ros.verification.relative_pose import PoseOutcome, pose_message_to_matrix
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
 
@@ -201,15 +201,6 @@ def recognition_to_loop_closure(recognition: Recognition, header: Any) -> LoopCl
     return message
 
 
-def pose_to_matrix(pose: Any) -> np.ndarray:
-    """A geometry_msgs/Pose as a 4x4 matrix (the inverse of what fill_relative_pose writes)."""
-    q = pose.orientation
-    matrix = np.eye(4)
-    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
-    return matrix
-
-
 def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
     """Write a relative pose (or why there is none) into a LoopClosure's pose fields."""
     message.pose_status = int(outcome.status)
@@ -227,7 +218,7 @@ def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
 
 def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
     """A geometry_msgs/Pose as a gtsam Pose3 (one ``message_pose_problem`` accepted: scipy raises on the rest)."""
-    return pose_from_matrix(pose_to_matrix(pose))
+    return pose_from_matrix(pose_message_to_matrix(pose))
 
 
 def message_pose_problem(pose: Any, what: str = "pose") -> str | None:

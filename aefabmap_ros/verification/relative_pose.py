@@ -29,6 +29,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import ConfigError, DataError
 
@@ -440,3 +441,12 @@ def relative_pose_error(query_to_world: np.ndarray, place_to_world: np.ndarray, 
     direction = (float(np.degrees(np.arccos(np.clip(true_t @ measured_t / lengths, -1.0, 1.0))))
                  if np.linalg.norm(true_t) > 1e-3 and lengths > 0 else float("nan"))
     return PoseError(float(rotation), direction, float(np.linalg.norm(measured_t - true_t)))
+
+
+def pose_message_to_matrix(pose: Any) -> np.ndarray:
+    """A geometry_msgs/Pose (any object with ``position`` x y z and ``orientation`` x y z w) as a 4x4 matrix."""
+    q = pose.orientation
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return matrix

@@ -20,6 +20,7 @@ import pytest
 
 from aefabmap_ros.cli import launch
 from test.conftest import REPO_ROOT
+from test.nodes.test_shutdown_processes import WORDS_PUBLISHER
 from test.revisit_fixture import RevisitData
 from test.ros_processes import running, write_script
 
@@ -121,28 +122,6 @@ def test_the_stop_timeout_must_be_positive(tmp_path: Path, capsys: pytest.Captur
     assert launch.build_parser().parse_args(["--model", "m"]).stop_timeout == launch.STOP_TIMEOUT_S == 120.0
 
 
-# Publishes BagOfWords (stamped with the wall clock) for fabmap_node to make places of.
-WORDS_PUBLISHER = """
-import sys, time
-import numpy as np
-import rclpy
-from aefabmap_msgs.msg import BagOfWords
-from aefabmap_ros.nodes.common import pipeline_qos
-
-vocabulary_id, size = sys.argv[1], int(sys.argv[2])
-rclpy.init()
-node = rclpy.create_node("words_publisher")
-publisher = node.create_publisher(BagOfWords, "aefabmap/words", pipeline_qos(100))
-rng = np.random.default_rng(0)
-while rclpy.ok():
-    words = np.unique(rng.integers(0, size, 60)).astype(np.uint32)
-    message = BagOfWords(vocabulary_id=vocabulary_id, vocabulary_size=size, word_ids=words,
-                         counts=np.ones(words.size, np.uint32))
-    now = time.time_ns()
-    message.header.stamp.sec, message.header.stamp.nanosec = now // 10**9, now % 10**9
-    publisher.publish(message)
-    time.sleep(0.05)
-"""
 
 SUPERVISED_FABMAP = """
 import sys
@@ -169,7 +148,7 @@ def test_a_real_fabmap_node_whose_final_save_fails_makes_the_launcher_exit_1(tmp
     supervisor = write_script(tmp_path, "supervisor.py", SUPERVISED_FABMAP)
     log_path = tmp_path / "launch.log"
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
-    with running(publisher, revisit_data.vocabulary_id, "400"), log_path.open("w") as log:
+    with running(publisher, revisit_data.vocabulary_id, "400", "0.05"), log_path.open("w") as log:
         process = subprocess.Popen([sys.executable, str(supervisor), str(revisit_data.model_dir),
                                     str(folder / "map.npz")], stdout=log, stderr=subprocess.STDOUT, text=True,
                                    env=environment)
