@@ -32,6 +32,8 @@ from aefabmap_ros.io.config_files import coerce_like
 from aefabmap_ros.nodes.delivery import SequenceGaps
 
 ConfigT = TypeVar("ConfigT")
+# Messages a draining subscription takes beyond the one its callback was given, at most per callback.
+DRAIN_AT_MOST = 1000
 LOG_THROTTLE_S = 5.0
 
 
@@ -213,7 +215,8 @@ class DropCounter:
 def counted_subscription(node: Node, message_type: Any, topic: str, callback: Callable[..., None],
                          qos: QoSProfile, counter: DropCounter,
                          on_incompatible_qos: Callable[[Any], None] | None = None,
-                         on_lost: Callable[[int], None] | None = None, pass_source_time: bool = False) -> Any:
+                         on_lost: Callable[[int], None] | None = None, pass_source_time: bool = False,
+                         drain: bool = False) -> Any:
     """``node.create_subscription`` that also counts, on ``counter``, the messages DDS lost before the callback.
 
     A best-effort sample lost on the way, or one pushed out of the reader's KEEP_LAST queue while the
@@ -227,6 +230,19 @@ def counted_subscription(node: Node, message_type: Any, topic: str, callback: Ca
     subscription: Any = None
 
     def on_message(message: Any, info: dict[str, Any]) -> None:
+        handle(message, info)
+        if drain:
+            # A single-threaded executor takes one message of each subscription per round, and a round with a
+            # verification in it outlasts a 30-200 Hz stream's period: its queue would grow by seconds. Take what
+            # waits now (rclpy's executor takes messages the same way).
+            for _ in range(DRAIN_AT_MOST):
+                with subscription.handle:
+                    taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                if taken is None:
+                    break
+                handle(*taken)
+
+    def handle(message: Any, info: dict[str, Any]) -> None:
         lost = gaps.observe(int(info["publication_sequence_number"]), subscription.get_publisher_count())
         if lost:
             counter.drop("before_callback", f"{lost} message(s) on {subscription.topic_name} never reached the node "

@@ -65,13 +65,16 @@ class SensorInput:
 
     def __init__(self, node: Node, message_type: Any, topic: str, callback: Callable[[Any], None], *,
                  policy: str, depth: int, counter: DropCounter, without_it: str,
-                 silent_after_s: float = SILENT_AFTER_S) -> None:
+                 silent_after_s: float = SILENT_AFTER_S, drain: bool = True) -> None:
         self._node = node
         self._message_type = message_type
         self._callback = callback
         self._depth = depth
         self._counter = counter
         self._without_it = without_it
+        # Every waiting message per callback: a sensor stream (30-200 Hz) beside a node's slow callbacks would
+        # otherwise queue up, one message taken per executor round, and overflow.
+        self._drain = drain
         self.policy = policy
         self.topic = node.resolve_topic_name(topic)
         self.best_effort = policy == "best_effort"
@@ -86,7 +89,8 @@ class SensorInput:
     def _subscribe(self) -> Any:
         return counted_subscription(self._node, self._message_type, self.topic, self._on_message,
                                     sensor_profile(self.best_effort, self._depth), self._counter,
-                                    on_incompatible_qos=self._on_incompatible_qos, on_lost=self._on_lost)
+                                    on_incompatible_qos=self._on_incompatible_qos, on_lost=self._on_lost,
+                                    drain=self._drain)
 
     def _on_lost(self, count: int) -> None:
         self.lost += count
