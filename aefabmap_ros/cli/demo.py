@@ -361,6 +361,9 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         from aefabmap_ros.evaluation.protocol import EvaluationConfig  # torch: only once the nodes are done
 
         print(printer.summary(EvaluationConfig().min_gap), flush=True)
+        if not args.live:
+            print("    (lockstep: the replay waits for FAB-MAP, not for the verifier, which is let fall behind; "
+                  "--live gives a camera's latency)", flush=True)
         if printer.backend is not None:
             print(printer.backend.errors.summary(), flush=True)
         print_backend_result(test, backend_dir)
