@@ -15,6 +15,7 @@ from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
 from aefabmap_ros.evaluation.metrics import evaluate_scores, event_scores
 from aefabmap_ros.verification.geometric import VerificationConfig
+from test.evaluation.test_recordings import _three_event_gt
 
 FRAMES = 30
 # Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.
@@ -464,17 +465,6 @@ def test_recording_metrics(tmp_path, capsys):
     assert [(r["topic"], r["query_frame"], r["matched_frame"], r["true"]) for r in listing] == [
         ("loop_closure_candidates", "12", "0", "1"), ("loop_closure_candidates", "16", "4", "1"),
         ("loop_closure_candidates", "18", "2", "0"), ("loop_closures", "12", "0", "1")]
-
-
-def _three_event_gt() -> np.ndarray:
-    """40 frames, min gap 10. Event A: 12, 13, 14, 15, 17 (one frame missing: bridged); event B: 25..28
-    (each revisits two frames 19-20 back); event C: 35 (revisits 20). 10 revisiting frames."""
-    gt = np.zeros((40, 40), np.uint8)
-    for query, place in ((12, 0), (13, 1), (14, 2), (15, 3), (17, 5), (35, 20)):
-        gt[query, place] = 1
-    for query in range(25, 29):
-        gt[query, [query - 20, query - 19]] = 1
-    return gt
 
 
 def test_recording_events_and_an_older_recording(tmp_path, capsys):

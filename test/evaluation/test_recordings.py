@@ -189,8 +189,9 @@ def test_a_topic_s_missed_frames_are_split_by_whether_their_posterior_ranked_a_t
 # ------------------------------------------------------------------------------------------ frames lost
 
 
-def _three_event_gt():
-    """40 frames, min gap 10: revisiting frames 12-15, 17 (event A), 25-28 (B, two true places each), 35 (C)."""
+def _three_event_gt() -> np.ndarray:
+    """40 frames, min gap 10. Event A: 12, 13, 14, 15, 17 (one frame missing: bridged); event B: 25..28
+    (each revisits two frames 19-20 back); event C: 35 (revisits 20). 10 revisiting frames."""
     gt = np.zeros((40, 40), np.uint8)
     for query, place in ((12, 0), (13, 1), (14, 2), (15, 3), (17, 5), (35, 20)):
         gt[query, place] = 1

@@ -28,6 +28,14 @@ def _odometry(index: int, pose: Any) -> Odometry:
     return message
 
 
+def _captured_paths(node: PoseGraphNode) -> list[Any]:
+    """The paths the node publishes, kept; its transforms dropped."""
+    paths: list[Any] = []
+    node.path_publisher.publish = paths.append
+    node.tf_publisher.publish = lambda _message: None
+    return paths
+
+
 def _closure(query: int, place: int, relative: Any, with_pose: bool = True) -> Any:
     closure = msg.LoopClosure(query_id=query, matched_place_id=place)
     closure.header.stamp = time_from_ns(stamp(query))
@@ -89,9 +97,7 @@ def test_pose_graph_node_moves_camera_closures_to_the_base_frame() -> None:
     for label, extrinsic in (("with", [0.5, 0.0, 0.2, qx, qy, qz, qw]), ("without", [0.0] * 6 + [1.0])):
         node = PoseGraphNode(parameter_overrides=[Parameter("base_to_camera", value=extrinsic)])
         try:
-            paths: list[Any] = []
-            node.path_publisher.publish = paths.append
-            node.tf_publisher.publish = lambda _message: None
+            paths = _captured_paths(node)
             for index, pose in enumerate(odometry):
                 node._on_odometry(_odometry(index, pose))
             # To frame 2, not 0: the loop ends where it began, and an identity closure looks alike in any frame.
@@ -157,9 +163,7 @@ def test_pose_graph_node_counts_malformed_odometry_and_closures_and_goes_on(tmp_
     end = len(truth) - 1
     node = PoseGraphNode()
     try:
-        paths: list[Any] = []
-        node.path_publisher.publish = paths.append
-        node.tf_publisher.publish = lambda _message: None
+        paths = _captured_paths(node)
         for index, pose in enumerate(odometry):
             if index == 10:
                 for field in ("nan_w", "zero_quaternion", "inf_position", "nanosec"):
@@ -210,9 +214,7 @@ def test_pose_graph_node_survives_any_exception_in_its_callbacks(monkeypatch: py
     end = len(truth) - 1
     node = PoseGraphNode()
     try:
-        paths: list[Any] = []
-        node.path_publisher.publish = paths.append
-        node.tf_publisher.publish = lambda _message: None
+        paths = _captured_paths(node)
         for index, pose in enumerate(odometry):
             node._on_odometry(_odometry(index, pose))
         real = node.graph.add_closure
