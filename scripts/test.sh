@@ -12,8 +12,8 @@ echo "[test] ruff"
 "$VENV/bin/ruff" check .
 echo "[test] mypy"
 "$VENV/bin/mypy"
-echo "[test] pytest"
+echo "[test] pytest (the 15 slowest tests are listed at the end)"
 # Isolate ROS traffic: loopback discovery only, a domain of this run's own.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$((1 + $$ % 100))}
-exec "$VENV/bin/pytest" -p no:cacheprovider "$@"
+exec "$VENV/bin/pytest" -p no:cacheprovider --durations=15 "$@"
