@@ -41,8 +41,8 @@ from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
-from aefabmap_ros.features.images import image_to_gray
 from aefabmap_ros.io.bags import read_messages, write_image_bag
+from aefabmap_ros.io.image_encodings import image_to_gray
 from aefabmap_ros.model.directory import Model, load_model, save_model
 from aefabmap_ros.model.training import sampled_centres_model
 from aefabmap_ros.nodes.launch_table import DETECTION_NODES, threads_per_process

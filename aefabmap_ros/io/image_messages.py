@@ -10,7 +10,7 @@ import numpy as np
 from PIL import Image as PILImage
 
 from aefabmap_ros.errors import DataError, ImageTooLargeError
-from aefabmap_ros.features.images import decode_compressed, image_to_gray
+from aefabmap_ros.io.image_encodings import decode_compressed, image_to_gray
 from aefabmap_ros.verification.frame_depths import depth_image_to_metres
 
 
