@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.io.atomic import atomic_write_text
+from aefabmap_ros.io.rgbd import check_camera_matrix
 from aefabmap_ros.verification.frame_depths import agrees_with_surface, as_metres
 
 _UNIT_TOLERANCE = 1e-3
@@ -169,21 +170,6 @@ def _check_depths(depths: np.ndarray) -> np.ndarray:
     if not (np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)):
         raise DataError(f"depths must be a real number array, got dtype {values.dtype}")
     return values
-
-
-def check_camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
-    """A (3, 3) float64 pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, or DataError."""
-    matrix = np.asarray(camera_matrix, dtype=np.float64)
-    if matrix.shape != (3, 3):
-        raise DataError(f"camera_matrix must have shape (3, 3), got {matrix.shape}")
-    if not np.isfinite(matrix).all():
-        raise DataError(f"camera_matrix contains non-finite values: {matrix.tolist()}")
-    if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
-        fx, fy = float(matrix[0, 0]), float(matrix[1, 1])
-        raise DataError(f"camera_matrix focal lengths must be > 0, got fx={fx!r} fy={fy!r}")
-    if matrix[1, 0] != 0 or not np.array_equal(matrix[2], [0.0, 0.0, 1.0]):
-        raise DataError(f"camera_matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
-    return matrix
 
 
 def check_poses(poses: np.ndarray, num_frames: int | None = None) -> np.ndarray:
