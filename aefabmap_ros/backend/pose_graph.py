@@ -34,8 +34,8 @@ from enum import Enum
 import gtsam
 import numpy as np
 
-from aefabmap_ros.backend.validation import covariance_problem, psd_part
 from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.io.message_values import covariance_problem, psd_part
 
 # Extra iSAM2 iterations after a closure, and the largest keyframe move (m) at which they stop.
 MAX_EXTRA_ITERATIONS = 20
@@ -196,7 +196,7 @@ def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
 def loop_factor_covariance(config: PoseGraphConfig, covariance_ros: np.ndarray) -> np.ndarray:
     """A closure's covariance (ROS order x y z rot) in gtsam order, with the configured floor added.
 
-    The covariance is one ``validation.covariance_problem`` accepted: its round-off's negative
+    The covariance is one ``message_values.covariance_problem`` accepted: its round-off's negative
     eigenvalues are cut to 0 first (``psd_part``), so with the floor it is positive definite."""
     return _ros_to_gtsam_covariance(psd_part(covariance_ros)) + np.diag(
         [config.loop_min_sigma_rad ** 2] * 3 + [config.loop_min_sigma_m ** 2] * 3)

@@ -18,10 +18,10 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from aefabmap_ros.backend.pose_graph import pose_from_matrix
-from aefabmap_ros.backend.validation import covariance_problem, pose_problem, stamp_problem
 from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
+from aefabmap_ros.io.message_values import covariance_problem, pose_problem, stamp_problem
 from aefabmap_ros.verification.relative_pose import PoseOutcome, pose_message_to_matrix
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
@@ -222,7 +222,7 @@ def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
 
 
 def message_pose_problem(pose: Any, what: str = "pose") -> str | None:
-    """Why a geometry_msgs/Pose is not a usable pose (``validation.pose_problem``); None when it is."""
+    """Why a geometry_msgs/Pose is not a usable pose (``message_values.pose_problem``); None when it is."""
     position, orientation = pose.position, pose.orientation
     return pose_problem((position.x, position.y, position.z),
                         (orientation.x, orientation.y, orientation.z, orientation.w), what)

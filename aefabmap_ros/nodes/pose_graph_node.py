@@ -14,7 +14,7 @@ The closures' poses are between camera frames, odometry is of its child (base) f
 identity by default, for a camera that is the odometry's child frame) turns each closure into one
 between the two base poses (backend/pose_graph.py ``closure_in_base_frame``).
 Bad input is counted and dropped: odometry out of order, odometry with an unusable stamp or pose
-(``bad_odometry``: NaN, a quaternion whose norm is not 1, backend/validation.py), a closure without a
+(``bad_odometry``: NaN, a quaternion whose norm is not 1, io/message_values.py), a closure without a
 pose, one with an unusable pose or covariance (``bad_closure_pose``) or stamp (``bad_closure_stamp``),
 a closure to a stamp the odometry never covered, a closure the odometry drift cannot explain, one the
 solver cannot take (``solver_failed``). Any other exception a message causes is counted by its type

@@ -62,7 +62,7 @@ than its image (``depth_size_mismatch``: its pixels are not the keypoints'), a C
 intrinsics (``bad_camera_info``: K all zero, focal lengths not positive and finite; the previous
 intrinsics stay), a PlacePosterior whose candidate arrays differ in length (``bad_posterior``), odometry
 with an unusable stamp or pose (``bad_odometry``: NaN, a quaternion whose norm is not 1;
-backend/validation.py), and a closure whose pose the odometry gate cannot judge (``bad_closure_pose``).
+io/message_values.py), and a closure whose pose the odometry gate cannot judge (``bad_closure_pose``).
 Any other exception a message causes is counted by its type (``node_callback``).
 """
 
