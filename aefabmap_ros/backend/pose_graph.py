@@ -100,10 +100,6 @@ class Closure:
     covariance: np.ndarray
 
 
-def pose_from_matrix(matrix: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(np.asarray(matrix, dtype=np.float64))
-
-
 def interpolate(before: gtsam.Pose3, after: gtsam.Pose3, fraction: float) -> gtsam.Pose3:
     """The SE(3) geodesic from ``before`` (0) to ``after`` (1)."""
     return before.compose(gtsam.Pose3.Expmap(fraction * gtsam.Pose3.Logmap(before.between(after))))

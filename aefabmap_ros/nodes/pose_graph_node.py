@@ -53,13 +53,11 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
-    extrinsic_to_gtsam,
-    loop_closure_pose,
     loop_closure_pose_problem,
     loop_closure_stamp_problem,
     odometry_problem,
-    pose_to_gtsam,
     time_from_ns,
 )
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos

@@ -106,14 +106,12 @@ from aefabmap_ros.nodes.common import (
     result_qos,
     run_node,
 )
+from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
-    extrinsic_to_gtsam,
     fill_relative_pose,
-    loop_closure_pose,
     loop_closure_pose_problem,
     message_to_features,
     odometry_problem,
-    pose_to_gtsam,
     posterior_problem,
     time_from_ns,
 )
