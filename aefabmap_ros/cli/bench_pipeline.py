@@ -35,7 +35,8 @@ from threadpoolctl import threadpool_limits
 
 from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
+from aefabmap_ros.datasets.synth.config import SynthConfig
+from aefabmap_ros.datasets.synth.town import generate_sequence
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig

@@ -63,14 +63,8 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.datasets.synth.town import (
-    SynthConfig,
-    SyntheticSequence,
-    dense_video_config,
-    depth_to_16uc1,
-    generate_sequence,
-    train_test_configs,
-)
+from aefabmap_ros.datasets.synth.config import SynthConfig, dense_video_config, train_test_configs
+from aefabmap_ros.datasets.synth.town import SyntheticSequence, depth_to_16uc1, generate_sequence
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.evaluation.ground_truth import write_kitti_poses
 from aefabmap_ros.evaluation.trajectory_error import OdometryDrift, drifting_odometry, tum_text

@@ -8,8 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap_ros.datasets.synth import town as synth
-from aefabmap_ros.datasets.synth.town import SynthConfig, depth_to_16uc1, generate_sequence, train_test_configs
+from aefabmap_ros.datasets.synth import renderer, trajectory
+from aefabmap_ros.datasets.synth import world as town_world
+from aefabmap_ros.datasets.synth.config import SynthConfig, dense_video_config, train_test_configs
+from aefabmap_ros.datasets.synth.town import depth_to_16uc1, generate_sequence
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, positions_and_axes
 
@@ -118,10 +120,10 @@ def test_depth_to_16uc1():
     assert millimetres.tolist() == [[0, 0, 1, 1234], [65535, 0, 0, 0]]
 
 
-def _single_wall_world(config: SynthConfig) -> synth.World:
+def _single_wall_world(config: SynthConfig) -> town_world.World:
     """The town's atlas with one facade: the wall y = 5.13 m from x = -10 to 10, 3 m high, facing south."""
-    world = synth.build_world(config)
-    facades = synth._Facades(
+    world = town_world.build_world(config)
+    facades = town_world._Facades(
         start=np.array([[10.0, 5.13]]), direction=np.array([[-1.0, 0.0]]), normal=np.array([[0.0, -1.0]]),
         length_m=np.array([20.0]), height_m=np.array([3.0]), texture_id=np.array([3]),
         texels_per_m=np.array([config.texels_per_m]))
@@ -154,9 +156,9 @@ def _reference_depth(camera, origin_xy, heading, height_m):
 def test_rendered_depth_is_the_ray_plane_intersection(origin_xy, heading_deg):
     config = replace(TINY_CONFIG, width=64, height=48)
     world = _single_wall_world(config)
-    camera = synth.PinholeCamera.from_config(config)
+    camera = renderer.PinholeCamera.from_config(config)
     heading = math.radians(heading_deg)
-    image, depth = synth.render_view_and_depth(world, camera, np.array(origin_xy), heading, 1.6, 0.0, 150.0)
+    image, depth = renderer.render_view_and_depth(world, camera, np.array(origin_xy), heading, 1.6, 0.0, 150.0)
     assert image.shape == (48, 64) and depth.shape == (48, 64) and depth.dtype == np.float32
     reference = _reference_depth(camera, origin_xy, heading, 1.6)
     np.testing.assert_allclose(depth, reference, rtol=1e-5)
@@ -168,10 +170,10 @@ def test_rendered_depth_is_the_ray_plane_intersection(origin_xy, heading_deg):
 
 def test_town_depth_ground_rows_and_sky():
     config = replace(TINY_CONFIG, width=80, height=60)
-    world = synth.build_world(config)
-    camera = synth.PinholeCamera.from_config(config)
+    world = town_world.build_world(config)
+    camera = renderer.PinholeCamera.from_config(config)
     # In the middle street (x = 40 m), looking north along it: the bottom row sees the road 1.6 m below.
-    _, depth = synth.render_view_and_depth(world, camera, np.array([41.0, 25.0]), math.pi / 2, 1.6, 0.0, 150.0)
+    _, depth = renderer.render_view_and_depth(world, camera, np.array([41.0, 25.0]), math.pi / 2, 1.6, 0.0, 150.0)
     rows = np.arange(config.height)
     ground = 1.6 * camera.focal_px / (rows - camera.cy)
     np.testing.assert_allclose(depth[-1], ground[-1], rtol=1e-5)
@@ -184,13 +186,13 @@ def test_covisibility_of_a_rendered_revisit():
     """The same spot of the middle street seen again 10 s later a metre further on is a revisit; the same
     spot driven in the opposite direction, or from around the corner, is not."""
     config = replace(TINY_CONFIG, width=160, height=120)
-    world = synth.build_world(config)
-    camera = synth.PinholeCamera.from_config(config)
+    world = town_world.build_world(config)
+    camera = renderer.PinholeCamera.from_config(config)
     views = [((41.0, 25.0), 90.0), ((41.2, 26.0), 93.0), ((41.0, 25.0), 270.0), ((50.0, 40.0), 0.0)]
-    depths = np.stack([synth.render_view_and_depth(world, camera, np.array(xy), math.radians(heading), 1.6, 0.0,
+    depths = np.stack([renderer.render_view_and_depth(world, camera, np.array(xy), math.radians(heading), 1.6, 0.0,
                                                    150.0)[1] for xy, heading in views])
     positions = np.array([[x, y, 1.6] for (x, y), _ in views])
-    poses = synth.poses_from_headings(positions, np.radians([heading for _, heading in views]))
+    poses = trajectory.poses_from_headings(positions, np.radians([heading for _, heading in views]))
     stamps = np.arange(4, dtype=np.int64) * 10_000_000_000
     gt = covisibility_loop_matrix(depths, poses, camera.matrix(), stamps)
     assert gt[1, 0] == 1
@@ -245,8 +247,8 @@ def test_train_and_test_worlds_differ():
     train, test = train_test_configs(TINY_CONFIG)
     assert train.seed != test.seed
     assert replace(train, seed=test.seed) == test
-    train_world = synth.build_world(train)
-    test_world = synth.build_world(test)
+    train_world = town_world.build_world(train)
+    test_world = town_world.build_world(test)
     # Same street grid and route, other facades and textures: no texture of one town is in the other.
     assert train_world.route_nodes == test_world.route_nodes and train_world.pitch_m == test_world.pitch_m
     train_textures = {_entry(train_world, t).tobytes() for t in range(train_world.entry_x.shape[0] - 2)}
@@ -262,17 +264,17 @@ def _entry(world, texture_id: int) -> np.ndarray:
 
 def test_repeated_textures_are_shared():
     config = replace(TINY_CONFIG, repeated_texture_fraction=1.0)
-    world = synth.build_world(config)
+    world = town_world.build_world(config)
     ids = world.facades.texture_id[world.facades.texels_per_m == config.texels_per_m]
     assert set(ids.tolist()) <= {0, 1, 2}  # every facade along the route shows one of the 3 shared textures
-    world = synth.build_world(replace(TINY_CONFIG, repeated_texture_fraction=0.0))
+    world = town_world.build_world(replace(TINY_CONFIG, repeated_texture_fraction=0.0))
     near = world.facades.texels_per_m == TINY_CONFIG.texels_per_m
     assert np.unique(world.facades.texture_id[near]).size == near.sum()
 
 
 def test_column_ray_cast_against_a_single_wall():
     """Wall y = 5 from x = -10 to 10 facing south; camera at the origin looking north."""
-    facades = synth._Facades(
+    facades = town_world._Facades(
         start=np.array([[-10.0, 5.0]]),
         direction=np.array([[1.0, 0.0]]),
         normal=np.array([[0.0, -1.0]]),
@@ -281,19 +283,19 @@ def test_column_ray_cast_against_a_single_wall():
         texture_id=np.array([0]),
         texels_per_m=np.array([64.0]),
     )
-    world = cast(synth.World, type("W", (), {"facades": facades})())
-    camera = synth.PinholeCamera(focal_px=100.0, cx=49.5, cy=39.5, width=100, height=80)
+    world = cast(town_world.World, type("W", (), {"facades": facades})())
+    camera = renderer.PinholeCamera(focal_px=100.0, cx=49.5, cy=39.5, width=100, height=80)
     heading = math.pi / 2
     forward = np.array([math.cos(heading), math.sin(heading)])
     right = np.array([math.sin(heading), -math.cos(heading)])
     np.testing.assert_allclose(right, [1.0, 0.0], atol=1e-12)
-    hits = synth._cast_columns(world, camera, np.zeros(2), forward, right)
+    hits = renderer._cast_columns(world, camera, np.zeros(2), forward, right)
     x_col = (np.arange(100) - 49.5) / 100.0
     np.testing.assert_allclose(hits.depth[0], 5.0)  # depth along the optical axis is constant on a facing wall
     np.testing.assert_allclose(hits.along_m[0], 10.0 + 5.0 * x_col)
     np.testing.assert_allclose(hits.slope_m[0], 5.0 / 100.0)
     # Seen from behind (camera north of the wall, looking south) the wall is culled.
-    back = synth._cast_columns(world, camera, np.array([0.0, 10.0]), -forward, -right)
+    back = renderer._cast_columns(world, camera, np.array([0.0, 10.0]), -forward, -right)
     assert np.isinf(back.depth).all()
 
 
@@ -330,16 +332,16 @@ def test_config_accepts_int_for_float_and_documents_fields():
 
 def test_default_route_is_unchanged_and_routes_are_checked():
     assert SynthConfig().route == "figure-eight"
-    assert synth._route_nodes() == [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
+    assert town_world.route_nodes() == [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
     with pytest.raises(ConfigError, match=r"route must be one of \['dense-video', 'figure-eight'\], got 'spiral'"):
         SynthConfig(route="spiral")
 
 
 @pytest.fixture(scope="module")
 def dense_drive():
-    config = synth.dense_video_config()
-    world = synth.build_world(replace(config, texels_per_m=8.0, ground_texels_per_m=4.0))  # geometry only
-    positions, headings = synth._trajectory(config, world, np.random.default_rng(0))
+    config = dense_video_config()
+    world = town_world.build_world(replace(config, texels_per_m=8.0, ground_texels_per_m=4.0))  # geometry only
+    positions, headings = trajectory.drive_route(config, world, np.random.default_rng(0))
     return config, world, positions, headings
 
 
