@@ -1,6 +1,6 @@
 """A user's RGB-D recording on disk: depth PNG folders, stamps, TUM / KITTI trajectories, intrinsics.
 
-Everything needed to compute covisibility ground truth (``evaluation.ground_truth.covisibility_loop_matrix``)
+Everything needed to compute covisibility ground truth (``evaluation.covisibility.covisibility_loop_matrix``)
 from files, with every failure a user can cause as a ``DataError`` naming the file:
 
 - depth: a folder of 16-bit single-channel PNGs (ROS 16UC1; ``depth_scale`` units per metre: 1000 for

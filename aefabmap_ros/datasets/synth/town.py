@@ -52,7 +52,8 @@ from aefabmap_ros.datasets.synth.config import SynthConfig
 from aefabmap_ros.datasets.synth.renderer import PinholeCamera, camera_effects, render_view_and_depth
 from aefabmap_ros.datasets.synth.trajectory import drive_route, poses_from_headings, smooth_series
 from aefabmap_ros.datasets.synth.world import build_world
-from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, loop_matrix_from_poses
+from aefabmap_ros.evaluation.covisibility import covisibility_loop_matrix
+from aefabmap_ros.evaluation.ground_truth import loop_matrix_from_poses
 
 
 @dataclass

@@ -13,7 +13,8 @@ from aefabmap_ros.datasets.synth import world as town_world
 from aefabmap_ros.datasets.synth.config import SynthConfig, dense_video_config, train_test_configs
 from aefabmap_ros.datasets.synth.town import depth_to_16uc1, generate_sequence
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, positions_and_axes
+from aefabmap_ros.evaluation.covisibility import covisibility_loop_matrix
+from aefabmap_ros.evaluation.ground_truth import positions_and_axes
 
 # 640x480 so that SIFT statistics mean what they mean at the default size; 120 frames over 2 laps.
 SEQUENCE_CONFIG = SynthConfig(seed=5, num_frames=120)
