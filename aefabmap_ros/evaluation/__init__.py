@@ -4,6 +4,8 @@ reports and figures."""
 
 __all__ = [
     "calibration",
+    "closure_listing",
+    "closure_scores",
     "covisibility",
     "ground_truth",
     "methods",

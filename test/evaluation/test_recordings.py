@@ -10,21 +10,25 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.metrics import event_scores
-from aefabmap_ros.evaluation.recordings import (
+from aefabmap_ros.evaluation.closure_listing import (
     CSV_COLUMNS,
-    FrameIndex,
     PoseTruth,
-    RecordedClosure,
     closure_listing_markdown,
     closure_pose_error,
-    closure_precision_recall,
+    closures_csv,
+    read_pose_truth,
+)
+from aefabmap_ros.evaluation.closure_scores import (
     closure_scores_markdown,
     closure_scores_to_dict,
-    closures_csv,
-    frames_by_query_id,
-    read_pose_truth,
     score_recorded_closures,
+)
+from aefabmap_ros.evaluation.metrics import event_scores
+from aefabmap_ros.evaluation.recordings import (
+    FrameIndex,
+    RecordedClosure,
+    closure_precision_recall,
+    frames_by_query_id,
     scores_from_recording,
     seconds_text,
 )
