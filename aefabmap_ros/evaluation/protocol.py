@@ -306,12 +306,7 @@ def evaluate_model(
     given): its ``online`` scores.
     """
     kind = model.quantizer.kind
-    for name in methods:
-        if name not in METHODS:
-            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
-        if METHODS[name][0] != kind:
-            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
-                              f"is {kind}")
+    _check_methods(methods, model)
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
     started = time.monotonic()
@@ -345,6 +340,16 @@ def evaluate_model(
             results.append(verified_result(results[-1], verification, gt, config.min_gap,
                                            config.verify_more_candidates))
     return results
+
+
+def _check_methods(methods: Sequence[str], model: Model) -> None:
+    """ConfigError for a method that is unknown or needs another vocabulary kind than the model's."""
+    for name in methods:
+        if name not in METHODS:
+            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+        if METHODS[name][0] != model.quantizer.kind:
+            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
+                              f"is {model.quantizer.kind}")
 
 
 def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
