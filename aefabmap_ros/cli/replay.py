@@ -31,7 +31,7 @@ from typing import Any
 
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, ros_message_class
 from aefabmap_ros.errors import AefabmapError, ConfigError
-from aefabmap_ros.io import bags
+from aefabmap_ros.io import bag_messages, bags
 from aefabmap_ros.nodes.launch_table import compressed_topic
 from aefabmap_ros.stamps import stamp_to_ns
 
@@ -98,7 +98,7 @@ def companion_subscribers(values: list[str]) -> dict[str, int | None]:
 def publish_topic(out_topic: str, msgtype: str) -> str:
     """Where a bag topic of ``msgtype`` goes: raw images on ``out_topic``, compressed ones on
     ``out_topic/compressed`` (image_transport's convention), unless ``out_topic`` already names it."""
-    if msgtype != bags.COMPRESSED_IMAGE_TYPE or out_topic.rstrip("/").endswith("/compressed"):
+    if msgtype != bag_messages.COMPRESSED_IMAGE_TYPE or out_topic.rstrip("/").endswith("/compressed"):
         return out_topic
     return compressed_topic(out_topic)
 
@@ -107,9 +107,9 @@ def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
     """The message with its header stamp moved by ``offset_ns`` (used for --loop laps after the first)."""
     if offset_ns == 0:
         return raw
-    typestore = bags.get_typestore()
+    typestore = bag_messages.get_typestore()
     message: Any = typestore.deserialize_cdr(raw, msgtype)
-    message.header.stamp = bags.make_time(stamp_to_ns(message.header.stamp) + offset_ns)
+    message.header.stamp = bag_messages.make_time(stamp_to_ns(message.header.stamp) + offset_ns)
     return bytes(typestore.serialize_cdr(message, msgtype))
 
 
@@ -218,7 +218,7 @@ class Replayer:
         self.args = args
         self.msgtype = msgtype
         self.node = rclpy.create_node("aefabmap_replay")
-        msg_class = Image if msgtype == bags.IMAGE_TYPE else CompressedImage
+        msg_class = Image if msgtype == bag_messages.IMAGE_TYPE else CompressedImage
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)

@@ -2,5 +2,5 @@
 check of stamps, poses and covariances read from messages, RGB-D recordings, config files, atomic writes,
 versioned .npz files, append-only chunk folders, digests. A new file format goes here."""
 
-__all__ = ["atomic", "bags", "chunk_folder", "config_files", "digests", "image_encodings", "image_messages",
-           "message_values", "npz_files", "rgbd", "sources"]
+__all__ = ["atomic", "bag_messages", "bags", "chunk_folder", "config_files", "digests", "image_encodings",
+           "image_messages", "message_values", "npz_files", "rgbd", "sources"]
