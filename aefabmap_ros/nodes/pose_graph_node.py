@@ -35,14 +35,8 @@ from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
-from aefabmap_ros.backend.pose_graph import (
-    Closure,
-    ClosureResult,
-    PoseGraph,
-    PoseGraphConfig,
-    closure_in_base_frame,
-    trajectory_arrays,
-)
+from aefabmap_ros.backend.odometry import closure_in_base_frame
+from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import (
     ODOMETRY_QOS,
