@@ -1,8 +1,9 @@
 """rosbag2 bags (mcap and sqlite3) through `rosbags`, with no ROS installation needed.
 
 The suite's own message types are registered from the ``aefabmap_msgs/msg/*.msg`` files
-(``bag_messages.get_typestore``), so bags holding ``Features``, ``BagOfWords``, ``LoopClosure`` or ``PlacePosterior`` read and write
-like any standard type. Every failure a user can cause becomes a ``BagError`` naming the bag.
+(``bag_messages.get_typestore``), so bags holding ``Features``, ``BagOfWords``, ``LoopClosure`` or
+``PlacePosterior`` read and write like any standard type. Every failure a user can cause becomes a
+``BagError`` naming the bag.
 """
 
 from __future__ import annotations
