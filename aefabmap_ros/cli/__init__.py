@@ -26,6 +26,7 @@ __all__ = [
     "launch",
     "record",
     "replay",
+    "replay_messages",
     "synth",
     "train",
     "train_run",
