@@ -16,7 +16,7 @@ iSAM2 factors by Cholesky, on the normal equations: fast, but it squares the sys
 number, and a keyframe far from the anchor (30 km along a straight road, with the loop factors' 5 cm)
 makes the system look singular to it (gtsam's "indeterminate linear system"). A closure whose update
 fails so is added again by QR on a graph rebuilt from the factors kept before it (``factorization``
-is then "QR" for good: about 4x slower per closure, and exact where Cholesky gave up); a closure QR
+is then "QR" for good: slower per closure, and exact where Cholesky gave up); a closure QR
 cannot take either is dropped (``solver_failed``), the graph as it was. Either way no gtsam error
 leaves the graph half updated.
 

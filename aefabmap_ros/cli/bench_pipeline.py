@@ -66,8 +66,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def isolate_ros_domain(environment: MutableMapping[str, str], pid: int) -> str:
     """Give this run's nodes, recorder and replay a DDS domain of their own (unless the caller chose one), on
-    this host only: two benchmarks on one machine, or a benchmark beside running nodes, answered each other's
-    images otherwise (measured: 528 posteriors recorded for 150 images). Returns the domain id."""
+    this host only: two benchmarks on one machine, or a benchmark beside running nodes, would answer each
+    other's images (a recording then holds more posteriors than images sent). Returns the domain id."""
     environment.setdefault("ROS_DOMAIN_ID", str(1 + pid % 100))  # 0-101: the ids ROS 2 documents as safe
     environment.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return environment["ROS_DOMAIN_ID"]

@@ -32,8 +32,7 @@ def latency_summary(values_ms: list[float]) -> str:
 def thread_pools_of_a_node_process() -> Iterator[int]:
     """Cap BLAS/OpenMP pools (numpy, scipy, faiss) and torch's to what each node process gets under
     aefabmap_launch (its share of the cores), so the one-process stage timings are the nodes' own:
-    uncapped, torch's pool spun against everything else on a shared machine (a 29 ms quantization
-    measured 232 ms)."""
+    uncapped, torch's pool spins against everything else on a shared machine and inflates them."""
     share = threads_per_process(len(DETECTION_NODES))
     torch = sys.modules.get("torch")  # only an autoencoder model has imported it
     torch_threads = torch.get_num_threads() if torch is not None else 0

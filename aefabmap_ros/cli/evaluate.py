@@ -22,8 +22,8 @@ precision, which need no threshold).
 
 Protocol: the best candidate of query i among frames j <= i - --min-gap. FAB-MAP's posterior is over
 all earlier places (openFABMAP's run), unless the config's evaluation: fabmap_exclude_recent removes
-the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.evaluation.protocol for the measured
-reason this is not the default). Vocabularies (one per
+the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.evaluation.protocol for why this is
+not the default). Vocabularies (one per
 kind, shared by its FAB-MAP and BoW method), Chow-Liu trees and new-place samples come from the
 training images (--train-images / --train-bag, as the paper does) or, with --train-on-test, from
 the test sequence itself (each query is then left out of FAB-MAP's new-place sample mean). Trained

@@ -10,12 +10,10 @@ Presets:
                 the middle street's lower half driven again in the same direction, its upper half
                 driven again in the opposite direction (for a forward camera mostly no revisit by
                 covisibility), and the west edge street never revisited. 320x240 because of
-                memory more than time: measured on a busy 2-core machine, a 320x240 frame took 40-60
-                ms (3600 frames: 5.7 minutes, 2.2 of them the covisibility ground truth), a 640x480
-                frame about 120 ms (3600 frames: about 7 minutes of rendering, more ground truth),
-                and at 640x480 the sequence's images and depth hold about 8 GB in memory while it
-                is written (2 GB at 320x240). --frames, --width and --height override a preset's
-                values; --laps does not apply to it.
+                memory more than time: the sequence's images and depth are held in memory while it
+                is written, four times as much at 640x480 (render times and sizes:
+                docs/measurements.md). --frames, --width and --height override a preset's values;
+                --laps does not apply to it.
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)

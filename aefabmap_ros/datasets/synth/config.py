@@ -132,6 +132,6 @@ def train_test_configs(config: SynthConfig) -> tuple[SynthConfig, SynthConfig]:
 def dense_video_config(*, seed: int = 0, width: int = 320, height: int = 240, num_frames: int = 3600) -> SynthConfig:
     """The dense-video preset: 2 minutes of 30 Hz video along the dense-video route (about 315 m: slow,
     fast, a 4 s stop, a revisit in the same and one in the opposite direction, a street never
-    revisited). 320x240 by default: see aefabmap_synth's docstring for the render times."""
+    revisited). 320x240 by default: see aefabmap_synth's help for why."""
     return SynthConfig(seed=seed, num_frames=num_frames, width=width, height=height, route="dense-video",
                        frame_rate_hz=30.0, laps=1, gt_min_gap_frames=150, blur_probability=0.05)

@@ -34,7 +34,7 @@ Ground truth. ``gt`` is covisibility (DESIGN section 9.2, ``covisibility_loop_ma
 revisits frame j, at least ``gt_min_gap_s`` (5 s) earlier, when at least 30 % of i's depth pixels
 (every 8th) land on the surfaces j saw. It is computed from the depth as a 16UC1 depth image holds
 it (``depth_to_16uc1``: millimetres, nothing beyond 65.535 m), so ``aefabmap_gt`` run on a written
-sequence reproduces it. ``gt_poses`` is the older pose rule: camera centres within
+sequence reproduces it. ``gt_poses`` is the pose rule: camera centres within
 ``gt_max_distance_m`` (2.5 m), optical axes within ``gt_max_angle_deg`` (30 deg) and
 ``j <= i - gt_min_gap_frames`` (10).
 
