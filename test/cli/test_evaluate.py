@@ -15,7 +15,7 @@ from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
 from aefabmap_ros.evaluation.metrics import evaluate_scores, event_scores
 from aefabmap_ros.verification.geometric import VerificationConfig
-from test.evaluation.test_recordings import _three_event_gt
+from test.evaluation.test_closure_scores import _three_event_gt
 
 FRAMES = 30
 # Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.
