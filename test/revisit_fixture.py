@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence, train_test_configs
+from aefabmap_ros.datasets.synth.config import SynthConfig, train_test_configs
+from aefabmap_ros.datasets.synth.town import generate_sequence
 from aefabmap_ros.evaluation.ground_truth import loop_matrix_from_poses
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.io.bags import write_image_bag

@@ -19,14 +19,8 @@ from enum import Enum
 import gtsam
 import numpy as np
 
-from aefabmap_ros.backend.pose_graph import (
-    OdometryBuffer,
-    PoseGraphConfig,
-    closure_in_base_frame,
-    drift_covariance,
-    loop_factor_covariance,
-    odometry_disagreement,
-)
+from aefabmap_ros.backend.odometry import OdometryBuffer, closure_in_base_frame, odometry_disagreement
+from aefabmap_ros.backend.pose_graph import PoseGraphConfig, drift_covariance, loop_factor_covariance
 
 
 class GateResult(Enum):

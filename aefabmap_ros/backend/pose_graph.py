@@ -16,7 +16,7 @@ iSAM2 factors by Cholesky, on the normal equations: fast, but it squares the sys
 number, and a keyframe far from the anchor (30 km along a straight road, with the loop factors' 5 cm)
 makes the system look singular to it (gtsam's "indeterminate linear system"). A closure whose update
 fails so is added again by QR on a graph rebuilt from the factors kept before it (``factorization``
-is then "QR" for good: about 4x slower per closure, and exact where Cholesky gave up); a closure QR
+is then "QR" for good: slower per closure, and exact where Cholesky gave up); a closure QR
 cannot take either is dropped (``solver_failed``), the graph as it was. Either way no gtsam error
 leaves the graph half updated.
 
@@ -34,8 +34,13 @@ from enum import Enum
 import gtsam
 import numpy as np
 
-from aefabmap_ros.backend.validation import covariance_problem, psd_part
+from aefabmap_ros.backend.odometry import (
+    OdometryBuffer,
+    odometry_disagreement,
+    ros_to_gtsam_covariance,
+)
 from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.io.message_values import covariance_problem, psd_part
 
 # Extra iSAM2 iterations after a closure, and the largest keyframe move (m) at which they stop.
 MAX_EXTRA_ITERATIONS = 20
@@ -100,90 +105,12 @@ class Closure:
     covariance: np.ndarray
 
 
-def pose_from_matrix(matrix: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(np.asarray(matrix, dtype=np.float64))
-
-
-def interpolate(before: gtsam.Pose3, after: gtsam.Pose3, fraction: float) -> gtsam.Pose3:
-    """The SE(3) geodesic from ``before`` (0) to ``after`` (1)."""
-    return before.compose(gtsam.Pose3.Expmap(fraction * gtsam.Pose3.Logmap(before.between(after))))
-
-
-class OdometryBuffer:
-    """Odometry poses by stamp, strictly increasing; ``pose_at`` interpolates."""
-
-    def __init__(self, max_samples: int) -> None:
-        self.max_samples = max_samples
-        self._stamps: list[int] = []
-        self._poses: list[gtsam.Pose3] = []
-        self._paths: list[float] = []  # distance travelled since the first sample, metres
-
-    def __len__(self) -> int:
-        return len(self._stamps)
-
-    @property
-    def first_ns(self) -> int | None:
-        return self._stamps[0] if self._stamps else None
-
-    @property
-    def last_ns(self) -> int | None:
-        return self._stamps[-1] if self._stamps else None
-
-    def add(self, stamp_ns: int, pose: gtsam.Pose3) -> bool:
-        """False (and nothing stored) when the stamp is not after the last one."""
-        if self._stamps and stamp_ns <= self._stamps[-1]:
-            return False
-        step = float(np.linalg.norm(pose.translation() - self._poses[-1].translation())) if self._poses else 0.0
-        self._paths.append(self._paths[-1] + step if self._paths else 0.0)
-        self._stamps.append(stamp_ns)
-        self._poses.append(pose)
-        if len(self._stamps) > self.max_samples:
-            drop = len(self._stamps) - self.max_samples
-            del self._stamps[:drop], self._poses[:drop], self._paths[:drop]
-        return True
-
-    def pose_at(self, stamp_ns: int) -> tuple[gtsam.Pose3, float] | None:
-        """Odometry and distance travelled at that stamp, interpolated; None outside the buffer."""
-        if not self._stamps or not self._stamps[0] <= stamp_ns <= self._stamps[-1]:
-            return None
-        after = bisect.bisect_left(self._stamps, stamp_ns)
-        if self._stamps[after] == stamp_ns:
-            return self._poses[after], self._paths[after]
-        before = after - 1
-        fraction = (stamp_ns - self._stamps[before]) / (self._stamps[after] - self._stamps[before])
-        path = self._paths[before] + fraction * (self._paths[after] - self._paths[before])
-        return interpolate(self._poses[before], self._poses[after], fraction), path
-
-
 @dataclass
 class Keyframe:
     stamp_ns: int
     key: int
     odometry: gtsam.Pose3  # T_odom_base at the keyframe's stamp
     path_m: float  # odometry distance travelled at that stamp: odometry error grows with it
-
-
-def _ros_to_gtsam_covariance(covariance: np.ndarray) -> np.ndarray:
-    """(x, y, z, rot) -> gtsam's Pose3 tangent order (rot, x, y, z)."""
-    order = [3, 4, 5, 0, 1, 2]
-    return covariance[np.ix_(order, order)]
-
-
-def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, base_to_camera: gtsam.Pose3
-                          ) -> tuple[gtsam.Pose3, np.ndarray]:
-    """A camera-frame closure (the place camera in the query camera's frame, covariance in ROS order
-    x y z rot) as the same closure between the two base (odometry child) frames.
-
-    ``base_to_camera`` is T_base_camera (the camera's pose on the robot). The pose is conjugated,
-    T_qbase_pbase = T_bc T_qc_pc T_bc^-1; a right perturbation Exp(xi) of the camera pose is Exp(Ad(T_bc) xi)
-    of the base pose, so the covariance is moved by that adjoint.
-    """
-    pose = base_to_camera.compose(query_to_place).compose(base_to_camera.inverse())
-    adjoint = base_to_camera.AdjointMap()  # gtsam order (rot, trans)
-    moved = adjoint @ _ros_to_gtsam_covariance(np.asarray(covariance, dtype=np.float64)) @ adjoint.T
-    moved = (moved + moved.T) / 2  # exactly symmetric again (the graph checks it)
-    back = [3, 4, 5, 0, 1, 2]  # gtsam (rot, trans) -> ROS (trans, rot): the same swap both ways
-    return pose, moved[np.ix_(back, back)]
 
 
 def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
@@ -196,18 +123,10 @@ def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
 def loop_factor_covariance(config: PoseGraphConfig, covariance_ros: np.ndarray) -> np.ndarray:
     """A closure's covariance (ROS order x y z rot) in gtsam order, with the configured floor added.
 
-    The covariance is one ``validation.covariance_problem`` accepted: its round-off's negative
+    The covariance is one ``message_values.covariance_problem`` accepted: its round-off's negative
     eigenvalues are cut to 0 first (``psd_part``), so with the floor it is positive definite."""
-    return _ros_to_gtsam_covariance(psd_part(covariance_ros)) + np.diag(
+    return ros_to_gtsam_covariance(psd_part(covariance_ros)) + np.diag(
         [config.loop_min_sigma_rad ** 2] * 3 + [config.loop_min_sigma_m ** 2] * 3)
-
-
-def odometry_disagreement(query_to_place: gtsam.Pose3, loop_covariance: np.ndarray, predicted: gtsam.Pose3,
-                          drift: np.ndarray) -> float:
-    """Mahalanobis distance squared (6 dof) between a closure's ``query_to_place`` and the ``predicted``
-    relative pose (odometry's, or the graph's), under the closure's and the drift's covariances (gtsam order)."""
-    residual = gtsam.Pose3.Logmap(query_to_place.between(predicted))
-    return float(residual @ np.linalg.solve(loop_covariance + drift, residual))
 
 
 def _isam_params(factorization: str) -> gtsam.ISAM2Params:

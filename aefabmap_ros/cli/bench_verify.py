@@ -25,7 +25,8 @@ from functools import partial
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence
+from aefabmap_ros.datasets.synth.config import SynthConfig
+from aefabmap_ros.datasets.synth.town import generate_sequence
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
 from aefabmap_ros.verification.frame_depths import FrameDepths
 from aefabmap_ros.verification.geometric import (

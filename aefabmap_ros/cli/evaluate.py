@@ -22,8 +22,8 @@ precision, which need no threshold).
 
 Protocol: the best candidate of query i among frames j <= i - --min-gap. FAB-MAP's posterior is over
 all earlier places (openFABMAP's run), unless the config's evaluation: fabmap_exclude_recent removes
-the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.evaluation.protocol for the measured
-reason this is not the default). Vocabularies (one per
+the recent ones from it too (-1 = min gap - 1; see aefabmap_ros.evaluation.protocol for why this is
+not the default). Vocabularies (one per
 kind, shared by its FAB-MAP and BoW method), Chow-Liu trees and new-place samples come from the
 training images (--train-images / --train-bag, as the paper does) or, with --train-on-test, from
 the test sequence itself (each query is then left out of FAB-MAP's new-place sample mean). Trained
@@ -75,6 +75,30 @@ SECTIONS = ("feature", "vocabulary", "vocabulary_kmeans", "vocabulary_autoencode
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="aefabmap_eval", description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_test_sequence_options(parser)
+    _add_ground_truth_options(parser)
+    _add_vocabulary_options(parser)
+    _add_recording_options(parser)
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
+    parser.add_argument("--verify", action="store_true",
+                        help="also score every method after geometric verification of its candidates (+ GV rows)")
+    parser.add_argument("--threshold", type=float, help="FAB-MAP posterior threshold (default 0.99)")
+    parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.6)")
+    parser.add_argument("--config", type=Path, help=f"YAML with sections {', '.join(SECTIONS)}")
+    parser.add_argument("--size", type=int, help="visual words of both vocabularies")
+    parser.add_argument("--feature", choices=FEATURE_TYPES, help="feature type")
+    parser.add_argument("--max-features", type=int, help="keypoints per image at most")
+    parser.add_argument("--seed", type=int, help="random seed of the vocabularies")
+    parser.add_argument("--out", type=Path, required=True, help="folder for results.md/json and the plots")
+    parser.add_argument("--work-dir", type=Path, help="cache of features and trained models (default OUT/.cache)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    return parser
+
+
+
+
+def _add_test_sequence_options(parser: argparse.ArgumentParser) -> None:
     test = parser.add_argument_group("test sequence (a folder, or a bag topic)")
     test.add_argument("--images", type=Path, help="folder of test images (natural sort order)")
     test.add_argument("--bag", type=Path,
@@ -92,12 +116,18 @@ def build_parser() -> argparse.ArgumentParser:
     test.add_argument("--camera-info", type=Path,
                       help="ROS camera_info.yaml of the test camera, K and distortion (with --depth)")
     test.add_argument("--camera-info-topic", help="with --bag: its sensor_msgs/CameraInfo topic (with --depth-topic)")
+
+
+def _add_ground_truth_options(parser: argparse.ArgumentParser) -> None:
     truth = parser.add_argument_group("ground truth (a loop matrix, or poses and a rule)")
     truth.add_argument("--gt", type=Path, help=".npz with key 'gt': (N, N) 0/1, gt[i, j] = 1: frame i revisits j")
     truth.add_argument("--poses", type=Path, help="KITTI pose file (one 3x4 camera-to-world matrix per line)")
     truth.add_argument("--max-distance", type=float, help="with --poses: camera centres within this many metres")
     truth.add_argument("--max-angle", type=float, help="with --poses: optical axes within this many degrees")
     truth.add_argument("--min-gap", type=int, help="frames j > i - G are never candidates of query i (default 10)")
+
+
+def _add_vocabulary_options(parser: argparse.ArgumentParser) -> None:
     train = parser.add_argument_group("vocabularies (train on other images, on the test images, or load models)")
     train.add_argument("--train-images", type=Path, action="append", default=[], help="folder of training images")
     train.add_argument("--train-bag", type=Path, action="append", default=[], help="bag of training images")
@@ -105,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--train-on-test", action="store_true", help="train on the test sequence itself")
     train.add_argument("--model", type=Path, action="append", default=[],
                        help="an already trained model directory (repeatable)")
+
+
+def _add_recording_options(parser: argparse.ArgumentParser) -> None:
     recorded = parser.add_argument_group("a recorded run (--recording; frames found by image stamp)")
     recorded.add_argument("--recording", type=Path,
                           help="evaluate a recorded run instead (bag with place_posteriors, loop_closure_candidates, "
@@ -119,21 +152,6 @@ def build_parser() -> argparse.ArgumentParser:
     recorded.add_argument("--frames-by-query-id", action="store_true",
                           help="map messages to frames by query_id instead of stamp: right only for a recording of a "
                           "lossless replay (every frame reached fabmap_node, in order)")
-    parser.add_argument("--methods", default=",".join(METHODS),
-                        help=f"comma-separated subset of {', '.join(METHODS)} (default: all)")
-    parser.add_argument("--verify", action="store_true",
-                        help="also score every method after geometric verification of its candidates (+ GV rows)")
-    parser.add_argument("--threshold", type=float, help="FAB-MAP posterior threshold (default 0.99)")
-    parser.add_argument("--bow-threshold", type=float, help="tf-idf cosine threshold (default 0.6)")
-    parser.add_argument("--config", type=Path, help=f"YAML with sections {', '.join(SECTIONS)}")
-    parser.add_argument("--size", type=int, help="visual words of both vocabularies")
-    parser.add_argument("--feature", choices=FEATURE_TYPES, help="feature type")
-    parser.add_argument("--max-features", type=int, help="keypoints per image at most")
-    parser.add_argument("--seed", type=int, help="random seed of the vocabularies")
-    parser.add_argument("--out", type=Path, required=True, help="folder for results.md/json and the plots")
-    parser.add_argument("--work-dir", type=Path, help="cache of features and trained models (default OUT/.cache)")
-    parser.add_argument("--quiet", action="store_true", help="no progress output")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

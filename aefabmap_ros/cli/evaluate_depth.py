@@ -19,13 +19,12 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.io import bags
-from aefabmap_ros.io.image_messages import depth_message_to_metres
+from aefabmap_ros.io.image_messages import depth_image_to_metres, depth_message_to_metres
 from aefabmap_ros.io.rgbd import list_depth_files, read_camera_info_yaml
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.verification.frame_depths import (
     DepthGrid,
     depth_at_pixels,
-    depth_image_to_metres,
     sample_depth_grid,
 )
 from aefabmap_ros.verification.geometric import SequenceDepths

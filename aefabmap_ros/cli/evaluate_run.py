@@ -24,6 +24,12 @@ from aefabmap_ros.cli.evaluate import SECTIONS
 from aefabmap_ros.cli.evaluate_depth import sequence_depths
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
+from aefabmap_ros.evaluation.closure_listing import PoseTruth, closure_listing_markdown, closures_csv, read_pose_truth
+from aefabmap_ros.evaluation.closure_scores import (
+    closure_scores_markdown,
+    closure_scores_to_dict,
+    score_recorded_closures,
+)
 from aefabmap_ros.evaluation.ground_truth import check_gt_matches, load_gt_npz, load_gt_stamps, loop_matrix_from_kitti
 from aefabmap_ros.evaluation.methods import METHODS, method_kinds, methods_of_kind, parse_methods
 from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, evaluate_scores
@@ -32,14 +38,7 @@ from aefabmap_ros.evaluation.protocol import EvaluationConfig, MethodResult, eva
 from aefabmap_ros.evaluation.recordings import (
     FLOAT_SECONDS_TOLERANCE_NS,
     FrameIndex,
-    PoseTruth,
-    closure_listing_markdown,
-    closure_scores_markdown,
-    closure_scores_to_dict,
-    closures_csv,
     frames_by_query_id,
-    read_pose_truth,
-    score_recorded_closures,
     scores_from_recording,
 )
 from aefabmap_ros.evaluation.reports import online_markdown, result_to_dict, results_markdown, unique_slugs

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError
-from aefabmap_ros.evaluation.ground_truth import check_poses, covisibility_with_stats, read_kitti_poses
+from aefabmap_ros.evaluation.covisibility import check_poses, covisibility_with_stats
+from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
 from aefabmap_ros.io.atomic import atomic_write_bytes
 from aefabmap_ros.io.rgbd import (
     associate,

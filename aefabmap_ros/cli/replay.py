@@ -23,17 +23,16 @@ import argparse
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import Any
 
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, ros_message_class
+from aefabmap_ros.cli.replay_messages import companion_types, laps, publish_topic, restamped
 from aefabmap_ros.errors import AefabmapError, ConfigError
-from aefabmap_ros.io import bags
-from aefabmap_ros.nodes.launch_table import compressed_topic
-from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.io import bag_messages, bags
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,58 +94,6 @@ def companion_subscribers(values: list[str]) -> dict[str, int | None]:
     return wanted
 
 
-def publish_topic(out_topic: str, msgtype: str) -> str:
-    """Where a bag topic of ``msgtype`` goes: raw images on ``out_topic``, compressed ones on
-    ``out_topic/compressed`` (image_transport's convention), unless ``out_topic`` already names it."""
-    if msgtype != bags.COMPRESSED_IMAGE_TYPE or out_topic.rstrip("/").endswith("/compressed"):
-        return out_topic
-    return compressed_topic(out_topic)
-
-
-def _restamped(raw: bytes, msgtype: str, offset_ns: int) -> bytes:
-    """The message with its header stamp moved by ``offset_ns`` (used for --loop laps after the first)."""
-    if offset_ns == 0:
-        return raw
-    typestore = bags.get_typestore()
-    message: Any = typestore.deserialize_cdr(raw, msgtype)
-    message.header.stamp = bags.make_time(stamp_to_ns(message.header.stamp) + offset_ns)
-    return bytes(typestore.serialize_cdr(message, msgtype))
-
-
-def _laps(bag: Path, topic: str, start_ns: int | None, loop: bool,
-          companions: list[str] | None = None) -> Iterator[tuple[int, bags.BagMessage]]:
-    """(lap index, message) for one pass over the bag, or forever with --loop; with ``companions``
-    their messages too, each before the image of its log time."""
-    lap = 0
-    while True:
-        yielded = False
-        for message in companions_first(bags.read_messages(bag, [topic, *(companions or [])], start_ns=start_ns),
-                                        topic):
-            yielded = True
-            yield lap, message
-        if not loop or not yielded:
-            return
-        lap += 1
-
-
-def companions_first(messages: Iterable[bags.BagMessage], image_topic: str) -> Iterator[bags.BagMessage]:
-    """The bag's messages with each image held back until the other topics' messages of the same log
-    time are out: a frame's depth, CameraInfo and odometry reach the nodes before its image does."""
-    held: bags.BagMessage | None = None
-    for message in messages:
-        if message.topic == image_topic:
-            if held is not None:
-                yield held
-            held = message
-            continue
-        if held is not None and message.log_time_ns > held.log_time_ns:
-            yield held
-            held = None
-        yield message
-    if held is not None:
-        yield held
-
-
 # How long the end of a reliable replay waits for every subscriber to acknowledge the last images.
 ACK_TIMEOUT_S = 5.0
 
@@ -196,17 +143,6 @@ class Delivery:
         return ", ".join(parts)
 
 
-def _companion_types(bag: Path, topics: list[str]) -> dict[str, str]:
-    """Message type of each --with topic; ConfigError naming a topic the bag does not have."""
-    if not topics:
-        return {}
-    available = bags.list_topics(bag)
-    missing = [topic for topic in topics if topic not in available]
-    if missing:
-        raise ConfigError(f"--with {' '.join(missing)}: not in {bag} (it has {', '.join(sorted(available))})")
-    return {topic: available[topic] for topic in topics}
-
-
 class Replayer:
     def __init__(self, args: argparse.Namespace, msgtype: str, stop: StopRequest) -> None:
         import rclpy
@@ -218,13 +154,13 @@ class Replayer:
         self.args = args
         self.msgtype = msgtype
         self.node = rclpy.create_node("aefabmap_replay")
-        msg_class = Image if msgtype == bags.IMAGE_TYPE else CompressedImage
+        msg_class = Image if msgtype == bag_messages.IMAGE_TYPE else CompressedImage
         qos: Any = (qos_profile_sensor_data if args.qos == "sensor_data"
                     else QoSProfile(depth=args.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.publisher = self.node.create_publisher(msg_class, publish_topic(args.out_topic, msgtype), qos)
         self.companion_subscribers = companion_subscribers(args.companions)
         self.companions = {topic: self.node.create_publisher(ros_message_class(msgtype), topic, qos)
-                           for topic, msgtype in _companion_types(args.bag, list(self.companion_subscribers)).items()}
+                           for topic, msgtype in companion_types(args.bag, list(self.companion_subscribers)).items()}
         self.answers = 0
         if args.lockstep:
             from aefabmap_msgs.msg import PlacePosterior
@@ -297,19 +233,15 @@ class Replayer:
     def run(self) -> int:
         args = self.args
         start_ns = None
-        first_log_ns: int | None = None
         if args.start > 0:
-            first_log_ns = next(iter(bags.read_messages(args.bag, [args.topic]))).log_time_ns
-            start_ns = first_log_ns + int(args.start * 1e9)
-        from rclpy.duration import Duration
-
+            start_ns = next(iter(bags.read_messages(args.bag, [args.topic]))).log_time_ns + int(args.start * 1e9)
         delivery = Delivery()
         finished = False  # every image published: a stop after that is no early stop
         wall_start = time.monotonic()
         lap_span_ns, lap_origin_ns = 0, None
         print(f"[replay] publishing {args.topic} of {args.bag} on {self.publisher.topic_name}", file=sys.stderr,
               flush=True)
-        for lap, message in _laps(args.bag, args.topic, start_ns, args.loop, list(self.companion_subscribers)):
+        for lap, message in laps(args.bag, args.topic, start_ns, args.loop, list(self.companion_subscribers)):
             if self.stop.requested:
                 break
             if message.topic != args.topic:
@@ -320,29 +252,45 @@ class Replayer:
             bag_offset_ns = message.log_time_ns - lap_origin_ns
             lap_span_ns = max(lap_span_ns, bag_offset_ns)
             elapsed_bag_s = (lap * (lap_span_ns + 1) + bag_offset_ns) / 1e9
-            if args.rate > 0 and not args.lockstep:
-                self._spin_until(lambda t=elapsed_bag_s: time.monotonic() - wall_start >= t / args.rate, 3600.0)
-                if self.stop.requested:
-                    break
             stamp_offset_ns = lap * (lap_span_ns + 100_000_000)
-            if self.publisher.get_subscription_count() == 0:
-                delivery.without_subscriber += 1
-            self.publisher.publish(_restamped(message.raw, self.msgtype, stamp_offset_ns))
-            delivery.published += 1
-            if args.lockstep and not self._spin_until(lambda n=delivery.published: self.answers >= n,
-                                                      args.lockstep_timeout):
-                if self.stop.requested:
-                    break
-                delivery.missed_answers += 1
-                self.answers = delivery.published  # resynchronise: the pipeline dropped this image
-            if not args.quiet and delivery.published % 50 == 0:
-                print(f"[replay] {delivery.published} images", file=sys.stderr)
+            if not self._publish_image(message.raw, delivery, wall_start + elapsed_bag_s / args.rate
+                                       if args.rate > 0 else None, stamp_offset_ns):
+                break
         else:
             finished = True
+        return self._finish(delivery, wall_start, finished)
+
+    def _publish_image(self, raw: bytes, delivery: Delivery, due: float | None, stamp_offset_ns: int) -> bool:
+        """Publish one image at its ``due`` monotonic time (None: at once) and, with --lockstep, wait for its
+        answer; False when a stop was requested meanwhile."""
+        args = self.args
+        if due is not None and not args.lockstep:
+            self._spin_until(lambda: time.monotonic() >= due, 3600.0)
+            if self.stop.requested:
+                return False
+        if self.publisher.get_subscription_count() == 0:
+            delivery.without_subscriber += 1
+        self.publisher.publish(restamped(raw, self.msgtype, stamp_offset_ns))
+        delivery.published += 1
+        if args.lockstep and not self._spin_until(lambda n=delivery.published: self.answers >= n,
+                                                  args.lockstep_timeout):
+            if self.stop.requested:
+                return False
+            delivery.missed_answers += 1
+            self.answers = delivery.published  # resynchronise: the pipeline dropped this image
+        if not args.quiet and delivery.published % 50 == 0:
+            print(f"[replay] {delivery.published} images", file=sys.stderr)
+        return True
+
+    def _finish(self, delivery: Delivery, wall_start: float, finished: bool) -> int:
+        """Wait for the last acknowledgements, print the summary; the exit code."""
+        from rclpy.duration import Duration
+
+        args = self.args
         if args.qos == "reliable" and not self.stop.requested:
-            # Reliable delivery of the last messages must complete before the node goes away.
-            # The --with topics' too: the images may be acknowledged (or have no subscriber) long before the
-            # companions' last messages are (measured: 30 of 81 odometry messages arrived without this wait).
+            # Reliable delivery of the last messages must complete before the node goes away, the --with
+            # topics' too: the images may be acknowledged (or have no subscriber) long before the companions'
+            # last messages are.
             delivery.acknowledged = all([publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
                                          for publisher in (self.publisher, *self.companions.values())])
         seconds = time.monotonic() - wall_start

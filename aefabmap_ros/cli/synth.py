@@ -10,12 +10,10 @@ Presets:
                 the middle street's lower half driven again in the same direction, its upper half
                 driven again in the opposite direction (for a forward camera mostly no revisit by
                 covisibility), and the west edge street never revisited. 320x240 because of
-                memory more than time: measured on a busy 2-core machine, a 320x240 frame took 40-60
-                ms (3600 frames: 5.7 minutes, 2.2 of them the covisibility ground truth), a 640x480
-                frame about 120 ms (3600 frames: about 7 minutes of rendering, more ground truth),
-                and at 640x480 the sequence's images and depth hold about 8 GB in memory while it
-                is written (2 GB at 320x240). --frames, --width and --height override a preset's
-                values; --laps does not apply to it.
+                memory more than time: the sequence's images and depth are held in memory while it
+                is written, four times as much at 640x480 (render times and sizes:
+                docs/measurements.md). --frames, --width and --height override a preset's values;
+                --laps does not apply to it.
 
 Each sequence DIR/<train|test>/ holds:
   images/000000.png ...   frames (format folder or both), mono8 PNG (bgr8 with --color)
@@ -63,14 +61,8 @@ import cv2
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
-from aefabmap_ros.datasets.synth.town import (
-    SynthConfig,
-    SyntheticSequence,
-    dense_video_config,
-    depth_to_16uc1,
-    generate_sequence,
-    train_test_configs,
-)
+from aefabmap_ros.datasets.synth.config import SynthConfig, dense_video_config, train_test_configs
+from aefabmap_ros.datasets.synth.town import SyntheticSequence, depth_to_16uc1, generate_sequence
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.evaluation.ground_truth import write_kitti_poses
 from aefabmap_ros.evaluation.trajectory_error import OdometryDrift, drifting_odometry, tum_text

@@ -1,8 +1,12 @@
-"""Offline evaluation: the paper's methods and protocol, metrics, ground truth, calibration, trajectory
-error, tf-idf baseline, the nodes' decision chain run offline, recorded runs, and the reports and figures."""
+"""Offline evaluation: the paper's methods and protocol, metrics, ground truth (from poses, from depth),
+calibration, trajectory error, tf-idf baseline, the nodes' decision chain run offline, recorded runs, and the
+reports and figures."""
 
 __all__ = [
     "calibration",
+    "closure_listing",
+    "closure_scores",
+    "covisibility",
     "ground_truth",
     "methods",
     "metrics",

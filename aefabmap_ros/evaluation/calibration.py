@@ -2,8 +2,8 @@
 
 A posterior is calibrated when, of all queries whose best place got probability p, a fraction p
 really revisit that place. FAB-MAP's posterior is not (its word-independence assumptions make the
-likelihood ratios overconfident; ``FabMapConfig.likelihood_temperature`` is the remedy measured
-here). The evaluation bins each frame's best hypothesis as fabmap_node publishes it (the online
+likelihood ratios overconfident; ``FabMapConfig.likelihood_temperature`` is the remedy, judged by
+what this module computes). The evaluation bins each frame's best hypothesis as fabmap_node publishes it (the online
 chain: places, time window and all) and sets it against whether the ground truth confirms it.
 """
 

@@ -20,13 +20,12 @@ query i, ``new_place[i]`` = posterior of "new place". Frames with fewer than the
 metrics then take each query's best candidate among ``j <= i - min_gap`` (``evaluation.metrics``).
 
 Whether the recent frames are hypotheses of the posterior is ``fabmap_exclude_recent``
-(the recognizer's ``exclude_recent_frames``). Default 0, none excluded, as openFABMAP: measured,
-removing the last ``min_gap - 1`` frames from the posterior (-1) lowers both AP and precision at
-the 0.99 threshold: a query of an unvisited place no longer has its look-alike predecessors to
-absorb the mass, and with a new-place model trained on other imagery the mass lands on some
-older look-alike place, a confident false loop (openFABMAP's own inputs on rtabmap_samples:
-AP 0.85 -> 0.50, recall at 100 % precision 0.57 -> 0; synthetic training sequence: precision at
-0.99 1.00 -> 0.65). On very dense video, where the previous frames always win, set it to -1.
+(the recognizer's ``exclude_recent_frames``). Default 0, none excluded, as openFABMAP: removing the
+last ``min_gap - 1`` frames from the posterior (-1) takes from a query of an unvisited place the
+look-alike predecessors that absorb the mass, and with a new-place model trained on other imagery
+the mass lands on some older look-alike place, a confident false loop that lowers both AP and the
+precision at the 0.99 threshold (figures: docs/measurements.md). On very dense video, where the
+previous frames always win, set it to -1.
 
 **tf-idf score matrix.** Cosine similarity of tf-idf vectors of word counts; the idf comes from
 the model's new-place samples (the training images' binary bag-of-words: idf needs only which
@@ -111,10 +110,8 @@ class EvaluationConfig:
     verify_more_candidates: int = field(
         default=5,
         metadata={"description": "The \"+ GV\" rows: when none of a query's best verification.candidates is "
-                  "accepted, the next this many are verified and re-ranked alike (0 = off). Measured on the dense "
-                  "synthetic video (kitti00 autoencoder vocabulary): AP 0.720 -> 0.728 and recall at 100 % "
-                  "precision 0.580 -> 0.602 with depth (no false match); images only AP 0.702 -> 0.707, recall "
-                  "0.532 -> 0.509 (one match on the ground truth's edge); rtabmap_samples AP 0.773 -> 0.795."},
+                  "accepted, the next this many are verified and re-ranked alike (0 = off; their effect on AP: "
+                  "docs/measurements.md)."},
     )
 
     def __post_init__(self) -> None:
@@ -306,12 +303,7 @@ def evaluate_model(
     given): its ``online`` scores.
     """
     kind = model.quantizer.kind
-    for name in methods:
-        if name not in METHODS:
-            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
-        if METHODS[name][0] != kind:
-            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
-                              f"is {kind}")
+    _check_methods(methods, model)
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
     started = time.monotonic()
@@ -345,6 +337,16 @@ def evaluate_model(
             results.append(verified_result(results[-1], verification, gt, config.min_gap,
                                            config.verify_more_candidates))
     return results
+
+
+def _check_methods(methods: Sequence[str], model: Model) -> None:
+    """ConfigError for a method that is unknown or needs another vocabulary kind than the model's."""
+    for name in methods:
+        if name not in METHODS:
+            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+        if METHODS[name][0] != model.quantizer.kind:
+            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
+                              f"is {model.quantizer.kind}")
 
 
 def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,

@@ -1,5 +1,5 @@
 """FAB-MAP: settings, Chow-Liu tree, the FAB-MAP 2 / FAB-MAP 1 engines, the posterior, the online place recognizer
-with its map file, and temporal consistency."""
+and its map file, temporal consistency, and openFABMAP's files (interchange with openFABMAPcli)."""
 
 __all__ = [
     "chowliu",
@@ -7,7 +7,9 @@ __all__ = [
     "consistency",
     "engines",
     "index",
+    "map_file",
     "observation",
+    "openfabmap",
     "posterior",
     "recognizer",
 ]

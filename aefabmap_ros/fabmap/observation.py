@@ -28,6 +28,41 @@ def _detector(z: int, e: int, p_z_given_e: float, p_z_given_not_e: float) -> flo
     return p if z else 1.0 - p
 
 
+def _log_table(tree: ChowLiuTree, p_z_given_e: float, p_z_given_not_e: float) -> np.ndarray:
+    """log p(z_q | z_p, L) indexed [q, z_q, z_p, L_q] (V, 2, 2, 3); the last L index 2 = mean-field new place."""
+    marginal = tree.marginal
+    cond = {1: tree.p_given_parent_present, 0: tree.p_given_parent_absent}
+
+    def p_z(q_state: int) -> np.ndarray:
+        return marginal if q_state else 1.0 - marginal
+
+    def p_z_given_parent(q_state: int, parent_state: int) -> np.ndarray:
+        return cond[parent_state] if q_state else 1.0 - cond[parent_state]
+
+    # p(e_q = 1 | L_q) for a place that has (1) or lacks (0) word q (openFABMAP PeqGLzq).
+    p_e_given_l = {}
+    for lq in (0, 1):
+        alpha = _detector(lq, 1, p_z_given_e, p_z_given_not_e) * marginal
+        beta = _detector(lq, 0, p_z_given_e, p_z_given_not_e) * (1.0 - marginal)
+        p_e_given_l[lq] = alpha / (alpha + beta)
+
+    table = np.empty((tree.vocabulary_size, 2, 2, 3), dtype=np.float64)
+    for zq in (0, 1):
+        for zp in (0, 1):
+            given_e = {}
+            for e in (0, 1):
+                alpha = p_z(zq) * _detector(1 - zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(
+                    1 - zq, zp
+                )
+                beta = p_z(1 - zq) * _detector(zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(zq, zp)
+                given_e[e] = beta / (alpha + beta)
+            for lq in (0, 1):
+                pe = p_e_given_l[lq]
+                table[:, zq, zp, lq] = np.log((1.0 - pe) * given_e[0] + pe * given_e[1])
+            table[:, zq, zp, 2] = np.log((1.0 - marginal) * given_e[0] + marginal * given_e[1])
+    return table
+
+
 class FabMapModel:
     """Log-probability tables of one Chow-Liu tree and detector model, shared by all FAB-MAP variants."""
 
@@ -40,37 +75,7 @@ class FabMapModel:
         self.tree = tree
         self.vocabulary_size = tree.vocabulary_size
         self.parent = tree.parent
-        marginal = tree.marginal
-        cond = {1: tree.p_given_parent_present, 0: tree.p_given_parent_absent}
-
-        def p_z(q_state: int) -> np.ndarray:
-            return marginal if q_state else 1.0 - marginal
-
-        def p_z_given_parent(q_state: int, parent_state: int) -> np.ndarray:
-            return cond[parent_state] if q_state else 1.0 - cond[parent_state]
-
-        # p(e_q = 1 | L_q) for a place that has (1) or lacks (0) word q (openFABMAP PeqGLzq).
-        p_e_given_l = {}
-        for lq in (0, 1):
-            alpha = _detector(lq, 1, p_z_given_e, p_z_given_not_e) * marginal
-            beta = _detector(lq, 0, p_z_given_e, p_z_given_not_e) * (1.0 - marginal)
-            p_e_given_l[lq] = alpha / (alpha + beta)
-
-        # log p(z_q | z_p, L) indexed [q, z_q, z_p, L_q]; the last L index 2 = mean-field new place.
-        table = np.empty((self.vocabulary_size, 2, 2, 3), dtype=np.float64)
-        for zq in (0, 1):
-            for zp in (0, 1):
-                given_e = {}
-                for e in (0, 1):
-                    alpha = p_z(zq) * _detector(1 - zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(
-                        1 - zq, zp
-                    )
-                    beta = p_z(1 - zq) * _detector(zq, e, p_z_given_e, p_z_given_not_e) * p_z_given_parent(zq, zp)
-                    given_e[e] = beta / (alpha + beta)
-                for lq in (0, 1):
-                    pe = p_e_given_l[lq]
-                    table[:, zq, zp, lq] = np.log((1.0 - pe) * given_e[0] + pe * given_e[1])
-                table[:, zq, zp, 2] = np.log((1.0 - marginal) * given_e[0] + marginal * given_e[1])
+        table = _log_table(tree, p_z_given_e, p_z_given_not_e)
         table.flags.writeable = False
         self.log_table = table  # (V, 2, 2, 3)
 

@@ -35,7 +35,7 @@ New-place samples that are the query itself: pass ``exclude_sample=<sample index
 :meth:`PlaceRecognizer.process` (identity by index, not by comparing word sets).
 
 The map (places' words, stamps, frames, counters, last posterior) is saved atomically as an
-``.npz`` tied to the model's vocabulary id.
+``.npz`` tied to the model's vocabulary id (:mod:`aefabmap_ros.fabmap.map_file`).
 """
 
 from __future__ import annotations
@@ -49,19 +49,15 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from aefabmap_ros.errors import ConfigError, DataError, ModelError, VocabularyMismatchError
+from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.consistency import TemporalConsistency
 from aefabmap_ros.fabmap.engines import make_engine
 from aefabmap_ros.fabmap.index import GrowableArray
+from aefabmap_ros.fabmap.map_file import ConfigDifferences, config_differences, read_map, write_map
 from aefabmap_ros.fabmap.observation import as_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
-from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
-
-MAP_FORMAT_VERSION = 1
-_MAP_KEYS = ("vocabulary_id", "vocabulary_size", "word_indptr", "word_indices", "place_stamps_ns", "place_frames",
-             "next_query_id", "previous_posterior", "has_previous_posterior")
 
 
 @dataclass(frozen=True)
@@ -109,42 +105,12 @@ def jaccard(a: np.ndarray, b: np.ndarray) -> float:
     return common / (union - common)
 
 
-def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
-    """True if some CSR row's indices are not strictly increasing (vectorised over all rows)."""
-    not_increasing = np.diff(indices) <= 0
-    crossings = indptr[1:-1] - 1  # diff positions that compare the last of a row with the next row
-    crossings = crossings[(crossings >= 0) & (crossings < not_increasing.size)]
-    not_increasing[crossings] = False
-    return bool(np.any(not_increasing))
-
-
 # Settings read afresh for every frame (nothing is built from them at start-up), so they can change
 # while the recognizer runs; the others shape the engine or the consistency chain, built once.
 RUNTIME_SETTINGS = frozenset({
     "match_threshold", "likelihood_temperature", "top_k", "min_words", "add_policy",
     "exclude_recent_frames", "exclude_recent_seconds", "keyframe_max_overlap", "keyframe_max_seconds",
 })
-
-ConfigDifferences = dict[str, tuple[Any, Any]]  # setting -> (value the map was made with, value now)
-
-
-def config_differences(saved_json: str, config: FabMapConfig) -> ConfigDifferences:
-    """The settings of ``config`` that differ from those a map was saved with (its ``config_json``).
-
-    A setting the saved map does not name (an older version) or names but ``config`` lacks (a newer
-    one) differs too, with None on the missing side; an unreadable ``config_json`` is one difference
-    named ``config_json``.
-    """
-    try:
-        saved = json.loads(saved_json)
-    except json.JSONDecodeError:
-        saved = None
-    if not isinstance(saved, dict):
-        return {"config_json": (saved_json, "unreadable")}
-    current = asdict(config)
-    return {key: (saved.get(key), current.get(key)) for key in sorted(saved.keys() | current.keys())
-            if saved.get(key) != current.get(key)}
-
 
 class PlaceRecognizer:
     """FAB-MAP 2 place recognizer over a growing map of places (see module doc for the policies)."""
@@ -241,49 +207,18 @@ class PlaceRecognizer:
 
         new_ll, place_ll = self._engine.log_likelihoods(words, exclude_sample)
         included = np.flatnonzero(self._included(query_id, stamp_ns, words))
-        hypotheses = np.concatenate([[new_ll], place_ll[included]])
-        log_prior = None
-        if self.config.motion_model:
-            full_prior = motion_log_prior(
-                self._previous_posterior, self.num_places, self.config.p_new, self.config.motion_bias
-            )
-            log_prior = full_prior[np.concatenate([[0], included + 1])]
-        p = posterior(hypotheses / self.config.likelihood_temperature, log_prior, self.config.smoothing)
-        previous = np.zeros(self.num_places + 1)
-        previous[0] = p[0]
-        previous[included + 1] = p[1:]
-        self._previous_posterior = previous
-
+        p = self._posterior(new_ll, place_ll, included)
         place_p = p[1:]
         # Best first, ties: older place first (``included`` is increasing); O(k P), not a full sort.
         order = top_k_indices(place_p, max(self.config.top_k, 1))
-        candidates = tuple(
-            Candidate(
-                place_id=int(included[k]),
-                stamp_ns=int(self._place_stamps_ns.view()[included[k]]),
-                probability=float(place_p[k]),
-                log_likelihood=float(place_ll[included[k]]),
-            )
-            for k in order[: self.config.top_k]
-        )
+        candidates = tuple(self._candidate(int(included[k]), place_p[k], place_ll) for k in order[: self.config.top_k])
         match = None
         if order.size and place_p[order[0]] > self.config.match_threshold:
-            best = int(order[0])
-            match = Candidate(
-                place_id=int(included[best]),
-                stamp_ns=int(self._place_stamps_ns.view()[included[best]]),
-                probability=float(place_p[best]),
-                log_likelihood=float(place_ll[included[best]]),
-            )
+            match = self._candidate(int(included[order[0]]), place_p[order[0]], place_ll)
         consistent = self._consistency.observe(stamp_ns, None if match is None else match.stamp_ns)
         loop_closure = match if consistent else None
-
-        added = -1
         wants_place = self.config.add_policy == "all" or match is None
-        if wants_place and self._is_keyframe(words, query_id, stamp_ns):
-            added = self._engine.add(words)
-            self._place_stamps_ns.extend(np.array([stamp_ns], dtype=np.int64))
-            self._place_frames.extend(np.array([query_id], dtype=np.int64))
+        added = self._add_if_keyframe(words, query_id, stamp_ns) if wants_place else -1
         assigned = match.place_id if match is not None else added
         return Recognition(
             query_id=query_id,
@@ -300,6 +235,35 @@ class PlaceRecognizer:
             hypothesis_place_ids=included,
             hypothesis_probabilities=place_p,
         )
+
+    def _posterior(self, new_ll: float, place_ll: np.ndarray, included: np.ndarray) -> np.ndarray:
+        """Posterior over [new place, included places]; kept (over every place) for the next frame's prior."""
+        hypotheses = np.concatenate([[new_ll], place_ll[included]])
+        log_prior = None
+        if self.config.motion_model:
+            full_prior = motion_log_prior(
+                self._previous_posterior, self.num_places, self.config.p_new, self.config.motion_bias
+            )
+            log_prior = full_prior[np.concatenate([[0], included + 1])]
+        p = posterior(hypotheses / self.config.likelihood_temperature, log_prior, self.config.smoothing)
+        previous = np.zeros(self.num_places + 1)
+        previous[0] = p[0]
+        previous[included + 1] = p[1:]
+        self._previous_posterior = previous
+        return p
+
+    def _candidate(self, place_id: int, probability: float, place_ll: np.ndarray) -> Candidate:
+        return Candidate(place_id=place_id, stamp_ns=int(self._place_stamps_ns.view()[place_id]),
+                         probability=float(probability), log_likelihood=float(place_ll[place_id]))
+
+    def _add_if_keyframe(self, words: np.ndarray, query_id: int, stamp_ns: int) -> int:
+        """The id of the place this frame adds when it is a keyframe, else -1."""
+        if not self._is_keyframe(words, query_id, stamp_ns):
+            return -1
+        added = self._engine.add(words)
+        self._place_stamps_ns.extend(np.array([stamp_ns], dtype=np.int64))
+        self._place_frames.extend(np.array([query_id], dtype=np.int64))
+        return added
 
     def _included(self, query_id: int, stamp_ns: int, words: np.ndarray) -> np.ndarray:
         """(P,) bool: places that are hypotheses for this query (not too recent)."""
@@ -360,7 +324,6 @@ class PlaceRecognizer:
         """Write the map atomically (temporary file in the same directory, then os.replace)."""
         indptr, indices = self._engine.places.word_csr()
         arrays = {
-            "format_version": np.array(MAP_FORMAT_VERSION, dtype=np.int64),
             "vocabulary_id": np.array(self.vocabulary_id),
             "vocabulary_size": np.array(self.vocabulary_size, dtype=np.int64),
             "word_indptr": indptr,
@@ -374,7 +337,7 @@ class PlaceRecognizer:
             "has_previous_posterior": np.array(self._previous_posterior is not None),
             "config_json": np.array(json.dumps(asdict(self.config), sort_keys=True)),
         }
-        write_npz_atomically(path, arrays)
+        write_map(path, arrays)
 
     def load_map(self, path: Path) -> ConfigDifferences:
         """Replace the map by the one saved at ``path``; returns the settings it was made with that
@@ -385,8 +348,7 @@ class PlaceRecognizer:
         refuse a map: places are stored as word sets, which only the vocabulary gives a meaning to;
         the settings change how later frames are matched and added, not what the places are.
         """
-        arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, MAP_FORMAT_VERSION)
-        state = self._validated_state(Path(path), arrays)
+        state = read_map(Path(path), self.vocabulary_id, self.vocabulary_size)
         self._reset()
         self._engine.places.add_many(state["word_indptr"], state["word_indices"])
         self._place_stamps_ns.extend(state["place_stamps_ns"].astype(np.int64))
@@ -396,36 +358,3 @@ class PlaceRecognizer:
         if "config_json" not in state:  # written by a version that did not record its settings
             return {"config_json": (None, "not recorded in the map")}
         return config_differences(str(state["config_json"]), self.config)
-
-    def _validated_state(self, path: Path, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        map_vocabulary_id = str(arrays["vocabulary_id"])
-        if map_vocabulary_id != self.vocabulary_id:
-            raise VocabularyMismatchError(
-                f"map file {path} belongs to vocabulary {map_vocabulary_id!r}, "
-                f"but the loaded model is vocabulary {self.vocabulary_id!r}"
-            )
-        if int(arrays["vocabulary_size"]) != self.vocabulary_size:
-            raise VocabularyMismatchError(
-                f"map file {path} has {int(arrays['vocabulary_size'])} words, the model {self.vocabulary_size}"
-            )
-        indptr = arrays["word_indptr"].astype(np.int64)
-        indices = arrays["word_indices"].astype(np.int64)
-        n_places = indptr.size - 1
-        stamps, frames = arrays["place_stamps_ns"], arrays["place_frames"]
-        previous = arrays["previous_posterior"].astype(np.float64)
-        problems = []
-        if n_places < 0 or indptr[0] != 0 or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size:
-            problems.append("inconsistent word_indptr")
-        elif indices.size and (indices.min() < 0 or indices.max() >= self.vocabulary_size):
-            problems.append("word ids out of range")
-        elif _unsorted_within_rows(indptr, indices):
-            problems.append("word ids not sorted unique per place")
-        if stamps.shape != (max(n_places, 0),) or frames.shape != (max(n_places, 0),):
-            problems.append("stamps/frames do not match the number of places")
-        if bool(arrays["has_previous_posterior"]) and previous.size > max(n_places, 0) + 1:
-            problems.append("previous posterior longer than the map")
-        if problems:
-            raise ModelError(f"corrupt map file {path}: {'; '.join(problems)}")
-        arrays = dict(arrays)
-        arrays["word_indptr"], arrays["word_indices"], arrays["previous_posterior"] = indptr, indices, previous
-        return arrays

@@ -1,4 +1,4 @@
 """Local features: the registry of feature types (``kinds``), the descriptor-kind policy (``descriptors``),
-extraction, image decoding and the one descriptor matcher (``matching``). A new feature type goes here."""
+extraction and the one descriptor matcher (``matching``). A new feature type goes here."""
 
-__all__ = ["descriptors", "extraction", "images", "kinds", "matching"]
+__all__ = ["descriptors", "extraction", "kinds", "matching"]

@@ -1,4 +1,5 @@
-"""Image messages -> grayscale arrays, duck-typed: rclpy and rosbags messages alike, no ROS import."""
+"""Image messages -> grayscale arrays, depth images -> metres; duck-typed: rclpy and rosbags messages alike,
+no ROS import."""
 
 from __future__ import annotations
 
@@ -10,8 +11,7 @@ import numpy as np
 from PIL import Image as PILImage
 
 from aefabmap_ros.errors import DataError, ImageTooLargeError
-from aefabmap_ros.features.images import decode_compressed, image_to_gray
-from aefabmap_ros.verification.frame_depths import depth_image_to_metres
+from aefabmap_ros.io.image_encodings import decode_compressed, image_to_gray
 
 
 def image_message_pixels(message: Any) -> int | None:
@@ -46,6 +46,21 @@ def image_message_to_gray(message: Any, max_pixels: int = 0) -> np.ndarray:
             bytes(message.data), message.encoding, int(message.height), int(message.width), int(message.step)
         )
     return decode_compressed(bytes(message.data), str(getattr(message, "format", "")))
+
+
+def depth_image_to_metres(image: np.ndarray, encoding: str) -> np.ndarray:
+    """A depth image as float32 metres with NaN where there is none: 16UC1 in millimetres (0 = none) or
+    32FC1 in metres (NaN, inf or <= 0 = none), the two ROS depth conventions (REP 118)."""
+    if image.ndim != 2:
+        raise DataError(f"depth image must be single-channel, got shape {image.shape}")
+    if encoding in ("16UC1", "mono16"):
+        metres = image.astype(np.float32) / 1000.0
+    elif encoding == "32FC1":
+        metres = image.astype(np.float32, copy=True)
+    else:
+        raise DataError(f"depth encoding {encoding!r} is not 16UC1 (mm) or 32FC1 (m)")
+    metres[~np.isfinite(metres) | (metres <= 0)] = np.nan
+    return metres
 
 
 def depth_message_to_metres(message: Any) -> np.ndarray:

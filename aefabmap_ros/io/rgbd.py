@@ -1,6 +1,6 @@
 """A user's RGB-D recording on disk: depth PNG folders, stamps, TUM / KITTI trajectories, intrinsics.
 
-Everything needed to compute covisibility ground truth (``evaluation.ground_truth.covisibility_loop_matrix``)
+Everything needed to compute covisibility ground truth (``evaluation.covisibility.covisibility_loop_matrix``)
 from files, with every failure a user can cause as a ``DataError`` naming the file:
 
 - depth: a folder of 16-bit single-channel PNGs (ROS 16UC1; ``depth_scale`` units per metre: 1000 for
@@ -24,9 +24,23 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.ground_truth import check_camera_matrix
 
 _SECONDS = re.compile(r"^\s*(\d+)(?:\.(\d*))?\s*$")
+
+
+def check_camera_matrix(camera_matrix: np.ndarray) -> np.ndarray:
+    """A (3, 3) float64 pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, or DataError."""
+    matrix = np.asarray(camera_matrix, dtype=np.float64)
+    if matrix.shape != (3, 3):
+        raise DataError(f"camera_matrix must have shape (3, 3), got {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise DataError(f"camera_matrix contains non-finite values: {matrix.tolist()}")
+    if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
+        fx, fy = float(matrix[0, 0]), float(matrix[1, 1])
+        raise DataError(f"camera_matrix focal lengths must be > 0, got fx={fx!r} fy={fy!r}")
+    if matrix[1, 0] != 0 or not np.array_equal(matrix[2], [0.0, 0.0, 1.0]):
+        raise DataError(f"camera_matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
+    return matrix
 
 
 def seconds_to_ns(text: str) -> int:

@@ -33,7 +33,8 @@ from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.index import warm_up_kernels
-from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, ConfigDifferences, PlaceRecognizer, Recognition
+from aefabmap_ros.fabmap.map_file import ConfigDifferences
+from aefabmap_ros.fabmap.recognizer import RUNTIME_SETTINGS, PlaceRecognizer, Recognition
 from aefabmap_ros.io.atomic import remove_stale_temporaries
 from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (

@@ -10,19 +10,17 @@ from __future__ import annotations
 import array
 from typing import Any
 
-import gtsam
 import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features, LoopClosure, PlacePosterior
 from builtin_interfaces.msg import Time
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
-from aefabmap_ros.backend.pose_graph import pose_from_matrix
-from aefabmap_ros.backend.validation import covariance_problem, pose_problem, stamp_problem
-from aefabmap_ros.errors import ConfigError, DataError, VocabularyMismatchError
+from aefabmap_ros.errors import DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
 from aefabmap_ros.features import extraction as core_features
-from aefabmap_ros.verification.relative_pose import PoseOutcome, pose_message_to_matrix
+from aefabmap_ros.io.message_values import covariance_problem, pose_problem, stamp_problem
+from aefabmap_ros.verification.relative_pose import PoseOutcome
 
 KEYPOINT_FIELDS = ("x", "y", "size", "angle", "response")
 
@@ -216,13 +214,8 @@ def fill_relative_pose(message: LoopClosure, outcome: PoseOutcome) -> None:
     message.translation_metric = outcome.pose.metric
 
 
-def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
-    """A geometry_msgs/Pose as a gtsam Pose3 (one ``message_pose_problem`` accepted: scipy raises on the rest)."""
-    return pose_from_matrix(pose_message_to_matrix(pose))
-
-
 def message_pose_problem(pose: Any, what: str = "pose") -> str | None:
-    """Why a geometry_msgs/Pose is not a usable pose (``validation.pose_problem``); None when it is."""
+    """Why a geometry_msgs/Pose is not a usable pose (``message_values.pose_problem``); None when it is."""
     position, orientation = pose.position, pose.orientation
     return pose_problem((position.x, position.y, position.z),
                         (orientation.x, orientation.y, orientation.z, orientation.w), what)
@@ -245,21 +238,6 @@ def loop_closure_stamp_problem(message: LoopClosure) -> str | None:
 
 def loop_closure_pose_problem(message: LoopClosure) -> str | None:
     """Why a LoopClosure's relative pose and covariance cannot go into the pose graph or the odometry gate
-    (``loop_closure_pose`` would raise on them, or feed NaN to the graph); None when they can."""
+    (``gtsam_poses.loop_closure_pose`` would raise on them, or feed NaN to the graph); None when they can."""
     return message_pose_problem(message.pose, "closure pose") or covariance_problem(
         message.pose_covariance, 6, "closure pose_covariance")
-
-
-def loop_closure_pose(message: LoopClosure) -> tuple[gtsam.Pose3, np.ndarray]:
-    """A LoopClosure's relative pose (the place camera in the query camera's frame) and its 6x6 covariance
-    (ROS order x y z rot), as the backend and the odometry gate take them; meaningful when pose_available."""
-    return pose_to_gtsam(message.pose), np.asarray(message.pose_covariance, dtype=np.float64).reshape(6, 6)
-
-
-def extrinsic_to_gtsam(values: list[float]) -> gtsam.Pose3:
-    """[x, y, z, qx, qy, qz, qw] -> Pose3; ConfigError unless 7 finite numbers with a non-zero quaternion."""
-    array = np.asarray(values, dtype=np.float64)
-    if array.shape != (7,) or not np.isfinite(array).all() or np.linalg.norm(array[3:]) < 1e-9:
-        raise ConfigError(f"base_to_camera must be [x, y, z, qx, qy, qz, qw] with a non-zero quaternion, got {values}")
-    rotation = Rotation.from_quat(array[3:] / np.linalg.norm(array[3:])).as_matrix()
-    return gtsam.Pose3(gtsam.Rot3(rotation), array[:3])

@@ -14,7 +14,7 @@ The closures' poses are between camera frames, odometry is of its child (base) f
 identity by default, for a camera that is the odometry's child frame) turns each closure into one
 between the two base poses (backend/pose_graph.py ``closure_in_base_frame``).
 Bad input is counted and dropped: odometry out of order, odometry with an unusable stamp or pose
-(``bad_odometry``: NaN, a quaternion whose norm is not 1, backend/validation.py), a closure without a
+(``bad_odometry``: NaN, a quaternion whose norm is not 1, io/message_values.py), a closure without a
 pose, one with an unusable pose or covariance (``bad_closure_pose``) or stamp (``bad_closure_stamp``),
 a closure to a stamp the odometry never covered, a closure the odometry drift cannot explain, one the
 solver cannot take (``solver_failed``). Any other exception a message causes is counted by its type
@@ -35,14 +35,8 @@ from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
-from aefabmap_ros.backend.pose_graph import (
-    Closure,
-    ClosureResult,
-    PoseGraph,
-    PoseGraphConfig,
-    closure_in_base_frame,
-    trajectory_arrays,
-)
+from aefabmap_ros.backend.odometry import closure_in_base_frame
+from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import (
     ODOMETRY_QOS,
@@ -53,13 +47,11 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
-    extrinsic_to_gtsam,
-    loop_closure_pose,
     loop_closure_pose_problem,
     loop_closure_stamp_problem,
     odometry_problem,
-    pose_to_gtsam,
     time_from_ns,
 )
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos

@@ -62,7 +62,7 @@ than its image (``depth_size_mismatch``: its pixels are not the keypoints'), a C
 intrinsics (``bad_camera_info``: K all zero, focal lengths not positive and finite; the previous
 intrinsics stay), a PlacePosterior whose candidate arrays differ in length (``bad_posterior``), odometry
 with an unusable stamp or pose (``bad_odometry``: NaN, a quaternion whose norm is not 1;
-backend/validation.py), and a closure whose pose the odometry gate cannot judge (``bad_closure_pose``).
+io/message_values.py), and a closure whose pose the odometry gate cannot judge (``bad_closure_pose``).
 Any other exception a message causes is counted by its type (``node_callback``).
 """
 
@@ -106,14 +106,12 @@ from aefabmap_ros.nodes.common import (
     result_qos,
     run_node,
 )
+from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
-    extrinsic_to_gtsam,
     fill_relative_pose,
-    loop_closure_pose,
     loop_closure_pose_problem,
     message_to_features,
     odometry_problem,
-    pose_to_gtsam,
     posterior_problem,
     time_from_ns,
 )

@@ -26,21 +26,6 @@ from aefabmap_ros.io.chunk_folder import ChunkFolder
 from aefabmap_ros.io.npz_files import read_versioned_npz
 
 
-def depth_image_to_metres(image: np.ndarray, encoding: str) -> np.ndarray:
-    """A depth image as float32 metres with NaN where there is none: 16UC1 in millimetres (0 = none) or
-    32FC1 in metres (NaN, inf or <= 0 = none), the two ROS depth conventions (REP 118)."""
-    if image.ndim != 2:
-        raise DataError(f"depth image must be single-channel, got shape {image.shape}")
-    if encoding in ("16UC1", "mono16"):
-        metres = image.astype(np.float32) / 1000.0
-    elif encoding == "32FC1":
-        metres = image.astype(np.float32, copy=True)
-    else:
-        raise DataError(f"depth encoding {encoding!r} is not 16UC1 (mm) or 32FC1 (m)")
-    metres[~np.isfinite(metres) | (metres <= 0)] = np.nan
-    return metres
-
-
 def depth_size_problem(depth_size: tuple[int, int], image_size: tuple[int, int]) -> str | None:
     """Why a depth image of ``depth_size`` (width, height) cannot give the depths of an ``image_size`` image's
     keypoints: an aligned depth image has the image's pixels, and any other size would read each keypoint's

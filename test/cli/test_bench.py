@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from aefabmap_ros.cli import bench, bench_pipeline
+from aefabmap_ros.cli import bench, bench_nodes, bench_pipeline, bench_stages
 
 
 def test_dispatcher_rejects_unknown_benchmark(capsys: pytest.CaptureFixture[str]) -> None:
@@ -33,11 +33,11 @@ def test_baseline_nodes_load_the_baseline_model(monkeypatch: pytest.MonkeyPatch,
     # A model with a setting the baseline does not know cannot be loaded there: its nodes get their own.
     commands: list[list[str]] = []
     monkeypatch.setattr(subprocess, "Popen", lambda command, **_: commands.append(command))
-    ours, theirs = bench_pipeline.Setup("this", None, False), bench_pipeline.Setup("baseline", tmp_path, False,
+    ours, theirs = bench_nodes.Setup("this", None, False), bench_nodes.Setup("baseline", tmp_path, False,
                                                                                     Path("/old_model"))
     log: Any = None
     for setup in (ours, theirs):
-        bench_pipeline._launch(setup, Path("/model"), tmp_path / "params.yaml", log)
+        bench_nodes._launch(setup, Path("/model"), tmp_path / "params.yaml", log)
     assert [command[command.index("--model") + 1] for command in commands] == ["/model", "/old_model"]
 
 
@@ -64,7 +64,7 @@ def test_pipeline_times_the_papers_network_beside_the_distilled_encoder() -> Non
     import numpy as np
     import scipy.sparse
 
-    from aefabmap_ros.cli.bench_pipeline import stage_latencies
+    from aefabmap_ros.cli.bench_stages import stage_latencies
     from aefabmap_ros.cli.bench_vocab import _synthetic_images
     from aefabmap_ros.features.extraction import FeatureConfig, extract_features
     from aefabmap_ros.model.directory import Model
@@ -105,9 +105,9 @@ def test_camera_runs_report_where_each_node_dropped_frames() -> None:
         "[INFO] [1795474684.20] [fabmap_node]: fabmap_node: processed=74",
         "[INFO] [1795474684.30] [fabmap_node]: saved the map: 74 places",
     ])
-    assert bench_pipeline.node_drops(log) == {"feature_node busy": 48, "quantizer_node before_callback": 2,
+    assert bench_nodes.node_drops(log) == {"feature_node busy": 48, "quantizer_node before_callback": 2,
                                "quantizer_node busy": 26}
-    assert bench_pipeline.node_drops("") == {}
+    assert bench_nodes.node_drops("") == {}
 
 
 def test_stage_timings_run_with_the_thread_pools_of_one_node_process() -> None:
@@ -119,7 +119,7 @@ def test_stage_timings_run_with_the_thread_pools_of_one_node_process() -> None:
     before = torch.get_num_threads()
     torch.set_num_threads(4)
     try:
-        with bench_pipeline.thread_pools_of_a_node_process() as threads:
+        with bench_stages.thread_pools_of_a_node_process() as threads:
             assert threads == threads_per_process(len(DETECTION_NODES))
             assert torch.get_num_threads() == threads
             assert all(pool["num_threads"] <= threads for pool in threadpool_info())

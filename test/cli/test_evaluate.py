@@ -15,7 +15,7 @@ from aefabmap_ros.cli import synth
 from aefabmap_ros.cli.evaluate import main
 from aefabmap_ros.evaluation.metrics import evaluate_scores, event_scores
 from aefabmap_ros.verification.geometric import VerificationConfig
-from test.evaluation.test_recordings import _three_event_gt
+from test.evaluation.test_closure_scores import _three_event_gt
 
 FRAMES = 30
 # Tiny vocabularies so the whole module trains in seconds; names as in VocabularyConfig/FeatureConfig.
@@ -342,9 +342,9 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                     posterior_topic: str = "/place_posteriors") -> None:
     """A recording with ``posterior_topic`` and one LoopClosure topic per key of ``closures``. Entries name
     frames (stamped ``frame_stamp``); ``query_ids`` numbers them as fabmap_node did (default: the frame)."""
-    from aefabmap_ros.io import bags
+    from aefabmap_ros.io import bag_messages, bags
 
-    types = bags.get_typestore().types
+    types = bag_messages.get_typestore().types
     ids = query_ids or {}
     with bags.BagWriter(path) as writer:
         writer.add_topic(posterior_topic, "aefabmap_msgs/msg/PlacePosterior")
@@ -353,18 +353,18 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
         for frame, places, probabilities in posteriors:
             query = ids.get(frame, frame)
             message = types["aefabmap_msgs/msg/PlacePosterior"](
-                header=bags.make_header(frame_stamp(frame)), query_id=query, assigned_place_id=query,
+                header=bag_messages.make_header(frame_stamp(frame)), query_id=query, assigned_place_id=query,
                 current_place_id=query,
                 is_new_place=True, loop_closure_candidate=False, new_place_probability=1.0 - sum(probabilities),
                 place_ids=np.array([ids.get(p, p) for p in places], dtype=np.int64),
-                place_stamps=[bags.make_time(frame_stamp(p)) for p in places],
+                place_stamps=[bag_messages.make_time(frame_stamp(p)) for p in places],
                 probabilities=np.array(probabilities, dtype=np.float64),
                 log_likelihoods=np.zeros(len(places), dtype=np.float64),
             )
             writer.write(posterior_topic, frame_stamp(frame), message)
         for topic, entries in closures.items():
             for frame, place, probability, *rest in entries:
-                pose = bags.no_pose_fields()
+                pose = bag_messages.no_pose_fields()
                 if len(rest) > 1:
                     matrix, metric = rest[1], rest[2]
                     x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
@@ -373,9 +373,10 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                                     position=types["geometry_msgs/msg/Point"](*(float(v) for v in matrix[:3, 3])),
                                     orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)))
                 message = types["aefabmap_msgs/msg/LoopClosure"](
-                    header=bags.make_header(frame_stamp(frame)), query_id=ids.get(frame, frame),
+                    header=bag_messages.make_header(frame_stamp(frame)), query_id=ids.get(frame, frame),
                     query_place_id=ids.get(place, place), matched_place_id=ids.get(place, place),
-                    matched_stamp=bags.make_time(frame_stamp(place)), probability=probability, log_likelihood=0.0,
+                    matched_stamp=bag_messages.make_time(frame_stamp(place)), probability=probability,
+                    log_likelihood=0.0,
                     inliers=rest[0] if rest else -1, **pose,
                 )
                 writer.write(topic, frame_stamp(frame), message)

@@ -8,8 +8,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.cli.gt import main
-from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, write_kitti_poses
-from test.evaluation.test_ground_truth import _pose, _room_depth
+from aefabmap_ros.evaluation.covisibility import covisibility_loop_matrix
+from aefabmap_ros.evaluation.ground_truth import write_kitti_poses
+from test.evaluation.test_covisibility import _pose, _room_depth
 
 HEIGHT, WIDTH = 24, 32
 CAMERA = np.array([[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]])

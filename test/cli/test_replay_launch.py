@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from aefabmap_ros.cli import launch, record, replay
+from aefabmap_ros.cli import launch, record, replay, replay_messages
 from aefabmap_ros.io.bags import write_image_bag
 from test.ros_processes import LoggedProcess
 
@@ -47,19 +47,19 @@ def test_companions_go_out_before_the_image_of_their_log_time() -> None:
 
     in_bag = [message("/image", 1), message("/depth", 1), message("/odom", 1), message("/image", 2),
               message("/odom", 2), message("/odom", 3), message("/image", 4)]
-    order = [(m.topic, m.log_time_ns) for m in replay.companions_first(in_bag, "/image")]
+    order = [(m.topic, m.log_time_ns) for m in replay_messages.companions_first(in_bag, "/image")]
     assert order == [("/depth", 1), ("/odom", 1), ("/image", 1), ("/odom", 2), ("/image", 2), ("/odom", 3),
                      ("/image", 4)]
 
 
 def test_replay_restamps_later_laps() -> None:
-    from aefabmap_ros.io.bags import get_typestore, make_image_message
+    from aefabmap_ros.io.bag_messages import get_typestore, make_image_message
     from aefabmap_ros.stamps import stamp_to_ns
 
     typestore = get_typestore()
     raw = bytes(typestore.serialize_cdr(make_image_message(np.zeros((2, 2), np.uint8), 5_000), "sensor_msgs/msg/Image"))
-    assert replay._restamped(raw, "sensor_msgs/msg/Image", 0) == raw
-    restamped = replay._restamped(raw, "sensor_msgs/msg/Image", 7_000)
+    assert replay_messages.restamped(raw, "sensor_msgs/msg/Image", 0) == raw
+    restamped = replay_messages.restamped(raw, "sensor_msgs/msg/Image", 7_000)
     moved: Any = typestore.deserialize_cdr(restamped, "sensor_msgs/msg/Image")
     assert stamp_to_ns(moved.header.stamp) == 12_000
 

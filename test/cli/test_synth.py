@@ -64,6 +64,7 @@ def test_writes_folder_sequences(tmp_path, capsys):
 
 def test_writes_mcap_bag(tmp_path):
     bags = pytest.importorskip("aefabmap_ros.io.bags")
+    bag_messages = pytest.importorskip("aefabmap_ros.io.bag_messages")
     assert main(["--out", str(tmp_path), "--kind", "test", "--format", "both", "--topic", "/cam", *SMALL]) == 0
     directory = tmp_path / "test"
     messages = list(bags.read_messages(directory / "bag", ["/cam"]))
@@ -79,8 +80,9 @@ def test_writes_mcap_bag(tmp_path):
     for name in ("loop_gt.npz", "loop_gt_poses.npz"):
         with np.load(directory / name) as data:
             assert data["stamps_ns"].dtype == np.int64 and data["stamps_ns"].tolist() == stamps
-    assert bags.list_topics(directory / "bag") == {"/cam": bags.IMAGE_TYPE, "/depth": bags.IMAGE_TYPE,
-                                                   "/camera_info": bags.CAMERA_INFO_TYPE, "/odom": bags.ODOMETRY_TYPE}
+    assert bags.list_topics(directory / "bag") == {
+        "/cam": bag_messages.IMAGE_TYPE, "/depth": bag_messages.IMAGE_TYPE,
+        "/camera_info": bag_messages.CAMERA_INFO_TYPE, "/odom": bag_messages.ODOMETRY_TYPE}
     # The odometry topic is odometry.tum's drifting odometry, frame by frame, stamped like the images.
     odometry = list(bags.read_messages(directory / "bag", ["/odom"]))
     assert [m.stamp_ns for m in odometry] == stamps

@@ -39,7 +39,7 @@ openfabmap = FabMapConfig.openfabmap  # openFABMAP's semantics: the golden refer
 @pytest.fixture(scope="module")
 def golden():
     directory = require_shared("golden", "openfabmap_rtab")
-    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+    from aefabmap_ros.fabmap.openfabmap import read_bow, read_chow_liu_tree
 
     return SimpleNamespace(
         tree=read_chow_liu_tree(directory / "tree.yml"),

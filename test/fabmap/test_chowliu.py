@@ -130,7 +130,7 @@ def test_matrix_round_trip_and_validation():
 
 
 def test_learned_tree_matches_openfabmap_tree(golden_dir):
-    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+    from aefabmap_ros.fabmap.openfabmap import read_bow, read_chow_liu_tree
 
     golden = read_chow_liu_tree(golden_dir / "tree.yml")
     bow = read_bow(golden_dir / "bowtrain.yml")

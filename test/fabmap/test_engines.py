@@ -25,7 +25,7 @@ GOLDEN_RUNS = [
 
 @pytest.mark.parametrize(("prefix", "config", "method"), GOLDEN_RUNS)
 def test_reproduces_openfabmap_golden_outputs(golden_dir, prefix, config, method):
-    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+    from aefabmap_ros.fabmap.openfabmap import read_bow, read_chow_liu_tree
 
     tree = read_chow_liu_tree(golden_dir / "tree.yml")
     train = read_bow(golden_dir / "bowtrain.yml")

@@ -52,7 +52,7 @@ def test_online_matches_offline_all_policy(motion):
 
 
 def test_golden_sequence_online(golden_dir):
-    from aefabmap_ros.io.openfabmap import read_bow, read_chow_liu_tree
+    from aefabmap_ros.fabmap.openfabmap import read_bow, read_chow_liu_tree
 
     tree = read_chow_liu_tree(golden_dir / "tree.yml")
     train = sp.csr_matrix(read_bow(golden_dir / "bowtrain.yml"))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.errors import BagError
-from aefabmap_ros.io import bags
+from aefabmap_ros.io import bag_messages, bags
 from aefabmap_ros.stamps import stamp_to_ns
 
 
@@ -20,7 +20,7 @@ def test_image_bag_round_trip(tmp_path: Path, storage: str) -> None:
     frames = _frames(5)
     path = tmp_path / "images"
     assert bags.write_image_bag(path, "/cam/image", frames, storage=storage) == 5
-    assert bags.list_topics(path) == {"/cam/image": bags.IMAGE_TYPE}
+    assert bags.list_topics(path) == {"/cam/image": bag_messages.IMAGE_TYPE}
     read = list(bags.read_messages(path, ["/cam/image"]))
     assert [m.stamp_ns for m in read] == [stamp for stamp, _ in frames]
     for message, (_, image) in zip(read, frames, strict=True):
@@ -30,20 +30,20 @@ def test_image_bag_round_trip(tmp_path: Path, storage: str) -> None:
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
-    types = bags.get_typestore().types
+    types = bag_messages.get_typestore().types
     loop = types["aefabmap_msgs/msg/LoopClosure"](
-        header=bags.make_header(5_000_000_123, "cam"),
+        header=bag_messages.make_header(5_000_000_123, "cam"),
         query_id=42,
         query_place_id=7,
         matched_place_id=7,
-        matched_stamp=bags.make_time(1_000_000_456),
+        matched_stamp=bag_messages.make_time(1_000_000_456),
         probability=0.995,
         log_likelihood=-12.5,
         inliers=37,
-        **bags.no_pose_fields(),
+        **bag_messages.no_pose_fields(),
     )
     features = types["aefabmap_msgs/msg/Features"](
-        header=bags.make_header(5_000_000_123, "cam"),
+        header=bag_messages.make_header(5_000_000_123, "cam"),
         descriptor_type="sift",
         image_width=640,
         image_height=480,
@@ -60,10 +60,11 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
     with bags.BagWriter(path, storage=storage) as writer:
         writer.add_topic("/loop_closures", "aefabmap_msgs/msg/LoopClosure")
         writer.add_topic("/aefabmap/features", "aefabmap_msgs/msg/Features")
-        writer.add_topic("/image", bags.IMAGE_TYPE)
+        writer.add_topic("/image", bag_messages.IMAGE_TYPE)
         writer.write("/loop_closures", 5_000_000_123, loop)
         writer.write("/aefabmap/features", 5_000_000_123, features)
-        writer.write("/image", 5_000_000_123, bags.make_image_message(np.zeros((4, 4, 3), np.uint8), 5_000_000_123))
+        image = bag_messages.make_image_message(np.zeros((4, 4, 3), np.uint8), 5_000_000_123)
+        writer.write("/image", 5_000_000_123, image)
     read = {m.topic: m.message for m in bags.read_messages(path, ["/loop_closures", "/aefabmap/features", "/image"])}
     got_loop = read["/loop_closures"]
     assert (got_loop.query_id, got_loop.matched_place_id, got_loop.probability, got_loop.inliers) == (42, 7, 0.995, 37)
@@ -79,7 +80,7 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
 def test_writer_is_atomic_on_error(tmp_path: Path) -> None:
     path = tmp_path / "bag"
     with pytest.raises(RuntimeError), bags.BagWriter(path) as writer:
-        writer.add_topic("/image", bags.IMAGE_TYPE)
+        writer.add_topic("/image", bag_messages.IMAGE_TYPE)
         raise RuntimeError("interrupted")
     assert not path.exists()
     assert list(tmp_path.iterdir()) == []
@@ -127,7 +128,8 @@ def test_rgbd_bag_round_trip(tmp_path: Path) -> None:
     frames = [(1_000, image, depth), (2_000, image + 1, depth + 1)]
     assert bags.write_rgbd_bag(tmp_path / "bag", "/cam/image", frames, camera) == 2
     assert bags.list_topics(tmp_path / "bag") == {
-        "/cam/image": bags.IMAGE_TYPE, "/cam/depth": bags.IMAGE_TYPE, "/cam/camera_info": bags.CAMERA_INFO_TYPE}
+        "/cam/image": bag_messages.IMAGE_TYPE, "/cam/depth": bag_messages.IMAGE_TYPE,
+        "/cam/camera_info": bag_messages.CAMERA_INFO_TYPE}
     messages = list(bags.read_messages(tmp_path / "bag", ["/cam/image", "/cam/depth", "/cam/camera_info"]))
     assert [m.stamp_ns for m in messages] == [1_000] * 3 + [2_000] * 3
     by_topic = {m.topic: m.message for m in messages[:3]}
@@ -154,7 +156,7 @@ def test_rgbd_bag_errors(tmp_path: Path) -> None:
     with pytest.raises(BagError, match=r"camera_matrix must be a finite \(3, 3\) array, got shape \(2, 2\)"):
         bags.write_rgbd_bag(tmp_path / "b", "/image", [(1, image, np.zeros((3, 4), np.uint16))], np.eye(2))
     with pytest.raises(BagError, match="got int32 \\(3, 4\\)"):
-        bags.make_image_message(np.zeros((3, 4), np.int32), 0)
+        bag_messages.make_image_message(np.zeros((3, 4), np.int32), 0)
 
 
 @pytest.mark.parametrize(("storage", "extension"), [("mcap", "mcap"), ("sqlite3", "db3")])
@@ -191,8 +193,8 @@ def test_an_older_loop_closure_recording_stays_readable(tmp_path: Path) -> None:
     old = get_typestore(Stores.ROS2_JAZZY)
     old.register(get_types_from_msg(OLD_LOOP_CLOSURE, "aefabmap_msgs/msg/LoopClosure"))
     message = old.types["aefabmap_msgs/msg/LoopClosure"](
-        header=bags.make_header(5_000_000_123, "cam"), query_id=42, query_place_id=7, matched_place_id=7,
-        matched_stamp=bags.make_time(1_000_000_456), probability=0.995, log_likelihood=-12.5, inliers=37)
+        header=bag_messages.make_header(5_000_000_123, "cam"), query_id=42, query_place_id=7, matched_place_id=7,
+        matched_stamp=bag_messages.make_time(1_000_000_456), probability=0.995, log_likelihood=-12.5, inliers=37)
     path = tmp_path / "old"
     with bags.BagWriter(path) as writer:
         writer._typestore = old  # what the recorder of that time embedded and serialized

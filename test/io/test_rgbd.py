@@ -1,4 +1,5 @@
-"""io.rgbd's camera_info.yaml reader: K, distortion and size as ROS camera_calibration_parsers writes them."""
+"""io.rgbd's camera_info.yaml reader (K, distortion and size as ROS camera_calibration_parsers writes them) and
+its pinhole check."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 
 from aefabmap_ros.cli.synth import camera_info_yaml
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.io.rgbd import read_camera_info_yaml
+from aefabmap_ros.io.rgbd import check_camera_matrix, read_camera_info_yaml
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 510.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -64,3 +65,17 @@ def test_bad_files_are_refused_by_name(tmp_path, text, message):
     with pytest.raises(DataError, match=message) as error:
         read_camera_info_yaml(path)
     assert f"cannot read camera info {path}" in str(error.value)
+
+
+def test_a_camera_matrix_is_a_pinhole_or_refused_by_name():
+    pinhole = check_camera_matrix(np.array([[500, 0.5, 320], [0, 510, 240], [0, 0, 1]]))
+    assert pinhole.dtype == np.float64 and pinhole[0, 1] == 0.5  # a skew is allowed
+    for matrix, problem in (
+        (np.eye(2), r"shape \(3, 3\), got \(2, 2\)"),
+        (np.array([[np.nan, 0, 1], [0, 1, 1], [0, 0, 1]]), "non-finite"),
+        (np.array([[0.0, 0, 1], [0, 1, 1], [0, 0, 1]]), "focal lengths must be > 0"),
+        (np.array([[1.0, 0, 1], [0.1, 1, 1], [0, 0, 1]]), r"must be \[\[fx, s, cx\]"),
+        (np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 2]]), r"must be \[\[fx, s, cx\]"),
+    ):
+        with pytest.raises(DataError, match=problem):
+            check_camera_matrix(matrix)

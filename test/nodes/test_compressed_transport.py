@@ -17,7 +17,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 msg = pytest.importorskip("aefabmap_msgs.msg")
 
-from aefabmap_ros.io import bags  # noqa: E402
+from aefabmap_ros.io import bag_messages, bags  # noqa: E402
 from aefabmap_ros.stamps import stamp_to_ns  # noqa: E402
 from test.ros_processes import LoggedProcess  # noqa: E402
 
@@ -39,13 +39,13 @@ def _frames() -> list[tuple[int, np.ndarray]]:
 
 def _compressed_bag(path: Path, topic: str, frames: list[tuple[int, np.ndarray]]) -> None:
     """The frames as lossless PNG sensor_msgs/CompressedImage, as image_transport's png mode records them."""
-    compressed_type = bags.get_typestore().types[bags.COMPRESSED_IMAGE_TYPE]
+    compressed_type = bag_messages.get_typestore().types[bag_messages.COMPRESSED_IMAGE_TYPE]
     with bags.BagWriter(path) as writer:
-        writer.add_topic(topic, bags.COMPRESSED_IMAGE_TYPE)
+        writer.add_topic(topic, bag_messages.COMPRESSED_IMAGE_TYPE)
         for stamp_ns, image in frames:
             ok, png = cv2.imencode(".png", image)
             assert ok
-            message = compressed_type(header=bags.make_header(stamp_ns), format="mono8; png compressed mono8",
+            message = compressed_type(header=bag_messages.make_header(stamp_ns), format="mono8; png compressed mono8",
                                       data=png.reshape(-1))
             writer.write(topic, stamp_ns, message)
 

@@ -21,7 +21,8 @@ pytest.importorskip("rclpy")
 pytest.importorskip("aefabmap_msgs.msg")
 
 from aefabmap_ros.cli.synth import write_sequence
-from aefabmap_ros.datasets.synth.town import SynthConfig, generate_sequence, train_test_configs
+from aefabmap_ros.datasets.synth.config import SynthConfig, train_test_configs
+from aefabmap_ros.datasets.synth.town import generate_sequence
 from aefabmap_ros.io.bags import read_messages
 from aefabmap_ros.io.config_files import shipped_config
 from test.revisit_fixture import RevisitData

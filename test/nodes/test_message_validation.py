@@ -18,20 +18,14 @@ msg = pytest.importorskip("aefabmap_msgs.msg")
 from builtin_interfaces.msg import Time  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 
+from aefabmap_ros.backend.odometry import closure_in_base_frame  # noqa: E402
 from aefabmap_ros.backend.odometry_gate import OdometryGate  # noqa: E402
-from aefabmap_ros.backend.pose_graph import (  # noqa: E402
-    Closure,
-    ClosureResult,
-    PoseGraph,
-    PoseGraphConfig,
-    closure_in_base_frame,
-)
+from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig  # noqa: E402
+from aefabmap_ros.nodes.gtsam_poses import loop_closure_pose, pose_to_gtsam  # noqa: E402
 from aefabmap_ros.nodes.messages import (  # noqa: E402
-    loop_closure_pose,
     loop_closure_pose_problem,
     loop_closure_stamp_problem,
     odometry_problem,
-    pose_to_gtsam,
     posterior_problem,
 )
 from aefabmap_ros.stamps import stamp_to_ns  # noqa: E402

@@ -1,4 +1,4 @@
-"""What verification keeps of each frame's depth (verification/frame_depths.py): depth conventions, keypoint
+"""What verification keeps of each frame's depth (verification/frame_depths.py): keypoint
 depths and grids against hand-computed values, the store's bounds and order, and its folder across a restart."""
 
 from __future__ import annotations
@@ -15,20 +15,10 @@ from aefabmap_ros.verification.frame_depths import (
     DepthGrid,
     FrameDepthFolder,
     FrameDepthStore,
-    depth_image_to_metres,
     depth_size_problem,
     grid_step_for,
     sample_depth_grid,
 )
-
-
-def test_depth_images_in_both_encodings() -> None:
-    millimetres = np.array([[0, 1500], [2000, 65535]], dtype=np.uint16)
-    np.testing.assert_allclose(depth_image_to_metres(millimetres, "16UC1"), [[np.nan, 1.5], [2.0, 65.535]])
-    metres = np.array([[np.nan, 1.5], [-1.0, np.inf]], dtype=np.float32)
-    np.testing.assert_allclose(depth_image_to_metres(metres, "32FC1"), [[np.nan, 1.5], [np.nan, np.nan]])
-    with pytest.raises(DataError):
-        depth_image_to_metres(millimetres, "rgb8")
 
 
 def test_the_grid_samples_every_step_th_pixel_half_a_step_in() -> None:

@@ -1,17 +1,17 @@
-"""Synthetic town: geometry, ground truth, image statistics, determinism and disjoint worlds."""
+"""Synthetic town sequences: shapes, poses, ground truth, image statistics, determinism, colour (the parts:
+test_config.py, test_world.py, test_trajectory.py, test_renderer.py)."""
 
 import math
 from dataclasses import replace
-from typing import cast
 
 import cv2
 import numpy as np
 import pytest
 
-from aefabmap_ros.datasets.synth import town as synth
-from aefabmap_ros.datasets.synth.town import SynthConfig, depth_to_16uc1, generate_sequence, train_test_configs
-from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.evaluation.ground_truth import covisibility_loop_matrix, positions_and_axes
+from aefabmap_ros.datasets.synth.config import SynthConfig
+from aefabmap_ros.datasets.synth.town import depth_to_16uc1, generate_sequence
+from aefabmap_ros.evaluation.covisibility import covisibility_loop_matrix
+from aefabmap_ros.evaluation.ground_truth import positions_and_axes
 
 # 640x480 so that SIFT statistics mean what they mean at the default size; 120 frames over 2 laps.
 SEQUENCE_CONFIG = SynthConfig(seed=5, num_frames=120)
@@ -118,86 +118,6 @@ def test_depth_to_16uc1():
     assert millimetres.tolist() == [[0, 0, 1, 1234], [65535, 0, 0, 0]]
 
 
-def _single_wall_world(config: SynthConfig) -> synth.World:
-    """The town's atlas with one facade: the wall y = 5.13 m from x = -10 to 10, 3 m high, facing south."""
-    world = synth.build_world(config)
-    facades = synth._Facades(
-        start=np.array([[10.0, 5.13]]), direction=np.array([[-1.0, 0.0]]), normal=np.array([[0.0, -1.0]]),
-        length_m=np.array([20.0]), height_m=np.array([3.0]), texture_id=np.array([3]),
-        texels_per_m=np.array([config.texels_per_m]))
-    return replace(world, facades=facades)
-
-
-def _reference_depth(camera, origin_xy, heading, height_m):
-    """Per-pixel 3-D ray casting against the ground z = 0 and the wall y = 5.13 (|x| <= 10, z <= 3)."""
-    forward = np.array([math.cos(heading), math.sin(heading), 0.0])
-    right = np.array([math.sin(heading), -math.cos(heading), 0.0])
-    down = np.array([0.0, 0.0, -1.0])
-    origin = np.array([origin_xy[0], origin_xy[1], height_m])
-    depth = np.zeros((camera.height, camera.width))
-    for row in range(camera.height):
-        for column in range(camera.width):
-            ray = forward + (column - camera.cx) / camera.focal_px * right + (row - camera.cy) / camera.focal_px * down
-            best = math.inf
-            if ray[2] < 0:
-                best = -origin[2] / ray[2]  # ground; the ray's forward component is 1: t is the depth
-            if ray[1] > 0:
-                t = (5.13 - origin[1]) / ray[1]
-                hit = origin + t * ray
-                if t > 0 and abs(hit[0]) <= 10 and 0 <= hit[2] <= 3 and t < best:
-                    best = t
-            depth[row, column] = 0.0 if math.isinf(best) else best
-    return depth
-
-
-@pytest.mark.parametrize(("origin_xy", "heading_deg"), [((0.3, 0.0), 90.0), ((-2.0, -1.0), 70.0), ((1.0, 2.0), 120.0)])
-def test_rendered_depth_is_the_ray_plane_intersection(origin_xy, heading_deg):
-    config = replace(TINY_CONFIG, width=64, height=48)
-    world = _single_wall_world(config)
-    camera = synth.PinholeCamera.from_config(config)
-    heading = math.radians(heading_deg)
-    image, depth = synth.render_view_and_depth(world, camera, np.array(origin_xy), heading, 1.6, 0.0, 150.0)
-    assert image.shape == (48, 64) and depth.shape == (48, 64) and depth.dtype == np.float32
-    reference = _reference_depth(camera, origin_xy, heading, 1.6)
-    np.testing.assert_allclose(depth, reference, rtol=1e-5)
-    assert (depth == 0).any() and (depth > 0).any()  # sky above the wall, wall and ground below
-    x_col = (32 - camera.cx) / camera.focal_px  # column 32's ray meets the wall's plane at this depth
-    wall_depth = (5.13 - origin_xy[1]) / (math.sin(heading) - x_col * math.cos(heading))
-    assert (np.abs(depth[:, 32] - wall_depth) < 1e-3).sum() >= 5
-
-
-def test_town_depth_ground_rows_and_sky():
-    config = replace(TINY_CONFIG, width=80, height=60)
-    world = synth.build_world(config)
-    camera = synth.PinholeCamera.from_config(config)
-    # In the middle street (x = 40 m), looking north along it: the bottom row sees the road 1.6 m below.
-    _, depth = synth.render_view_and_depth(world, camera, np.array([41.0, 25.0]), math.pi / 2, 1.6, 0.0, 150.0)
-    rows = np.arange(config.height)
-    ground = 1.6 * camera.focal_px / (rows - camera.cy)
-    np.testing.assert_allclose(depth[-1], ground[-1], rtol=1e-5)
-    np.testing.assert_allclose(depth[-5:, 40], ground[-5:], rtol=1e-5)
-    assert (depth[0] == 0).any()  # sky between the facades at the top of the image
-    assert np.isfinite(depth).all() and depth.max() < 200.0
-
-
-def test_covisibility_of_a_rendered_revisit():
-    """The same spot of the middle street seen again 10 s later a metre further on is a revisit; the same
-    spot driven in the opposite direction, or from around the corner, is not."""
-    config = replace(TINY_CONFIG, width=160, height=120)
-    world = synth.build_world(config)
-    camera = synth.PinholeCamera.from_config(config)
-    views = [((41.0, 25.0), 90.0), ((41.2, 26.0), 93.0), ((41.0, 25.0), 270.0), ((50.0, 40.0), 0.0)]
-    depths = np.stack([synth.render_view_and_depth(world, camera, np.array(xy), math.radians(heading), 1.6, 0.0,
-                                                   150.0)[1] for xy, heading in views])
-    positions = np.array([[x, y, 1.6] for (x, y), _ in views])
-    poses = synth.poses_from_headings(positions, np.radians([heading for _, heading in views]))
-    stamps = np.arange(4, dtype=np.int64) * 10_000_000_000
-    gt = covisibility_loop_matrix(depths, poses, camera.matrix(), stamps)
-    assert gt[1, 0] == 1
-    assert gt[2, 0] == 0 and gt[2, 1] == 0
-    assert gt[3].sum() == 0
-
-
 def test_sift_finds_plenty_of_keypoints(sift_features):
     counts = np.array([len(sift_features[index][0]) for index in range(0, SEQUENCE_CONFIG.num_frames, 4)])
     assert np.median(counts) >= 300
@@ -239,143 +159,3 @@ def test_color_images():
     assert sequence.images[0].shape == (72, 96, 3)
     channels = sequence.images[0].reshape(-1, 3).mean(axis=0)
     assert channels.max() - channels.min() > 1.0  # bluish sky, coloured facades: not grey
-
-
-def test_train_and_test_worlds_differ():
-    train, test = train_test_configs(TINY_CONFIG)
-    assert train.seed != test.seed
-    assert replace(train, seed=test.seed) == test
-    train_world = synth.build_world(train)
-    test_world = synth.build_world(test)
-    # Same street grid and route, other facades and textures: no texture of one town is in the other.
-    assert train_world.route_nodes == test_world.route_nodes and train_world.pitch_m == test_world.pitch_m
-    train_textures = {_entry(train_world, t).tobytes() for t in range(train_world.entry_x.shape[0] - 2)}
-    test_textures = {_entry(test_world, t).tobytes() for t in range(test_world.entry_x.shape[0] - 2)}
-    assert not train_textures & test_textures
-
-
-def _entry(world, texture_id: int) -> np.ndarray:
-    x, y = int(world.entry_x[texture_id, 0]), int(world.entry_y[texture_id, 0])
-    w, h = int(world.entry_w[texture_id, 0]), int(world.entry_h[texture_id, 0])
-    return world.atlas[y : y + h, x : x + w]
-
-
-def test_repeated_textures_are_shared():
-    config = replace(TINY_CONFIG, repeated_texture_fraction=1.0)
-    world = synth.build_world(config)
-    ids = world.facades.texture_id[world.facades.texels_per_m == config.texels_per_m]
-    assert set(ids.tolist()) <= {0, 1, 2}  # every facade along the route shows one of the 3 shared textures
-    world = synth.build_world(replace(TINY_CONFIG, repeated_texture_fraction=0.0))
-    near = world.facades.texels_per_m == TINY_CONFIG.texels_per_m
-    assert np.unique(world.facades.texture_id[near]).size == near.sum()
-
-
-def test_column_ray_cast_against_a_single_wall():
-    """Wall y = 5 from x = -10 to 10 facing south; camera at the origin looking north."""
-    facades = synth._Facades(
-        start=np.array([[-10.0, 5.0]]),
-        direction=np.array([[1.0, 0.0]]),
-        normal=np.array([[0.0, -1.0]]),
-        length_m=np.array([20.0]),
-        height_m=np.array([6.0]),
-        texture_id=np.array([0]),
-        texels_per_m=np.array([64.0]),
-    )
-    world = cast(synth.World, type("W", (), {"facades": facades})())
-    camera = synth.PinholeCamera(focal_px=100.0, cx=49.5, cy=39.5, width=100, height=80)
-    heading = math.pi / 2
-    forward = np.array([math.cos(heading), math.sin(heading)])
-    right = np.array([math.sin(heading), -math.cos(heading)])
-    np.testing.assert_allclose(right, [1.0, 0.0], atol=1e-12)
-    hits = synth._cast_columns(world, camera, np.zeros(2), forward, right)
-    x_col = (np.arange(100) - 49.5) / 100.0
-    np.testing.assert_allclose(hits.depth[0], 5.0)  # depth along the optical axis is constant on a facing wall
-    np.testing.assert_allclose(hits.along_m[0], 10.0 + 5.0 * x_col)
-    np.testing.assert_allclose(hits.slope_m[0], 5.0 / 100.0)
-    # Seen from behind (camera north of the wall, looking south) the wall is culled.
-    back = synth._cast_columns(world, camera, np.array([0.0, 10.0]), -forward, -right)
-    assert np.isinf(back.depth).all()
-
-
-@pytest.mark.parametrize(
-    ("changes", "match"),
-    [
-        ({"num_frames": 0}, "num_frames must be > 0, got 0"),
-        ({"width": "640"}, "width must be int, got '640'"),
-        ({"color": 1}, "color must be bool, got 1"),
-        ({"fov_deg": 200.0}, r"fov_deg must be in \[10, 150\], got 200.0"),
-        ({"blur_probability": 1.5}, r"blur_probability must be in \[0, 1\], got 1.5"),
-        ({"lighting_variation": 1.0}, r"lighting_variation must be in \[0, 1\), got 1.0"),
-        ({"noise_sigma": -1.0}, "noise_sigma must be >= 0, got -1.0"),
-        ({"width": 8}, "width and height must be >= 16, got 8x480"),
-        ({"lane_offset_m": 3.5}, "lane_offset_m 3.5 .* within 1 m of the walls"),
-        ({"camera_height_m": 5.0}, "camera_height_m must be < 4"),
-        ({"gt_max_angle_deg": 181.0}, r"gt_max_angle_deg must be in \[0, 180\]"),
-        ({"gt_min_gap_s": -1.0}, "gt_min_gap_s must be >= 0, got -1.0"),
-    ],
-)
-def test_config_errors(changes, match):
-    with pytest.raises(ConfigError, match=match):
-        SynthConfig(**changes)
-
-
-def test_config_accepts_int_for_float_and_documents_fields():
-    config = SynthConfig(fov_deg=70)
-    assert config.fov_deg == 70.0 and isinstance(config.fov_deg, float)
-    from dataclasses import fields
-
-    assert all(item.metadata.get("description") for item in fields(SynthConfig))
-    assert all(type(item.default) in (bool, int, float, str) for item in fields(SynthConfig))
-
-
-def test_default_route_is_unchanged_and_routes_are_checked():
-    assert SynthConfig().route == "figure-eight"
-    assert synth._route_nodes() == [(2, 1), (2, 2), (1, 2), (1, 1), (2, 1), (2, 2), (3, 2), (3, 1), (2, 1)]
-    with pytest.raises(ConfigError, match=r"route must be one of \['dense-video', 'figure-eight'\], got 'spiral'"):
-        SynthConfig(route="spiral")
-
-
-@pytest.fixture(scope="module")
-def dense_drive():
-    config = synth.dense_video_config()
-    world = synth.build_world(replace(config, texels_per_m=8.0, ground_texels_per_m=4.0))  # geometry only
-    positions, headings = synth._trajectory(config, world, np.random.default_rng(0))
-    return config, world, positions, headings
-
-
-def test_dense_video_preset(dense_drive):
-    config, _, positions, headings = dense_drive
-    assert (config.num_frames, config.frame_rate_hz, config.route) == (3600, 30.0, "dense-video")
-    assert positions.shape == (3600, 2) and headings.shape == (3600,)
-    speed = np.linalg.norm(np.diff(positions, axis=0), axis=1) * config.frame_rate_hz  # m/s
-    # A stop of at least 4 s (standing still), slow and fast stretches.
-    still = np.r_[0, (speed < 1e-9).astype(int), 0]
-    runs = np.diff(np.nonzero(np.diff(still))[0])[::2]
-    assert runs.max() >= 4 * 30
-    moving = speed[speed > 0.1]
-    assert np.percentile(moving, 90) > 2.0 * np.percentile(moving, 20)
-    assert speed.max() < 12.0  # no teleporting
-
-
-def test_dense_video_route_revisits_both_ways_and_leaves_a_street_alone(dense_drive):
-    config, world, positions, headings = dense_drive
-    pitch = world.pitch_m
-    north = np.cos(headings - math.pi / 2) > 0.9
-    south = np.cos(headings + math.pi / 2) > 0.9
-    middle = np.abs(positions[:, 0] - 2 * pitch) < 3.0
-    lower_half = middle & (positions[:, 1] > pitch + 5) & (positions[:, 1] < 2 * pitch - 5)
-    upper_half = middle & (positions[:, 1] > 2 * pitch + 5) & (positions[:, 1] < 3 * pitch - 5)
-    frames = np.arange(len(positions))
-    # The lower half of the middle street southbound twice, far apart in time ...
-    southbound = frames[lower_half & south]
-    assert np.diff(southbound).max() > 20 * config.frame_rate_hz
-    # ... the upper half southbound first, northbound at the end.
-    upper_south, upper_north = frames[upper_half & south], frames[upper_half & north]
-    assert upper_south.size > 30 and upper_north.size > 30 and upper_north.min() > southbound.max()
-    assert upper_north.min() - upper_south.max() > 30 * config.frame_rate_hz
-    # The west edge street (x = 0) is driven once, at the start, and never approached again (up to the
-    # north edge, where the route turns east).
-    west = frames[(positions[:, 0] < 3.0) & (positions[:, 1] < 2.5 * pitch)]
-    assert west.size > 0 and west.max() < len(positions) // 2
-    later = positions[np.argmax(positions[:, 0] > 15.0) :]  # from past the first corner on
-    assert np.min(np.linalg.norm(later[:, None, :] - positions[west][None, ::10, :], axis=2)) > 10.0

@@ -1,5 +1,6 @@
 """Whether a stamp, a pose or a covariance read from a message can be used: the one check shared by the
-example backend (pose_graph_node), the odometry gate (verifier_node) and the pose graph itself.
+example backend (pose_graph_node), the odometry gate (verifier_node) and the pose graph itself. It sits in
+io/ with the other message readers so that the message conversions (nodes/messages.py) need no backend.
 
 Each ``*_problem`` function returns None for a usable value, else one sentence naming the value and why
 it cannot be used (for a node's drop log). It never raises, whatever the floats: NaN, inf, 1e308, a zero

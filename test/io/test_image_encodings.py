@@ -1,11 +1,11 @@
-"""Tests for ROS image encodings -> grayscale (aefabmap_ros/features/images.py)."""
+"""Tests for ROS image encodings -> grayscale (aefabmap_ros/io/image_encodings.py)."""
 
 import cv2
 import numpy as np
 import pytest
 
 from aefabmap_ros.errors import ImageError
-from aefabmap_ros.features.images import SUPPORTED_ENCODINGS, decode_compressed, image_to_gray
+from aefabmap_ros.io.image_encodings import SUPPORTED_ENCODINGS, decode_compressed, image_to_gray
 
 RNG = np.random.default_rng(7)
 H, W = 12, 10

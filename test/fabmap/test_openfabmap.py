@@ -5,7 +5,7 @@ import pytest
 
 from aefabmap_ros.errors import ModelError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
-from aefabmap_ros.io.openfabmap import (
+from aefabmap_ros.fabmap.openfabmap import (
     read_bow,
     read_chow_liu_tree,
     read_opencv_matrix,

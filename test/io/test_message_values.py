@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aefabmap_ros.backend.validation import (
+from aefabmap_ros.io.message_values import (
     MAX_POSITION_M,
     MAX_VARIANCE,
     covariance_problem,

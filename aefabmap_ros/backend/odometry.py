@@ -1,0 +1,93 @@
+"""Odometry by stamp and a loop closure in the robot's frame, shared by the pose graph and the odometry gate:
+the buffer that interpolates odometry poses (SE(3) geodesic), a camera-frame closure moved into the base
+(odometry child) frame, and its disagreement with the relative pose odometry predicts. gtsam and numpy only.
+"""
+
+from __future__ import annotations
+
+import bisect
+
+import gtsam
+import numpy as np
+
+
+def interpolate(before: gtsam.Pose3, after: gtsam.Pose3, fraction: float) -> gtsam.Pose3:
+    """The SE(3) geodesic from ``before`` (0) to ``after`` (1)."""
+    return before.compose(gtsam.Pose3.Expmap(fraction * gtsam.Pose3.Logmap(before.between(after))))
+
+
+class OdometryBuffer:
+    """Odometry poses by stamp, strictly increasing; ``pose_at`` interpolates."""
+
+    def __init__(self, max_samples: int) -> None:
+        self.max_samples = max_samples
+        self._stamps: list[int] = []
+        self._poses: list[gtsam.Pose3] = []
+        self._paths: list[float] = []  # distance travelled since the first sample, metres
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def first_ns(self) -> int | None:
+        return self._stamps[0] if self._stamps else None
+
+    @property
+    def last_ns(self) -> int | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def add(self, stamp_ns: int, pose: gtsam.Pose3) -> bool:
+        """False (and nothing stored) when the stamp is not after the last one."""
+        if self._stamps and stamp_ns <= self._stamps[-1]:
+            return False
+        step = float(np.linalg.norm(pose.translation() - self._poses[-1].translation())) if self._poses else 0.0
+        self._paths.append(self._paths[-1] + step if self._paths else 0.0)
+        self._stamps.append(stamp_ns)
+        self._poses.append(pose)
+        if len(self._stamps) > self.max_samples:
+            drop = len(self._stamps) - self.max_samples
+            del self._stamps[:drop], self._poses[:drop], self._paths[:drop]
+        return True
+
+    def pose_at(self, stamp_ns: int) -> tuple[gtsam.Pose3, float] | None:
+        """Odometry and distance travelled at that stamp, interpolated; None outside the buffer."""
+        if not self._stamps or not self._stamps[0] <= stamp_ns <= self._stamps[-1]:
+            return None
+        after = bisect.bisect_left(self._stamps, stamp_ns)
+        if self._stamps[after] == stamp_ns:
+            return self._poses[after], self._paths[after]
+        before = after - 1
+        fraction = (stamp_ns - self._stamps[before]) / (self._stamps[after] - self._stamps[before])
+        path = self._paths[before] + fraction * (self._paths[after] - self._paths[before])
+        return interpolate(self._poses[before], self._poses[after], fraction), path
+
+
+def ros_to_gtsam_covariance(covariance: np.ndarray) -> np.ndarray:
+    """(x, y, z, rot) -> gtsam's Pose3 tangent order (rot, x, y, z)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return covariance[np.ix_(order, order)]
+
+
+def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, base_to_camera: gtsam.Pose3
+                          ) -> tuple[gtsam.Pose3, np.ndarray]:
+    """A camera-frame closure (the place camera in the query camera's frame, covariance in ROS order
+    x y z rot) as the same closure between the two base (odometry child) frames.
+
+    ``base_to_camera`` is T_base_camera (the camera's pose on the robot). The pose is conjugated,
+    T_qbase_pbase = T_bc T_qc_pc T_bc^-1; a right perturbation Exp(xi) of the camera pose is Exp(Ad(T_bc) xi)
+    of the base pose, so the covariance is moved by that adjoint.
+    """
+    pose = base_to_camera.compose(query_to_place).compose(base_to_camera.inverse())
+    adjoint = base_to_camera.AdjointMap()  # gtsam order (rot, trans)
+    moved = adjoint @ ros_to_gtsam_covariance(np.asarray(covariance, dtype=np.float64)) @ adjoint.T
+    moved = (moved + moved.T) / 2  # exactly symmetric again (the graph checks it)
+    back = [3, 4, 5, 0, 1, 2]  # gtsam (rot, trans) -> ROS (trans, rot): the same swap both ways
+    return pose, moved[np.ix_(back, back)]
+
+
+def odometry_disagreement(query_to_place: gtsam.Pose3, loop_covariance: np.ndarray, predicted: gtsam.Pose3,
+                          drift: np.ndarray) -> float:
+    """Mahalanobis distance squared (6 dof) between a closure's ``query_to_place`` and the ``predicted``
+    relative pose (odometry's, or the graph's), under the closure's and the drift's covariances (gtsam order)."""
+    residual = gtsam.Pose3.Logmap(query_to_place.between(predicted))
+    return float(residual @ np.linalg.solve(loop_covariance + drift, residual))

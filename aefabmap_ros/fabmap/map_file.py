@@ -1,0 +1,96 @@
+"""The place map of a ``PlaceRecognizer`` on disk: places' word sets, stamps, frames, counters and last
+posterior in a versioned ``.npz`` written atomically, tied to the model's vocabulary id and recording the
+settings it was made with."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aefabmap_ros.errors import ModelError, VocabularyMismatchError
+from aefabmap_ros.fabmap.config import FabMapConfig
+from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
+
+MAP_FORMAT_VERSION = 1
+_MAP_KEYS = ("vocabulary_id", "vocabulary_size", "word_indptr", "word_indices", "place_stamps_ns", "place_frames",
+             "next_query_id", "previous_posterior", "has_previous_posterior")
+
+ConfigDifferences = dict[str, tuple[Any, Any]]  # setting -> (value the map was made with, value now)
+
+
+def config_differences(saved_json: str, config: FabMapConfig) -> ConfigDifferences:
+    """The settings of ``config`` that differ from those a map was saved with (its ``config_json``).
+
+    A setting the saved map does not name (an older version) or names but ``config`` lacks (a newer
+    one) differs too, with None on the missing side; an unreadable ``config_json`` is one difference
+    named ``config_json``.
+    """
+    try:
+        saved = json.loads(saved_json)
+    except json.JSONDecodeError:
+        saved = None
+    if not isinstance(saved, dict):
+        return {"config_json": (saved_json, "unreadable")}
+    current = asdict(config)
+    return {key: (saved.get(key), current.get(key)) for key in sorted(saved.keys() | current.keys())
+            if saved.get(key) != current.get(key)}
+
+
+def write_map(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write a map's arrays (``_MAP_KEYS`` and ``config_json``) with the format version, atomically."""
+    write_npz_atomically(path, {"format_version": np.array(MAP_FORMAT_VERSION, dtype=np.int64), **arrays})
+
+
+def read_map(path: Path, vocabulary_id: str, vocabulary_size: int) -> dict[str, np.ndarray]:
+    """A map's arrays, checked: VocabularyMismatchError for another vocabulary, ModelError when missing,
+    corrupt or of another format version."""
+    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, MAP_FORMAT_VERSION)
+    return _validated_state(path, arrays, vocabulary_id, vocabulary_size)
+
+
+def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
+    """True if some CSR row's indices are not strictly increasing (vectorised over all rows)."""
+    not_increasing = np.diff(indices) <= 0
+    crossings = indptr[1:-1] - 1  # diff positions that compare the last of a row with the next row
+    crossings = crossings[(crossings >= 0) & (crossings < not_increasing.size)]
+    not_increasing[crossings] = False
+    return bool(np.any(not_increasing))
+
+
+def _validated_state(path: Path, arrays: dict[str, np.ndarray], vocabulary_id: str, vocabulary_size: int
+                     ) -> dict[str, np.ndarray]:
+    map_vocabulary_id = str(arrays["vocabulary_id"])
+    if map_vocabulary_id != vocabulary_id:
+        raise VocabularyMismatchError(
+            f"map file {path} belongs to vocabulary {map_vocabulary_id!r}, "
+            f"but the loaded model is vocabulary {vocabulary_id!r}"
+        )
+    if int(arrays["vocabulary_size"]) != vocabulary_size:
+        raise VocabularyMismatchError(
+            f"map file {path} has {int(arrays['vocabulary_size'])} words, the model {vocabulary_size}"
+        )
+    indptr = arrays["word_indptr"].astype(np.int64)
+    indices = arrays["word_indices"].astype(np.int64)
+    n_places = indptr.size - 1
+    stamps, frames = arrays["place_stamps_ns"], arrays["place_frames"]
+    previous = arrays["previous_posterior"].astype(np.float64)
+    problems = []
+    if n_places < 0 or indptr[0] != 0 or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size:
+        problems.append("inconsistent word_indptr")
+    elif indices.size and (indices.min() < 0 or indices.max() >= vocabulary_size):
+        problems.append("word ids out of range")
+    elif _unsorted_within_rows(indptr, indices):
+        problems.append("word ids not sorted unique per place")
+    if stamps.shape != (max(n_places, 0),) or frames.shape != (max(n_places, 0),):
+        problems.append("stamps/frames do not match the number of places")
+    if bool(arrays["has_previous_posterior"]) and previous.size > max(n_places, 0) + 1:
+        problems.append("previous posterior longer than the map")
+    if problems:
+        raise ModelError(f"corrupt map file {path}: {'; '.join(problems)}")
+    arrays = dict(arrays)
+    arrays["word_indptr"], arrays["word_indices"], arrays["previous_posterior"] = indptr, indices, previous
+    return arrays
