@@ -22,6 +22,7 @@ and at walking speed along a straight street a frame stays covisible with frames
 from __future__ import annotations
 
 import math
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -514,7 +515,7 @@ def load_gt_npz(path: Path) -> np.ndarray:
             gt = np.asarray(data["gt"])
     except FileNotFoundError as error:
         raise DataError(f"ground-truth file not found: {path}") from error
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # a damaged .npz is a zip that is not
         raise DataError(f"cannot read ground-truth file {path}: {error}") from error
     if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
         raise DataError(f"ground truth in {path} must be a square (N, N) matrix, got shape {gt.shape}")
@@ -533,7 +534,7 @@ def load_gt_stamps(path: Path) -> np.ndarray | None:
             stamps = np.asarray(data["stamps_ns"])
     except FileNotFoundError as error:
         raise DataError(f"ground-truth file not found: {path}") from error
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # a damaged .npz is a zip that is not
         raise DataError(f"cannot read ground-truth file {path}: {error}") from error
     if stamps.ndim != 1 or not np.issubdtype(stamps.dtype, np.integer):
         raise DataError(f"stamps_ns in {path} must be a 1-D array of integer nanoseconds, got {stamps.dtype} "
