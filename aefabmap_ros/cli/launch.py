@@ -263,15 +263,15 @@ def _is_parameter_section(section: object) -> bool:
 def run(args: argparse.Namespace) -> int:
     if not args.model.is_dir():
         raise ConfigError(f"--model {args.model} is not a directory (train one with aefabmap_train)")
-    from aefabmap_ros.model.directory import check_model_files  # cv2, scipy: after parsing, as every CLI's work
-
-    check_model_files(args.model)  # a missing or damaged file: refused now, not by every node at its start-up
     params = args.params or default_params_file()  # a ConfigError when the package's own file is missing
     if not params.is_file():
         raise ConfigError(f"--params {params} does not exist")
     problem = params_file_problem(params)
     if problem is not None:
         raise ConfigError(problem)
+    from aefabmap_ros.model.directory import check_model_files  # cv2, scipy: after parsing, as every CLI's work
+
+    check_model_files(args.model)  # a missing or damaged file: refused now, not by every node at its start-up
     return supervise(node_commands(args), args.stop_timeout)
 
 
