@@ -39,7 +39,6 @@ from aefabmap_ros.model.directory import load_model
 from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
-    FutureStamps,
     PeriodicSave,
     RuntimeParameters,
     counted_subscription,
@@ -50,6 +49,7 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.messages import (
     header_stamp_problem,
     message_to_word_ids,

@@ -48,12 +48,12 @@ from aefabmap_ros.nodes.common import (
     ODOMETRY_QOS,
     RESULT_QOS,
     DropCounter,
-    FutureStamps,
     declare_config,
     declare_parameter,
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.messages import (
     extrinsic_to_gtsam,
     loop_closure_pose,
