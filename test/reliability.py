@@ -145,7 +145,10 @@ def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> Non
     Path(path).write_text(json.dumps([asdict(r) for r in _RECORDS], indent=1))
     document = config.getoption("--reliability-markdown")
     if document:
-        Path(document).write_text(markdown(_RECORDS, os.environ.get("RELIABILITY_COMMAND", "pytest -m reliability")))
+        from aefabmap_ros.io.atomic import atomic_write_text
+
+        atomic_write_text(Path(document), markdown(_RECORDS, os.environ.get("RELIABILITY_COMMAND",
+                                                                             "pytest -m reliability")))
     terminalreporter.write_sep("=", "issue 16 figures")
     terminalreporter.write_line(tables(_RECORDS))
     terminalreporter.write_line(f"(written to {path})")
