@@ -31,6 +31,7 @@ class Record:
     kinds: int = 0  # malformed: kinds of malformed message tried
     test: str = ""
     passed: bool = False
+    known_defect: bool = False  # its test is a strict xfail: the defect is reported, not yet fixed
 
 
 class Recorder:
@@ -76,6 +77,7 @@ def reliability(request: pytest.FixtureRequest) -> Iterator[Recorder]:
     report = getattr(request.node, "reliability_call_report", None)
     for record in _RECORDS[first:]:
         record.passed = report is not None and report.passed
+        record.known_defect = report is not None and hasattr(report, "wasxfail")
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -93,10 +95,12 @@ def malformed_rows(records: list[Record]) -> list[tuple[str, int, int, int, int,
     rows = []
     for node in sorted({r.subject for r in records if r.kind == "malformed"}):
         mine = [r for r in records if r.kind == "malformed" and r.subject == node]
-        failed = sum(not r.passed for r in mine)
+        failed = sum(not r.passed and not r.known_defect for r in mine)
+        known = sum(r.known_defect for r in mine)
         rows.append((node, sum(r.kinds for r in mine), sum(r.tried for r in mine),
                      *(sum(r.counts.get(k, 0) for r in mine) for k in ("counted", "misnamed", "silent", "fatal")),
-                     f"{len(mine)} tests{f', {failed} FAILED' if failed else ''}"))
+                     f"{len(mine)} tests{f', {failed} FAILED' if failed else ''}"
+                     f"{f', {known} known defect (strict xfail)' if known else ''}"))
     return rows  # type: ignore[return-value]
 
 
@@ -129,7 +133,8 @@ def markdown(records: list[Record], command: str) -> str:
              "## Malformed messages through the topics", "",
              "Every kind of malformed message a node can get on each topic it subscribes to "
              "(test/nodes/malformed.py), published through ROS to the real node "
-             "(test/nodes/test_malformed_inputs.py).", "",
+             "(test/nodes/test_malformed_inputs.py). A row marked known defect is a strict xfail test: what the "
+             "node takes unchecked today, with the drop name it should get.", "",
              "| node | kinds | messages tried | counted by name | counted under another name | silently accepted "
              "| fatal | tests |", "|---|---:|---:|---:|---:|---:|---:|---|"]
     for row in malformed_rows(records):
