@@ -19,7 +19,6 @@ ALLOWED_OVERSIZE: dict[str, int] = {
     "cli/demo.py:run_online": 77,
     "cli/evaluate_run.py": 518,
     "cli/evaluate_run.py:evaluate_images": 86,
-    "cli/launch.py:supervise": 79,
     "model/training.py:train_model": 64,
     "nodes/verifier_node.py": 741,
     "nodes/verifier_node.py:VerifierNode": 533,

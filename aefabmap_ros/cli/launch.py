@@ -8,8 +8,9 @@ beside feature, quantizer and FAB-MAP nodes: FAB-MAP's raw closures go to
 (``inliers`` -1: not verified). With --map, the map and the verifier's feature store (folder
 ``<map>.features``) are saved and reloaded, so both survive a restart. Ctrl-C (or SIGTERM) stops
 every node cleanly; if one node dies, the others are stopped and the exit code is 1. It is 1 too when
-a node exits non-zero while stopping (its final save failed) or is still saving after --stop-timeout
-seconds and killed: each is named in an ERROR line. The nodes die with the launcher (Linux): killed
+a node exits non-zero while stopping (its final save failed) or is killed: still running after
+--stop-timeout seconds without writing to its files, or after 600 s while writing (a large save is waited
+for as long as its file grows); each is named in an ERROR line. The nodes die with the launcher (Linux): killed
 with SIGKILL, it leaves no node running that a relaunch would duplicate (two FAB-MAP nodes writing one
 map).
 
@@ -24,8 +25,10 @@ from __future__ import annotations
 import argparse
 import ctypes
 import functools
+import math
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -81,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "publishes pose_graph/path and map -> odom)")
     parser.add_argument("--stop-timeout", type=float, default=STOP_TIMEOUT_S, metavar="SECONDS",
                         help="on Ctrl-C / SIGTERM, wait this long for each node's final save before killing it "
-                        f"(default: {STOP_TIMEOUT_S:g})")
+                        f"(default: {STOP_TIMEOUT_S:g}); a node still writing its files then (their size grew in "
+                        f"the last {WRITE_WINDOW_S:g} s) is waited for, up to {STOP_WRITING_CAP_S:g} s in all")
     return parser
 
 
@@ -142,6 +146,10 @@ def start_node(command: list[str], environment: dict[str, str]) -> subprocess.Po
 # loaded machine: a node killed in the middle of it keeps only its previous save.
 STOP_TIMEOUT_S = 120.0
 STOP_PROGRESS_S = 10.0  # how often the launcher says which nodes it is still waiting for
+# A node past --stop-timeout whose files open for writing grew within the last WRITE_WINDOW_S is still saving:
+# it is waited for, up to STOP_WRITING_CAP_S after the stop request in all (a map of millions of places).
+WRITE_WINDOW_S = 5.0
+STOP_WRITING_CAP_S = 600.0
 
 
 def _node_name(command: list[str]) -> str:
@@ -151,14 +159,84 @@ def _node_name(command: list[str]) -> str:
     return Path(command[0]).name
 
 
+def bytes_open_for_writing(pid: int) -> int | None:
+    """Total size of the regular files process ``pid`` holds open for writing, its standard streams aside (a
+    save's temporary file grows while it is written); None when /proc cannot tell (process gone, not Linux)."""
+    try:
+        descriptors = [entry for entry in Path(f"/proc/{pid}/fd").iterdir() if int(entry.name) > 2]
+    except (OSError, ValueError):
+        return None
+    total = 0
+    for entry in descriptors:
+        try:
+            flags = next(line for line in Path(f"/proc/{pid}/fdinfo/{entry.name}").read_text().splitlines()
+                         if line.startswith("flags:"))
+            if not int(flags.split()[1], 8) & (os.O_WRONLY | os.O_RDWR):
+                continue
+            status = entry.stat()  # the file the descriptor points to
+        except (OSError, StopIteration, ValueError, IndexError):
+            continue  # closed meanwhile, or not a file
+        if stat.S_ISREG(status.st_mode):
+            total += status.st_size
+    return total
+
+
+class WriteWatch:
+    """When each stopping node's files open for writing last grew: the sign that its final save goes on."""
+
+    def __init__(self, processes: list[subprocess.Popen[bytes]]) -> None:
+        self._sizes = {process: bytes_open_for_writing(process.pid) for process in processes}
+        self._grew_at = dict.fromkeys(processes, -math.inf)  # growth is what is seen after the stop request
+
+    def still_writing(self, process: subprocess.Popen[bytes], window_s: float) -> bool:
+        size = bytes_open_for_writing(process.pid)
+        now = time.monotonic()
+        if size is not None and size != self._sizes.get(process):
+            self._sizes[process] = size
+            self._grew_at[process] = now
+        return now - self._grew_at.get(process, -math.inf) < window_s
+
+
+def _stop_nodes(running: list[subprocess.Popen[bytes]], name_of: dict[subprocess.Popen[bytes], str],
+                stop_timeout_s: float) -> None:
+    """SIGINT to every node still running, then wait: ``stop_timeout_s``, longer for a node still writing
+    (up to ``STOP_WRITING_CAP_S``); kill what is left. Says every ``STOP_PROGRESS_S`` who it waits for."""
+    for process in running:
+        process.send_signal(signal.SIGINT)  # nodes save state on a clean shutdown
+    started = reported = time.monotonic()
+    watch = WriteWatch(running)
+    cap_s = max(stop_timeout_s, STOP_WRITING_CAP_S)
+    while running:
+        time.sleep(0.1)
+        running = [p for p in running if p.poll() is None]
+        waited = time.monotonic() - started
+        overdue = [p for p in running if waited >= stop_timeout_s
+                   and (waited >= cap_s or not watch.still_writing(p, WRITE_WINDOW_S))]
+        for process in overdue:
+            why = "still writing after" if waited >= cap_s else "still running, writing nothing,"
+            limit = f"{cap_s:g} s" if waited >= cap_s else f"{stop_timeout_s:g} s (--stop-timeout)"
+            print(f"ERROR: {name_of[process]} (pid {process.pid}) {why} {limit} after the stop request: killed",
+                  file=sys.stderr)
+            process.kill()
+            process.wait()
+        running = [p for p in running if p not in overdue]
+        if running and time.monotonic() - reported >= STOP_PROGRESS_S:
+            reported = time.monotonic()
+            names = ", ".join(name_of[p] for p in running)
+            print(f"[launch] waiting for {names} to finish shutting down (saving state): {waited:.0f} s of "
+                  f"{stop_timeout_s:g} s (--stop-timeout; longer while writing, up to {cap_s:g} s)",
+                  file=sys.stderr, flush=True)
+
+
 def supervise(commands: list[list[str]], stop_timeout_s: float = STOP_TIMEOUT_S) -> int:
     """Run the node processes until one fails, all have ended, or the launcher gets SIGINT / SIGTERM; then
     stop the others and return the exit code.
 
     Stopping: every node still running gets SIGINT and up to ``stop_timeout_s`` to save its state and exit
-    (``--stop-timeout``); every ``STOP_PROGRESS_S`` the launcher prints which nodes it is waiting for, and a
-    node still running at the end is killed (SIGKILL). Further signals to the launcher meanwhile do not cut
-    the wait short.
+    (``--stop-timeout``), longer while its files open for writing still grow (``STOP_WRITING_CAP_S`` at
+    most); every ``STOP_PROGRESS_S`` the launcher prints which nodes it is waiting for, and a node still
+    running at the end is killed (SIGKILL). Further signals to the launcher meanwhile do not cut the wait
+    short.
 
     Exit code 1 when a node failed while running, or exited non-zero after the stop began: a node stopped
     by a signal exits 0 after a clean stop and 1 when its final save failed (nodes/common.py ``run_nodes``),
@@ -167,8 +245,7 @@ def supervise(commands: list[list[str]], stop_timeout_s: float = STOP_TIMEOUT_S)
     not yet installed its signal handlers -- ``run_nodes`` does that before it builds a node, and restores
     them only after the final save -- so it was still starting, with nothing to save: not an error.
     """
-    if not stop_timeout_s > 0:
-        raise ConfigError(f"--stop-timeout must be > 0 seconds, got {stop_timeout_s}")
+    check_stop_timeout(stop_timeout_s)
     environment = child_environment(len(commands))
     processes = [start_node(command, environment) for command in commands]
     name_of = {process: _node_name(command) for process, command in zip(processes, commands, strict=True)}
@@ -194,27 +271,7 @@ def supervise(commands: list[list[str]], stop_timeout_s: float = STOP_TIMEOUT_S)
                 break
             time.sleep(0.2)
     finally:
-        running = [p for p in processes if p.poll() is None]
-        for process in running:
-            process.send_signal(signal.SIGINT)  # nodes save state on a clean shutdown
-        started = time.monotonic()
-        reported = started
-        while running:
-            time.sleep(0.1)
-            running = [p for p in running if p.poll() is None]
-            waited = time.monotonic() - started
-            if running and waited >= stop_timeout_s:
-                for process in running:
-                    print(f"ERROR: {name_of[process]} (pid {process.pid}) still running "
-                          f"{stop_timeout_s:g} s after the stop request (--stop-timeout): killed", file=sys.stderr)
-                    process.kill()
-                    process.wait()
-                break
-            if running and time.monotonic() - reported >= STOP_PROGRESS_S:
-                reported = time.monotonic()
-                names = ", ".join(name_of[p] for p in running)
-                print(f"[launch] waiting for {names} to finish shutting down (saving state): {waited:.0f} s of "
-                      f"{stop_timeout_s:g} s (--stop-timeout)", file=sys.stderr, flush=True)
+        _stop_nodes([p for p in processes if p.poll() is None], name_of, stop_timeout_s)
         for process in processes:
             code = process.returncode
             if process in failed_while_running or code == 0:
@@ -260,6 +317,19 @@ def _is_parameter_section(section: object) -> bool:
     return all(_is_parameter_section(inner) for inner in section.values())
 
 
+def check_stop_timeout(stop_timeout_s: float) -> None:
+    if not stop_timeout_s > 0:
+        raise ConfigError(f"--stop-timeout must be > 0 seconds, got {stop_timeout_s}")
+
+
+def check_model(model: Path) -> None:
+    """A model with a file missing or damaged is refused here, not by every node at its start-up (what only
+    loading finds, each node still refuses: it then exits 1, and so does the launcher)."""
+    from aefabmap_ros.model.directory import check_model_files  # cv2, scipy: after parsing, as every CLI's work
+
+    check_model_files(model)
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.model.is_dir():
         raise ConfigError(f"--model {args.model} is not a directory (train one with aefabmap_train)")
@@ -269,6 +339,8 @@ def run(args: argparse.Namespace) -> int:
     problem = params_file_problem(params)
     if problem is not None:
         raise ConfigError(problem)
+    check_stop_timeout(args.stop_timeout)  # the arguments first, then the model's files
+    check_model(args.model)
     return supervise(node_commands(args), args.stop_timeout)
 
 

@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="playback speed factor; 0 = as fast as possible (default: 1.0)")
     parser.add_argument("--start", type=float, default=0.0, help="skip the first START seconds of the bag")
     parser.add_argument("--loop", action="store_true",
-                        help="replay forever; each lap's stamps are shifted past the previous lap's")
+                        help="replay forever; each lap's stamps (its --with topics' too) are shifted past the "
+                        "previous lap's")
     parser.add_argument("--qos", choices=("reliable", "sensor_data"), default="reliable",
                         help="publisher QoS (default: reliable)")
     parser.add_argument("--wait-subscribers", type=int, default=1,
@@ -77,8 +78,6 @@ def _validate(args: argparse.Namespace) -> None:
         raise ConfigError(f"--start must be >= 0, got {args.start}")
     if args.loop and args.lockstep:
         raise ConfigError("--loop and --lockstep together would never end; choose one")
-    if args.loop and args.companions:
-        raise ConfigError("--with is not supported with --loop (the companions' stamps would repeat)")
     if args.topic in companion_subscribers(args.companions):
         raise ConfigError(f"--with {args.topic} is the image topic itself")
 
@@ -93,6 +92,9 @@ def companion_subscribers(values: list[str]) -> dict[str, int | None]:
         wanted[topic] = int(count) if separator else None
     return wanted
 
+
+# With --loop, each lap's stamps follow the previous lap's last one by this much (stamps must keep increasing).
+LAP_GAP_NS = 100_000_000
 
 # How long the end of a reliable replay waits for every subscriber to acknowledge the last images.
 ACK_TIMEOUT_S = 5.0
@@ -244,15 +246,16 @@ class Replayer:
         for lap, message in laps(args.bag, args.topic, start_ns, args.loop, list(self.companion_subscribers)):
             if self.stop.requested:
                 break
-            if message.topic != args.topic:
-                self.companions[message.topic].publish(message.raw)
+            if message.topic != args.topic:  # moved by its lap's offset, as its image will be
+                self.companions[message.topic].publish(
+                    restamped(message.raw, message.msgtype, lap * (lap_span_ns + LAP_GAP_NS)))
                 continue
             if lap_origin_ns is None:
                 lap_origin_ns = message.log_time_ns
             bag_offset_ns = message.log_time_ns - lap_origin_ns
             lap_span_ns = max(lap_span_ns, bag_offset_ns)
             elapsed_bag_s = (lap * (lap_span_ns + 1) + bag_offset_ns) / 1e9
-            stamp_offset_ns = lap * (lap_span_ns + 100_000_000)
+            stamp_offset_ns = lap * (lap_span_ns + LAP_GAP_NS)
             if not self._publish_image(message.raw, delivery, wall_start + elapsed_bag_s / args.rate
                                        if args.rate > 0 else None, stamp_offset_ns):
                 break

@@ -13,6 +13,7 @@ Ground truth from depth (covisibility) is in ``covisibility``.
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -145,7 +146,7 @@ def load_gt_npz(path: Path) -> np.ndarray:
             gt = np.asarray(data["gt"])
     except FileNotFoundError as error:
         raise DataError(f"ground-truth file not found: {path}") from error
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # a damaged .npz is a zip that is not
         raise DataError(f"cannot read ground-truth file {path}: {error}") from error
     if gt.ndim != 2 or gt.shape[0] != gt.shape[1]:
         raise DataError(f"ground truth in {path} must be a square (N, N) matrix, got shape {gt.shape}")
@@ -164,7 +165,7 @@ def load_gt_stamps(path: Path) -> np.ndarray | None:
             stamps = np.asarray(data["stamps_ns"])
     except FileNotFoundError as error:
         raise DataError(f"ground-truth file not found: {path}") from error
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # a damaged .npz is a zip that is not
         raise DataError(f"cannot read ground-truth file {path}: {error}") from error
     if stamps.ndim != 1 or not np.issubdtype(stamps.dtype, np.integer):
         raise DataError(f"stamps_ns in {path} must be a 1-D array of integer nanoseconds, got {stamps.dtype} "

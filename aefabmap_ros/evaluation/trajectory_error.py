@@ -43,9 +43,31 @@ def read_tum(path: Path) -> PoseTrajectory3D:
     if not Path(path).is_file():
         raise DataError(f"trajectory file does not exist: {path}")
     try:
-        return file_interface.read_tum_trajectory_file(str(path))
+        trajectory = file_interface.read_tum_trajectory_file(str(path))
     except Exception as exc:  # evo raises its own FileInterfaceException and numpy's errors alike
         raise DataError(f"cannot read TUM trajectory {path}: {exc}") from exc
+    problem = _trajectory_problem(trajectory.timestamps, trajectory.positions_xyz, trajectory.orientations_quat_wxyz)
+    if problem is not None:  # evo reads them as they are; alignment then fails deep inside (SVD, Umeyama)
+        raise DataError(f"TUM trajectory {path}: {problem}")
+    return trajectory
+
+
+def _trajectory_problem(stamps_s: np.ndarray, positions: np.ndarray, quaternions: np.ndarray) -> str | None:
+    """Why a trajectory cannot be associated and aligned: non-finite values, a zero quaternion, or stamps not
+    increasing; None when it can."""
+    values = np.column_stack([stamps_s, positions, quaternions])
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        return f"pose {int(np.argmin(finite))} has non-finite values"
+    zero = np.linalg.norm(quaternions, axis=1) < 1e-6
+    if zero.any():
+        return f"pose {int(np.argmax(zero))} has a zero quaternion"
+    backwards = np.flatnonzero(np.diff(stamps_s) <= 0)
+    if backwards.size:
+        index = int(backwards[0]) + 1
+        return (f"stamps must increase: pose {index} at {stamps_s[index]:.9f} s is not after pose {index - 1} at "
+                f"{stamps_s[index - 1]:.9f} s")
+    return None
 
 
 def trajectory_from_matrices(stamps_s: np.ndarray, poses: np.ndarray) -> PoseTrajectory3D:

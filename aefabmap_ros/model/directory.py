@@ -224,19 +224,28 @@ def _replace_dir(tmp: Path, directory: Path) -> None:
 # ---------------------------------------------------------------------------------------------- load
 
 
-def load_model(directory: Path) -> Model:
-    """Load and validate a model directory; ModelError names what is missing or wrong."""
+def check_model_files(directory: Path) -> dict[str, Any]:
+    """A model directory's metadata, once it and every file it lists are there with their checksums: what a
+    launcher checks before it starts the nodes, without loading a vocabulary (torch) itself. ModelError names
+    what is missing or wrong; the contents are checked by ``load_model``."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ModelError(f"model directory {directory} does not exist or is not a directory")
     metadata = _read_metadata(directory)
-    files = metadata["files"]
-    for name, expected in files.items():
+    for name, expected in metadata["files"].items():
         path = directory / name
         if not path.is_file():
             raise ModelError(f"model file {path} is missing")
         if file_sha256(path) != expected:
             raise ModelError(f"checksum mismatch for {path}: the file is corrupt or was changed after saving")
+    return metadata
+
+
+def load_model(directory: Path) -> Model:
+    """Load and validate a model directory; ModelError names what is missing or wrong."""
+    directory = Path(directory)
+    metadata = check_model_files(directory)
+    files = metadata["files"]
     try:
         feature_config = FeatureConfig.from_dict(metadata["feature_config"])
         vocabulary_config = VocabularyConfig.from_dict(metadata["vocabulary_config"])

@@ -7,6 +7,7 @@ __all__ = [
     "fabmap_node",
     "feature_node",
     "frame_gate",
+    "future_stamps",
     "gtsam_poses",
     "launch_table",
     "messages",

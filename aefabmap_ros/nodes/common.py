@@ -14,6 +14,7 @@ import sys
 import threading
 from collections import Counter
 from collections.abc import Callable, Collection, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import FrameType
 from typing import Any, TypeVar
@@ -317,6 +318,20 @@ class PeriodicSave:
         return True
 
 
+def finish_handed_over_callbacks(executor: Executor) -> None:
+    """Wait for every callback a multi-threaded executor already handed to its thread pool.
+
+    rclpy Jazzy's ``Executor.shutdown`` does not wait for them (its wait is skipped once the shutdown flag is
+    set), so one still queued would run after the guard condition and the nodes are destroyed: its take or
+    trigger raises InvalidHandle ("cannot use Destroyable because destruction was requested") into a task
+    nobody awaits, printed at exit as "The following exception was never retrieved". Run now, the gate is
+    closed and each returns at once. The pool is the executor's own (``_executor``): no public API reaches it.
+    """
+    pool = getattr(executor, "_executor", None)
+    if isinstance(pool, ThreadPoolExecutor):
+        pool.shutdown(wait=True)
+
+
 def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = None) -> int:
     """The Jazzy ``main()`` pattern for one node or several in one process (multi-threaded executor).
 
@@ -355,6 +370,7 @@ def run_nodes(factories: Sequence[Callable[[], Any]], args: list[str] | None = N
         exit_code = 1
     finally:
         CALLBACKS.close_and_wait()
+        finish_handed_over_callbacks(executor)
         executor.shutdown()
         for node in reversed(nodes):
             if node.close() is False:

@@ -50,7 +50,9 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.messages import (
+    header_stamp_problem,
     message_to_word_ids,
     recognition_to_loop_closure,
     recognition_to_posterior,
@@ -70,13 +72,7 @@ class FabMapNode(Node):
             self, "save_period_s", 10.0, "Save the map this often when it changed (seconds; 0 = only on shutdown)."
         )
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the words subscription.")
-        max_future_s = declare_parameter(
-            self, "max_future_stamp_s", 600.0,
-            "Drop frames stamped more than this ahead of the node's clock (seconds; 0 = accept any stamp).",
-        )
-        if max_future_s < 0.0:
-            raise ConfigError(f"fabmap_node: parameter max_future_stamp_s={max_future_s} must be >= 0")
-        self.max_future_ns = int(max_future_s * 1e9)
+        self.future_stamps = FutureStamps(self)
         config = declare_config(self, FabMapConfig)
         if not model_dir:
             raise ConfigError("fabmap_node: parameter model_dir is required (a directory made by aefabmap_train)")
@@ -114,12 +110,6 @@ class FabMapNode(Node):
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
         )
 
-    def _future_limit_ns(self) -> int | None:
-        """Stamps after this are refused as "in the future"; None: no clock to judge by (max_future_stamp_s 0,
-        or simulated time before the first /clock message)."""
-        now_ns = self.get_clock().now().nanoseconds
-        return now_ns + self.max_future_ns if self.max_future_ns and now_ns > 0 else None
-
     def _ordering_stamp(self, map_path: Path | None) -> int:
         """The stamp later frames must follow: the newest place's, except places stamped in the future.
 
@@ -127,14 +117,14 @@ class FabMapNode(Node):
         are real images) but do not order later frames, or every frame would be dropped after every restart.
         """
         stamps = self.recognizer.place_stamps_ns
-        newest, beyond = newest_stamp_up_to(stamps, self._future_limit_ns())
+        newest, beyond = newest_stamp_up_to(stamps, self.future_stamps.limit_ns())
         if beyond:
             named = ", ".join(f"place {i} at {stamps[i] / 1e9:.0f} s" for i in beyond[:5])
             more = f" and {len(beyond) - 5} more" if len(beyond) > 5 else ""
             self.get_logger().warning(
                 f"map {map_path} holds {len(beyond)} place(s) stamped more than max_future_stamp_s "
-                f"{self.max_future_ns / 1e9:g} s ahead of the node's clock ({named}{more}); they are kept but "
-                f"ignored for ordering: frames after {newest / 1e9:.3f} s are processed")
+                f"{self.future_stamps.max_future_ns / 1e9:g} s ahead of the node's clock ({named}{more}); they are "
+                f"kept but ignored for ordering: frames after {newest / 1e9:.3f} s are processed")
         return newest
 
     @node_callback
@@ -153,17 +143,19 @@ class FabMapNode(Node):
 
     def _recognise(self, message: BagOfWords) -> Recognition | None:
         """The frame recognised (and added to the map when it makes a place); None when it was dropped."""
+        problem = header_stamp_problem(message.header, "BagOfWords")
+        if problem is not None:
+            self.counter.drop("bad_stamp", problem)
+            return None
         stamp_ns = stamp_to_ns(message.header.stamp)
         if stamp_ns <= self.last_stamp_ns:
             # After a restart, a replay's frames up to the newest saved place are already mapped.
             self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns "
                               "(already mapped, or sent out of order)")
             return None
-        limit_ns = self._future_limit_ns()
-        if limit_ns is not None and stamp_ns > limit_ns:
-            ahead_s = (stamp_ns - limit_ns + self.max_future_ns) / 1e9
-            self.counter.drop("stamp_in_future", f"stamp {stamp_ns} ns is {ahead_s:.0f} s ahead of "
-                              f"the node's clock (max_future_stamp_s {self.max_future_ns / 1e9:g})")
+        problem = self.future_stamps.problem(stamp_ns)
+        if problem is not None:
+            self.counter.drop("stamp_in_future", problem)
             return None
         try:
             word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)

@@ -39,7 +39,7 @@ from aefabmap_ros.nodes.common import (
 )
 from aefabmap_ros.nodes.frame_gate import DetectionRate, FrameHandOff
 from aefabmap_ros.nodes.launch_table import compressed_topic
-from aefabmap_ros.nodes.messages import features_to_message
+from aefabmap_ros.nodes.messages import features_to_message, header_stamp_problem
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
 
@@ -107,6 +107,10 @@ class FeatureNode(Node):
     def _on_frame(self, message: Any, transport: str = "raw") -> None:
         """A frame from one transport: skipped if the other brought it already; else extracted now (bag
         replay), or handed to the worker (live camera), replacing -- and dropping -- one still waiting."""
+        problem = header_stamp_problem(message.header, "image")
+        if problem is not None:  # its features would carry it on, to be refused downstream: refused at the door
+            self.counter.drop("bad_stamp", problem)
+            return
         stamp_ns = stamp_to_ns(message.header.stamp)
         if self.transports.is_duplicate(stamp_ns, transport):
             self.counter.ok(f"skipped_{transport}_copies")  # the other transport brought this frame already

@@ -39,6 +39,12 @@ def time_from_ns(stamp_ns: int) -> Time:
     return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
 
 
+def header_stamp_problem(header: Any, what: str) -> str | None:
+    """Why a message's header stamp is not a ROS time (nanosec beyond a second): stamps order frames and key
+    every store, and such a stamp would alias another frame's nanoseconds. None when it is one."""
+    return stamp_problem(header.stamp.sec, header.stamp.nanosec, f"{what} stamp")
+
+
 def copy_header(header: Any) -> Header:
     return Header(stamp=Time(sec=header.stamp.sec, nanosec=header.stamp.nanosec), frame_id=header.frame_id)
 
@@ -67,6 +73,11 @@ def features_to_message(features: core_features.Features, header: Any, image_siz
 
 
 def message_to_features(message: Features) -> core_features.Features:
+    """Validated features: one length for the keypoint arrays, finite keypoints, descriptors of the declared
+    length and range, a stamp that is a ROS time; ``DataError`` naming the first fault otherwise."""
+    problem = header_stamp_problem(message.header, "Features")
+    if problem is not None:
+        raise DataError(problem)
     count = len(message.x)
     if any(len(getattr(message, name)) != count for name in KEYPOINT_FIELDS):
         lengths = {name: len(getattr(message, name)) for name in KEYPOINT_FIELDS}
@@ -88,6 +99,10 @@ def message_to_features(message: Features) -> core_features.Features:
         raise DataError(f"Features has {exc}") from exc
     keypoints = np.stack([np.frombuffer(getattr(message, name), dtype=np.float32) for name in KEYPOINT_FIELDS],
                          axis=1) if count else np.zeros((0, 5), np.float32)
+    finite = np.isfinite(keypoints)
+    if not finite.all():  # geometric verification and the depth lookup index images by them
+        row, column = np.argwhere(~finite)[0]
+        raise DataError(f"Features keypoint {row} {KEYPOINT_FIELDS[column]} = {keypoints[row, column]} is not finite")
     return core_features.Features(
         keypoints=keypoints, descriptors=descriptors, descriptor_type=str(message.descriptor_type)
     )
@@ -149,11 +164,23 @@ def _fill_candidates(message: PlacePosterior, candidates: tuple[Candidate, ...])
 
 def posterior_problem(message: PlacePosterior) -> str | None:
     """Why a PlacePosterior's candidates cannot be read: ``place_ids``, ``place_stamps``, ``probabilities`` and
-    ``log_likelihoods`` are one entry per candidate, so they must have one length. None when they do."""
+    ``log_likelihoods`` are one entry per candidate, so they must have one length; its stamps must be ROS times
+    and its probabilities in [0, 1]. None when they can."""
     lengths = {name: len(getattr(message, name))
                for name in ("place_ids", "place_stamps", "probabilities", "log_likelihoods")}
+    what = f"PlacePosterior of query {message.query_id}"
     if len(set(lengths.values())) > 1:
-        return f"PlacePosterior of query {message.query_id}: candidate arrays differ in length {lengths}"
+        return f"{what}: candidate arrays differ in length {lengths}"
+    problem = header_stamp_problem(message.header, what) or next(
+        (stamp_problem(stamp.sec, stamp.nanosec, f"{what} place_stamps[{rank}]")
+         for rank, stamp in enumerate(message.place_stamps) if stamp_problem(stamp.sec, stamp.nanosec)), None)
+    if problem is not None:
+        return problem
+    # Re-ranking orders candidates by them and a tracked closure carries one on: NaN would order nothing.
+    probabilities = np.asarray(message.probabilities, dtype=np.float64)
+    outside = np.flatnonzero(~((probabilities >= 0.0) & (probabilities <= 1.0)))
+    if outside.size:
+        return f"{what}: probabilities[{outside[0]}] = {probabilities[outside[0]]} is not in [0, 1]"
     return None
 
 

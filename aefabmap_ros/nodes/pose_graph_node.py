@@ -47,6 +47,7 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
     loop_closure_pose_problem,
@@ -88,6 +89,7 @@ class PoseGraphNode(Node):
             "The camera's pose in the odometry's child (base) frame, [x, y, z, qx, qy, qz, qw] (identity: the "
             "camera is the base frame)."))
         self.graph = PoseGraph(declare_config(self, PoseGraphConfig))
+        self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
         self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
         if TFMessage is not None:
@@ -111,6 +113,10 @@ class PoseGraphNode(Node):
         if problem is not None:
             self.counter.drop("bad_odometry", problem)
             return
+        problem = self.future_stamps.problem(stamp_to_ns(message.header.stamp))
+        if problem is not None:  # it would make every later odometry message "out of order"
+            self.counter.drop("stamp_in_future", f"odometry {problem}")
+            return
         before = self.graph.counts["odometry_out_of_order"]
         results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose))
         if self.graph.counts["odometry_out_of_order"] > before:
@@ -126,6 +132,11 @@ class PoseGraphNode(Node):
         problem = loop_closure_stamp_problem(message)
         if problem is not None:
             self.counter.drop("bad_closure_stamp", f"closure of query {message.query_id}: {problem}")
+            return
+        newest_ns = max(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp))
+        problem = self.future_stamps.problem(newest_ns)
+        if problem is not None:  # it would wait for odometry that never comes, and push out the closures waiting
+            self.counter.drop("stamp_in_future", f"closure of query {message.query_id}: {problem}")
             return
         problem = loop_closure_pose_problem(message)
         if problem is not None:

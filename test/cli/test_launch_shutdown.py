@@ -44,8 +44,15 @@ if behaviour == "clean":
 if behaviour == "save_fails":
     print("[ERROR] FINAL SAVE FAILED: the map not saved to /full/map.npz (OSError: No space left)", flush=True)
     sys.exit(1)
-if behaviour == "slow":  # a final save longer than --stop-timeout
+if behaviour == "slow":  # a final save longer than --stop-timeout, writing nothing
     time.sleep(600)
+if behaviour.startswith("writing"):  # a final save writing its file for 3 s (writing_forever: for ever)
+    with open(f"{ready}.save", "wb") as saving:
+        for _ in range(30 if behaviour == "writing" else 10**6):
+            saving.write(b"x" * 1000)
+            saving.flush()
+            time.sleep(0.1)
+    sys.exit(0)
 """
 
 # aefabmap_launch's main() with the stand-ins as its nodes (a parameter file and model folder to pass its checks).
@@ -55,6 +62,8 @@ from aefabmap_ros.cli import launch
 
 nodes, ready_dir = sys.argv[1].split(","), sys.argv[2]
 launch.STOP_PROGRESS_S = 0.5
+launch.STOP_WRITING_CAP_S = 6.0
+launch.check_model = lambda model: None
 launch.node_commands = lambda args: [[sys.executable, "-m", name, behaviour, f"{ready_dir}/{name}.ready"]
                                      for name, behaviour in (node.split("=") for node in nodes)]
 sys.exit(launch.main(["--model", ready_dir, "--params", f"{ready_dir}/params.yaml", *sys.argv[3:]]))
@@ -103,9 +112,33 @@ def test_a_node_still_saving_is_waited_for_then_killed(tmp_path: Path) -> None:
     code, err = _launch(tmp_path, {"feature_node": "clean", "verifier_node": "slow"}, "--stop-timeout", "2")
     assert code == 1 and time.monotonic() - started >= 2.0, err
     assert "[launch] waiting for verifier_node to finish shutting down (saving state)" in err, err
-    assert "of 2 s (--stop-timeout)" in err, err
-    assert "still running 2 s after the stop request (--stop-timeout): killed" in err, err
+    assert "of 2 s (--stop-timeout; longer while writing, up to 6 s)" in err, err
+    assert "still running, writing nothing, 2 s (--stop-timeout) after the stop request: killed" in err, err
     assert "ERROR: verifier_node exited with code -9 during shutdown (its state may not be saved)" in err, err
+
+
+def test_a_node_still_writing_its_save_is_waited_for_past_the_stop_timeout(tmp_path: Path) -> None:
+    code, err = _launch(tmp_path, {"feature_node": "clean", "fabmap_node": "writing"}, "--stop-timeout", "1")
+    assert code == 0 and "ERROR" not in err, err
+    assert (tmp_path / "fabmap_node.ready.save").stat().st_size == 30_000  # the whole save, not cut short
+
+
+def test_a_node_writing_for_ever_is_killed_at_the_cap(tmp_path: Path) -> None:
+    code, err = _launch(tmp_path, {"fabmap_node": "writing_forever"}, "--stop-timeout", "1")
+    assert code == 1, err
+    assert "ERROR: fabmap_node (pid" in err and "still writing after 6 s after the stop request: killed" in err, err
+
+
+def test_bytes_open_for_writing_counts_the_files_a_process_writes(tmp_path: Path) -> None:
+    reading = (tmp_path / "read.bin")
+    reading.write_bytes(b"r" * 500)
+    before = launch.bytes_open_for_writing(os.getpid())
+    assert before is not None
+    with reading.open("rb"), (tmp_path / "written.bin").open("wb") as written:
+        written.write(b"w" * 4096)
+        written.flush()
+        assert launch.bytes_open_for_writing(os.getpid()) == before + 4096  # the file read is not counted
+    assert launch.bytes_open_for_writing(2**22 + 12345) is None  # no such process
 
 
 def test_a_node_stopped_while_still_starting_is_not_an_error(tmp_path: Path) -> None:

@@ -27,7 +27,6 @@ def test_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         ([str(bag), "--topic", "/image"], "'/image' not in bag"),
         ([str(bag), "--topic", "/cam", "--rate", "-1"], "--rate must be >= 0"),
         ([str(bag), "--topic", "/cam", "--loop", "--lockstep", "place_posteriors"], "never end"),
-        ([str(bag), "--topic", "/cam", "--loop", "--with", "/other"], "--with is not supported with --loop"),
         ([str(bag), "--topic", "/cam", "--with", "/cam"], "is the image topic itself"),
         ([str(bag), "--topic", "/cam", "--with", "/odom", "--wait-subscribers", "0"], "--with /odom: not in"),
         ([str(bag), "--topic", "/cam", "--with", "/odom=0"], "must be an integer >= 1"),
@@ -53,7 +52,7 @@ def test_companions_go_out_before_the_image_of_their_log_time() -> None:
 
 
 def test_replay_restamps_later_laps() -> None:
-    from aefabmap_ros.io.bag_messages import get_typestore, make_image_message
+    from aefabmap_ros.io.bag_messages import get_typestore, make_image_message, make_odometry_message
     from aefabmap_ros.stamps import stamp_to_ns
 
     typestore = get_typestore()
@@ -62,6 +61,13 @@ def test_replay_restamps_later_laps() -> None:
     restamped = replay_messages.restamped(raw, "sensor_msgs/msg/Image", 7_000)
     moved: Any = typestore.deserialize_cdr(restamped, "sensor_msgs/msg/Image")
     assert stamp_to_ns(moved.header.stamp) == 12_000
+
+    # A lap's companions move with its images: odometry and CameraInfo keep increasing across laps too.
+    odometry = make_odometry_message(np.eye(4), 5_000)
+    raw = bytes(typestore.serialize_cdr(odometry, "nav_msgs/msg/Odometry"))
+    restamped = replay_messages.restamped(raw, "nav_msgs/msg/Odometry", 7_000)
+    moved = typestore.deserialize_cdr(restamped, "nav_msgs/msg/Odometry")
+    assert stamp_to_ns(moved.header.stamp) == 12_000 and moved.pose.pose.orientation.w == 1.0
 
 
 @pytest.mark.ros

@@ -143,3 +143,48 @@ def test_any_exception_in_a_node_callback_is_counted_and_dropped(reliability: Re
             node.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_the_callbacks_handed_to_the_pool_are_finished_before_the_executor_shuts_down() -> None:
+    """rclpy's shutdown leaves them queued, to run on destroyed nodes ("exception was never retrieved");
+    run_nodes waits for them first."""
+    import threading
+
+    from rclpy.callback_groups import ReentrantCallbackGroup
+    from rclpy.executors import MultiThreadedExecutor
+    from std_msgs.msg import Header
+
+    from aefabmap_ros.nodes.common import finish_handed_over_callbacks, pipeline_qos
+
+    rclpy.init()
+    try:
+        release, taken = threading.Event(), []
+        node = Node("pool_node")
+        group = ReentrantCallbackGroup()  # four callbacks at once, where the pool has two threads
+        topics = [f"pool_topic_{index}" for index in range(4)]
+        publishers = [node.create_publisher(Header, topic, pipeline_qos(10)) for topic in topics]
+        def held_until_released(message: Header) -> None:
+            release.wait(10)
+            taken.append(message)
+
+        for topic in topics:
+            node.create_subscription(Header, topic, held_until_released, pipeline_qos(10), callback_group=group)
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        deadline = time.monotonic() + 20
+        while any(p.get_subscription_count() == 0 for p in publishers) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        for publisher in publishers:
+            publisher.publish(Header())
+        handed = 0
+        while handed < 4 and time.monotonic() < deadline:  # each ready message goes to the pool, whose two
+            executor.spin_once(timeout_sec=0.05)         # threads wait on `release`: two callbacks queue
+            handed = len(executor._futures)  # the pool's tasks (private: what the test must see)
+        assert handed == 4 and not taken
+        threading.Timer(0.3, release.set).start()
+        finish_handed_over_callbacks(executor)
+        assert len(taken) == 4  # every queued callback ran, while its node was still alive
+        executor.shutdown()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
