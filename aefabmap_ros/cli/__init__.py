@@ -27,4 +27,5 @@ __all__ = [
     "synth",
     "train",
     "train_run",
+    "view",
 ]

@@ -2,11 +2,13 @@
 launchers in ``cli``) that imports rclpy or message types."""
 
 __all__ = [
+    "closure_view_node",
     "common",
     "delivery",
     "fabmap_node",
     "feature_node",
     "frame_gate",
+    "graph_view",
     "launch_table",
     "messages",
     "pipeline",
@@ -14,4 +16,5 @@ __all__ = [
     "quantizer_node",
     "sensor_inputs",
     "verifier_node",
+    "view_messages",
 ]
