@@ -6,8 +6,9 @@ Keeps a small JPEG thumbnail and the features of every frame that got features (
 matches (green lines: inliers of one fundamental matrix; red dots: matches that do not fit):
 
 - ``closure_view/closures``: every closure on ``loop_closures``;
-- ``closure_view/refused``: every FAB-MAP candidate on ``loop_closure_candidates`` whose query reached no
-  closure within ``refused_timeout_s`` (the verifier refused it), under a red banner.
+- ``closure_view/refused``: every FAB-MAP candidate on ``loop_closure_candidates`` the verifier refused (no
+  closure of its query, while one of a later query came, or none at all within ``refused_timeout_s``:
+  visualization/candidates.py), under a red banner.
 
 Nothing is matched or drawn for a topic nobody subscribes to (its subscription count is looked at first).
 Bad input (an undecodable image, malformed features, any exception) is counted by name and dropped.
@@ -54,8 +55,9 @@ class ClosureViewNode(Node):
         album_config = declare_config(self, AlbumConfig)
         self.album = ClosureAlbum(album_config, declare_config(self, VerificationConfig))
         timeout_s = declare_parameter(
-            self, "refused_timeout_s", 10.0,
-            "A candidate whose query reached no closure after this long was refused by the verifier.")
+            self, "refused_timeout_s", 60.0,
+            "A candidate whose query reached no closure, while no later query's closure came either, is taken as "
+            "refused after this long (the verifier may run tens of seconds behind a lockstep replay).")
         self.watch = CandidateWatch(timeout_s)
         self.counter = DropCounter(self)
         self.closure_publisher = self.create_publisher(CompressedImage, CLOSURE_PICTURES_TOPIC, RESULT_QOS)
@@ -93,7 +95,7 @@ class ClosureViewNode(Node):
     @node_callback
     def _on_timer(self) -> None:
         now = time.monotonic()
-        refused = self.watch.expired(now)
+        refused = self.watch.refused(now)
         if refused and self.refused_publisher.get_subscription_count() > 0:
             for candidate in refused:
                 self._draw(candidate, refused=True, give_up_at=now + WAIT_FOR_FRAMES_S)
