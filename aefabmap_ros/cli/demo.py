@@ -266,6 +266,21 @@ def print_backend_result(test: Path, backend_dir: Path) -> None:
         print(f"    no ATE: {exc}", flush=True)
         return
     print(ate_summary(figures), flush=True)
+    plot = backend_dir.parent / "evaluation_online" / "ate.png"  # the online report shows it
+    write_ate_plot(test, keyframes, plot)
+    print(f"    ATE plot: {plot}", flush=True)
+
+
+def write_ate_plot(test: Path, keyframes: Path, path: Path) -> None:
+    """Top view of odometry alone and of the backend's keyframes, each aligned (SE(3)) over the ground truth."""
+    from aefabmap_ros.evaluation.plots import plot_trajectories
+    from aefabmap_ros.evaluation.trajectory_error import absolute_trajectory_error, read_tum
+
+    reference = read_tum(test / "groundtruth.tum")
+    aligned = [(label, absolute_trajectory_error(reference, read_tum(file)).aligned.positions_xyz)
+               for label, file in (("odometry alone", test / "odometry.tum"), ("odometry + closures", keyframes))]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plot_trajectories(reference.positions_xyz, aligned, path)
 
 
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
