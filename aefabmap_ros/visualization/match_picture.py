@@ -23,6 +23,8 @@ OUTLIER_COLOUR = (0, 0, 230)
 REFUSED_BANNER_COLOUR = (0, 0, 160)
 ACCEPTED_BANNER_COLOUR = (0, 110, 0)
 BANNER_HEIGHT_PX = 22
+# More lines than this hide the images under them: an evenly spread subset is drawn (the caption has the counts).
+MAX_DRAWN_INLIERS = 80
 JPEG_QUALITY = 85
 
 
@@ -93,7 +95,8 @@ def side_by_side(query: np.ndarray, place: np.ndarray) -> tuple[np.ndarray, int]
 
 def draw_matches(query: np.ndarray, place: np.ndarray, matches: PairMatches, query_scale: float,
                  place_scale: float, caption: str, refused: bool) -> np.ndarray:
-    """The pair side by side under a caption banner: a line per inlier, a dot at each end of an outlier match.
+    """The pair side by side under a caption banner: a line per inlier (``MAX_DRAWN_INLIERS`` of them at most), a
+    dot at each end of an outlier match.
 
     ``query_scale`` and ``place_scale`` take the matches' image pixels to the given (thumbnail) images.
     """
@@ -103,7 +106,10 @@ def draw_matches(query: np.ndarray, place: np.ndarray, matches: PairMatches, que
     for (qx, qy), (px, py) in zip(query_xy[~matches.inliers], place_xy[~matches.inliers], strict=True):
         cv2.circle(canvas, (int(qx), int(qy)), 2, OUTLIER_COLOUR, -1, cv2.LINE_AA)
         cv2.circle(canvas, (int(px), int(py)), 2, OUTLIER_COLOUR, -1, cv2.LINE_AA)
-    for (qx, qy), (px, py) in zip(query_xy[matches.inliers], place_xy[matches.inliers], strict=True):
+    inliers = np.flatnonzero(matches.inliers)
+    drawn = inliers[np.linspace(0, len(inliers) - 1, MAX_DRAWN_INLIERS).round().astype(int)] \
+        if len(inliers) > MAX_DRAWN_INLIERS else inliers
+    for (qx, qy), (px, py) in zip(query_xy[drawn], place_xy[drawn], strict=True):
         cv2.line(canvas, (int(qx), int(qy)), (int(px), int(py)), INLIER_COLOUR, 1, cv2.LINE_AA)
     banner = np.zeros((BANNER_HEIGHT_PX, canvas.shape[1], 3), np.uint8)
     banner[:] = REFUSED_BANNER_COLOUR if refused else ACCEPTED_BANNER_COLOUR

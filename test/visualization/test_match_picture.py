@@ -7,6 +7,7 @@ from aefabmap_ros.verification.geometric import VerificationConfig
 from aefabmap_ros.visualization.match_picture import (
     BANNER_HEIGHT_PX,
     INLIER_COLOUR,
+    MAX_DRAWN_INLIERS,
     OUTLIER_COLOUR,
     PairMatches,
     decode_jpeg,
@@ -50,6 +51,18 @@ def test_thumbnail_scale_maps_image_points_onto_the_thumbnail():
     small = decode_jpeg(thumbnail.jpeg)
     assert small.shape[:2] == (240, 320)
     assert small[120, 160].mean() > 200 and small[20, 20].mean() < 30  # the bright block, halved
+
+
+def test_at_most_max_drawn_inliers_lines_are_drawn():
+    """Inliers on distinct rows, each a horizontal line: the rows lit in the gap between the two points count them."""
+    rows = np.arange(5, 5 + 2 * 200, 2, dtype=np.float32)  # 200 inliers
+    matches = PairMatches(query_points=np.stack([np.full(200, 10, np.float32), rows], axis=1),
+                          place_points=np.stack([np.full(200, 10, np.float32), rows], axis=1),
+                          inliers=np.ones(200, bool))
+    image = np.zeros((420, 60), np.uint8)
+    canvas = draw_matches(image, image, matches, 1.0, 1.0, "", refused=False)[BANNER_HEIGHT_PX:]
+    lit_rows = np.flatnonzero(canvas[:, 40, 1] > 120)  # column 40: between x=10 and x=60+10
+    assert len(lit_rows) == MAX_DRAWN_INLIERS
 
 
 def _features(points: np.ndarray, descriptors: np.ndarray) -> Features:
