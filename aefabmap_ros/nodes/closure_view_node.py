@@ -62,12 +62,14 @@ class ClosureViewNode(Node):
         self.counter = DropCounter(self)
         self.closure_publisher = self.create_publisher(CompressedImage, CLOSURE_PICTURES_TOPIC, RESULT_QOS)
         self.refused_publisher = self.create_publisher(CompressedImage, REFUSED_PICTURES_TOPIC, RESULT_QOS)
-        self.image_input = SensorInput(self, Image, "image", self._on_image, policy="auto", depth=10,
-                                       counter=self.counter, without_it="closures have no pictures")
-        counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(100), self.counter)
+        # Closures first: of the callbacks ready together, rclpy's executor runs the earliest created first, so a
+        # closure's picture does not wait behind a queue of images.
         counted_subscription(self, LoopClosure, "loop_closures", self._on_closure, RESULT_QOS, self.counter)
         counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_candidate, RESULT_QOS,
                              self.counter)
+        counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(100), self.counter)
+        self.image_input = SensorInput(self, Image, "image", self._on_image, policy="auto", depth=10,
+                                       counter=self.counter, without_it="closures have no pictures")
         self._waiting: list[tuple[Candidate, bool, float]] = []  # (what, refused, give up at) frames not yet here
         self.create_timer(RETRY_PERIOD_S, self._on_timer)
         self.get_logger().info(f"closure pictures on {CLOSURE_PICTURES_TOPIC} and {REFUSED_PICTURES_TOPIC} "
