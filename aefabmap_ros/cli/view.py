@@ -121,7 +121,11 @@ def serve(args: argparse.Namespace) -> int:
 
     node = rclpy.create_node("aefabmap_view")
     bridge = TopicBridge(node, served_topics(args.topic))
-    server = foxglove.start_server(name="aefabmap", host=args.host, port=args.port, server_listener=bridge)
+    try:
+        server = foxglove.start_server(name="aefabmap", host=args.host, port=args.port, server_listener=bridge)
+    except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. the port is taken
+        node.destroy_node()
+        raise ConfigError(f"cannot serve on {args.host}:{args.port}: {exc}") from exc
     print(f"[view] serving {len(bridge.channels)} topics on ws://{args.host}:{server.port} (Foxglove: Open "
           "connection -> Foxglove WebSocket; layout aefabmap_ros/config/foxglove_layout.json)",
           file=sys.stderr, flush=True)

@@ -112,3 +112,23 @@ def test_a_client_gets_the_channels_and_a_closure_picture(tmp_path):
         assert picture.format == "jpeg" and picture.header.stamp.sec == 2
         decoded = cv2.imdecode(np.frombuffer(bytes(picture.data), np.uint8), cv2.IMREAD_COLOR)
         assert decoded is not None and decoded.shape[1] == 2 * 320  # the query and the place side by side
+
+
+def test_a_taken_port_is_one_error_line_and_exit_1(capsys):
+    import socket
+
+    from aefabmap_ros.cli import view
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert view.main(["--port", str(port), "--duration", "1"]) == 1
+    assert capsys.readouterr().err.startswith(f"ERROR: cannot serve on 127.0.0.1:{port}")
+
+
+def test_a_malformed_extra_topic_is_refused_by_name(capsys):
+    from aefabmap_ros.cli import view
+
+    assert view.main(["--topic", "image"]) == 1
+    assert "--topic 'image' must be NAME=PACKAGE/msg/TYPE" in capsys.readouterr().err
