@@ -8,6 +8,9 @@ then the ratios of the with-view runs to the runs beside them.
 
     python -m aefabmap_ros.cli.bench_view --model output/demo/models/autoencoder \\
         --bag bags/generated/test/bag --repeats 2
+
+--picture-delays RECORDING instead prints how long after each closure its picture came, as the recorder (a
+client like any other) received both: e.g. the demo's output/demo/online_recording.
 """
 
 from __future__ import annotations
@@ -20,10 +23,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from aefabmap_ros.cli.bench_processes import NodeProcessSampler, ProcessUsage
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.bags import read_messages
+from aefabmap_ros.stamps import stamp_to_ns
 
 VIEW_PROCESSES = ("closure_view_node", "view")
 
@@ -51,8 +57,10 @@ class ViewRun:
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="bench_view", description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", type=Path, required=True, help="model directory (aefabmap_train)")
-    parser.add_argument("--bag", type=Path, required=True, help="bag with images on --topic")
+    parser.add_argument("--model", type=Path, help="model directory (aefabmap_train)")
+    parser.add_argument("--bag", type=Path, help="bag with images on --topic")
+    parser.add_argument("--picture-delays", type=Path, metavar="RECORDING",
+                        help="only print the closure -> picture delays of a recording (aefabmap_demo's)")
     parser.add_argument("--topic", default="/image")
     parser.add_argument("--repeats", type=int, default=2, help="pairs of runs (default 2)")
     parser.add_argument("--work", type=Path, default=Path("/tmp") / f"bench_view-{os.getpid()}")
@@ -103,7 +111,34 @@ def describe(run: ViewRun) -> str:
             f"{run.view_cpu_s:.2f} s; {processes})")
 
 
+def picture_delays_s(recording: Path) -> tuple[int, np.ndarray]:
+    """The closures of a recording and, for each one with a picture (same query stamp), the seconds between the
+    recorder receiving the closure and receiving its picture."""
+    from aefabmap_ros.nodes.launch_table import CLOSURE_PICTURES_TOPIC, CLOSURES_TOPIC
+
+    arrivals: dict[str, dict[int, int]] = {f"/{CLOSURES_TOPIC}": {}, f"/{CLOSURE_PICTURES_TOPIC}": {}}
+    for message in read_messages(recording, list(arrivals)):
+        arrivals[message.topic].setdefault(stamp_to_ns(message.message.header.stamp), message.log_time_ns)
+    closures, pictures = arrivals[f"/{CLOSURES_TOPIC}"], arrivals[f"/{CLOSURE_PICTURES_TOPIC}"]
+    return len(closures), np.array([(pictures[stamp] - closures[stamp]) / 1e9 for stamp in closures
+                                    if stamp in pictures])
+
+
+def print_picture_delays(recording: Path) -> None:
+    closures, delays = picture_delays_s(recording)
+    if not delays.size:
+        raise ConfigError(f"{recording} holds no closure with a picture ({closures} closures)")
+    p50, p95 = np.percentile(delays, [50, 95])
+    print(f"{closures} closures, {delays.size} with a picture; closure -> picture: median {p50:.3f} s, p95 "
+          f"{p95:.3f} s, max {delays.max():.3f} s; {int((delays > 0.5).sum())} over 0.5 s")
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.picture_delays is not None:
+        print_picture_delays(args.picture_delays)
+        return 0
+    if args.model is None or args.bag is None:
+        raise ConfigError("give --model and --bag (or --picture-delays RECORDING)")
     if args.repeats < 1:
         raise ConfigError(f"--repeats must be >= 1, got {args.repeats}")
     images = sum(1 for _ in read_messages(args.bag, [args.topic]))
