@@ -47,6 +47,7 @@ REFUSED_PICTURES_TOPIC = "closure_view/refused"
 RETRY_PERIOD_S = 0.1
 # A closure can arrive before its query's image reached this node (another process, another queue).
 WAIT_FOR_FRAMES_S = 3.0
+MAX_IMAGE_PIXELS = 25_000_000  # feature_node's default bound: larger images are refused before decoding
 
 
 class ClosureViewNode(Node):
@@ -77,7 +78,7 @@ class ClosureViewNode(Node):
 
     @node_callback
     def _on_image(self, message: Image) -> None:
-        self.album.add_image(stamp_to_ns(message.header.stamp), image_message_to_gray(message, 25_000_000))
+        self.album.add_image(stamp_to_ns(message.header.stamp), image_message_to_gray(message, MAX_IMAGE_PIXELS))
 
     @node_callback
     def _on_features(self, message: Features) -> None:
