@@ -204,23 +204,10 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                  "-p", f"trajectory_file:={backend_dir / 'keyframes_injected.tum'}"],
                 stdout=injected_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt, read_kitti_poses(test / "poses.txt"))
-            _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
-            # The verifier must hear every frame's features: a place it never saw cannot be verified.
-            for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
-                         "verifier_node]: receiving features", "pose graph (example backend)"):
-                _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
-            _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
+            _wait_until_up(logs, processes)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images with "
                   f"{', '.join(COMPANION_TOPICS)}", flush=True)
-            # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
-            companions = [argument for topic in COMPANION_TOPICS
-                          for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
-            # Lockstep: each image once the last was answered (every frame, none lost). Live: the bag's own pace
-            # with a camera driver's QoS; nobody waits for the nodes.
-            pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
-            subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                            *companions, *pace, "--wait-subscribers", "2", "--quiet"],  # + the printer
-                           check=True, env=_driver_environment(args))
+            _replay(args, test)
             printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
             for process in reversed(processes):
                 process.send_signal(signal.SIGINT)
@@ -243,6 +230,30 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             print(printer.backend.errors.summary(), flush=True)
         print_backend_result(test, backend_dir)
     return recording
+
+
+def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]]) -> None:
+    """Until the recorder records and every node hears its inputs (the nodes, the recorder, the injected backend)."""
+    _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
+    # The verifier must hear every frame's features: a place it never saw cannot be verified; closure_view_node
+    # every frame's image: a place without a thumbnail has no picture.
+    for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
+                 "verifier_node]: receiving features", "pose graph (example backend)", "closure pictures on"):
+        _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
+    _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
+
+
+def _replay(args: argparse.Namespace, test: Path) -> None:
+    """The test bag with its companions, in lockstep (each image once the last was answered: every frame, none
+    lost) or, --live, at the bag's own pace with a camera driver's QoS (nobody waits for the nodes)."""
+    # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
+    companions = [argument for topic in COMPANION_TOPICS
+                  for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
+    pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
+    # Image subscribers: feature_node, closure_view_node and the printer.
+    subprocess.run([sys.executable, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
+                    *companions, *pace, "--wait-subscribers", "3", "--quiet"],
+                   check=True, env=_driver_environment(args))
 
 
 def _driver_environment(args: argparse.Namespace) -> dict[str, str]:
