@@ -187,23 +187,16 @@ def _fingerprint(sources: list[ImageSource]) -> str:
 # ------------------------------------------------------------------------------------------ modes
 
 
-def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
-    args, settings = run.args, run.settings
-    if args.times is not None or args.pose_truth is not None or args.frames_by_query_id:
-        raise ConfigError("--times, --pose-truth and --frames-by-query-id go with --recording")
-    check_training_choice(args)
-    depth_given = args.depth is not None or args.depth_topic is not None
-    if depth_given and not args.verify:
-        raise ConfigError("--depth/--depth-topic feed verification's metric test: add --verify")
-    min_gap = settings.evaluation.min_gap
-    gt = load_ground_truth(args, min_gap)
-    source = test_source(args)
-    num_frames = len(source)
-    check_gt_matches(gt, num_frames, source.name)
-    train = [] if args.train_on_test or args.model else training_sources(args)
+ModelEntry = tuple[str, Model, Path, np.ndarray | None]  # (label, model, its path, samples to exclude)
 
-    # (label, model, path, exclude_samples) per model to evaluate.
-    entries: list[tuple[str, Model, Path, np.ndarray | None]] = []
+
+def model_entries(run: Run, methods: tuple[str, ...], source: ImageSource,
+                  train: list[ImageSource]) -> tuple[list[ModelEntry], tuple[str, ...]]:
+    """The models to evaluate -- given (--model), or trained on the training sources or the test sequence -- and
+    the methods they can run."""
+    args, settings = run.args, run.settings
+    num_frames = len(source)
+    entries: list[ModelEntry] = []
     if args.model:
         loaded = [(path, load_model(path)) for path in args.model]
         by_kind: dict[str, int] = {}
@@ -233,6 +226,25 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
         for kind in kinds:
             model, directory = run.trained_model(kind, sequences, provenance, fingerprint)
             entries.append(("", model, directory, exclude))
+    return entries, methods
+
+
+def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
+    args, settings = run.args, run.settings
+    if args.times is not None or args.pose_truth is not None or args.frames_by_query_id:
+        raise ConfigError("--times, --pose-truth and --frames-by-query-id go with --recording")
+    check_training_choice(args)
+    depth_given = args.depth is not None or args.depth_topic is not None
+    if depth_given and not args.verify:
+        raise ConfigError("--depth/--depth-topic feed verification's metric test: add --verify")
+    min_gap = settings.evaluation.min_gap
+    gt = load_ground_truth(args, min_gap)
+    source = test_source(args)
+    num_frames = len(source)
+    check_gt_matches(gt, num_frames, source.name)
+    train = [] if args.train_on_test or args.model else training_sources(args)
+
+    entries, methods = model_entries(run, methods, source, train)
 
     stamps_ns = source.stamps_ns()
     results: list[MethodResult] = []
