@@ -32,6 +32,7 @@ from aefabmap_ros.io.bags import read_messages
 from aefabmap_ros.stamps import stamp_to_ns
 
 VIEW_PROCESSES = ("closure_view_node", "view")
+VIEW_READY = ("closure pictures on", "[view] serving")  # what the two log once they run
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,9 @@ def one_run(args: argparse.Namespace, view: bool, images: int) -> ViewRun:
         sampler = NodeProcessSampler(launch.pid)
         sampler.start()
         try:
-            _wait_for(log_path, "fabmap_node]: receiving words", launch)
+            # Counting starts once every process is up: start-up (imports, model loading) is no per-image cost.
+            for ready in ("fabmap_node]: receiving words", *(VIEW_READY if view else ())):
+                _wait_for(log_path, ready, launch)
             sampler.mark()
             started = time.monotonic()
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(args.bag), "--topic", args.topic,

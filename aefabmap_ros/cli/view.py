@@ -27,6 +27,8 @@ from aefabmap_ros.io.bags import get_typestore
 from aefabmap_ros.nodes.launch_table import VIEW_TOPICS
 
 DEFAULT_PORT = 8765
+# How long a new client's subscription may wait for its ROS subscription; also how often an idle server wakes.
+SPIN_PERIOD_S = 0.2
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -133,7 +135,7 @@ def serve(args: argparse.Namespace) -> int:
     try:
         while rclpy.ok() and not (args.duration > 0 and time.monotonic() - started >= args.duration):
             bridge.apply()
-            rclpy.spin_once(node, timeout_sec=0.05)
+            rclpy.spin_once(node, timeout_sec=SPIN_PERIOD_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
