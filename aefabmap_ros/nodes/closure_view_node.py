@@ -27,7 +27,6 @@ from aefabmap_ros.io.image_messages import image_message_to_gray
 from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
-    counted_subscription,
     declare_config,
     declare_parameter,
     node_callback,
@@ -45,6 +44,7 @@ from aefabmap_ros.visualization.closure_album import AlbumConfig, ClosureAlbum
 CLOSURE_PICTURES_TOPIC = "closure_view/closures"
 REFUSED_PICTURES_TOPIC = "closure_view/refused"
 RETRY_PERIOD_S = 0.1
+TIMEOUT_CHECK_PERIOD_S = 1.0  # refused by timeout: only when the verifier published nothing for refused_timeout_s
 # A closure can arrive before its query's image reached this node (another process, another queue).
 WAIT_FOR_FRAMES_S = 3.0
 MAX_IMAGE_PIXELS = 25_000_000  # feature_node's default bound: larger images are refused before decoding
@@ -64,15 +64,19 @@ class ClosureViewNode(Node):
         self.closure_publisher = self.create_publisher(CompressedImage, CLOSURE_PICTURES_TOPIC, RESULT_QOS)
         self.refused_publisher = self.create_publisher(CompressedImage, REFUSED_PICTURES_TOPIC, RESULT_QOS)
         # Closures first: of the callbacks ready together, rclpy's executor runs the earliest created first, so a
-        # closure's picture does not wait behind a queue of images.
-        counted_subscription(self, LoopClosure, "loop_closures", self._on_closure, RESULT_QOS, self.counter)
-        counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_candidate, RESULT_QOS,
-                             self.counter)
-        counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(100), self.counter)
+        # closure's picture does not wait behind a queue of images. Plain subscriptions (no lost-message events):
+        # each event is one more entity in every executor round's wait set, the node's main cost when idle.
+        self.create_subscription(LoopClosure, "loop_closures", self._on_closure, RESULT_QOS)
+        self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_candidate, RESULT_QOS)
+        self.create_subscription(Features, "aefabmap/features", self._on_features, pipeline_qos(100))
         self.image_input = SensorInput(self, Image, "image", self._on_image, policy="auto", depth=10,
                                        counter=self.counter, without_it="closures have no pictures")
         self._waiting: list[tuple[Candidate, bool, float]] = []  # (what, refused, give up at) frames not yet here
-        self.create_timer(RETRY_PERIOD_S, self._on_timer)
+        # Both timers run only while there is something to do: every wake-up of the executor costs.
+        self.retry_timer = self.create_timer(RETRY_PERIOD_S, self._on_retry)
+        self.retry_timer.cancel()
+        self.timeout_timer = self.create_timer(TIMEOUT_CHECK_PERIOD_S, self._on_timeout_check)
+        self.timeout_timer.cancel()
         self.get_logger().info(f"closure pictures on {CLOSURE_PICTURES_TOPIC} and {REFUSED_PICTURES_TOPIC} "
                                "(drawn only while subscribed)")
 
@@ -90,21 +94,34 @@ class ClosureViewNode(Node):
         self.watch.verified(candidate.query_ns)
         if self.closure_publisher.get_subscription_count() > 0:
             self._draw(candidate, refused=False, give_up_at=time.monotonic() + WAIT_FOR_FRAMES_S)
+        self._draw_refused()
 
     @node_callback
     def _on_candidate(self, message: LoopClosure) -> None:
         self.watch.add(_candidate(message), time.monotonic())
+        if self.timeout_timer.is_canceled():
+            self.timeout_timer.reset()
 
     @node_callback
-    def _on_timer(self) -> None:
+    def _on_timeout_check(self) -> None:
+        self._draw_refused()
+        if not len(self.watch):
+            self.timeout_timer.cancel()
+
+    @node_callback
+    def _on_retry(self) -> None:
+        waiting, self._waiting = self._waiting, []
+        for candidate, was_refused, give_up_at in waiting:
+            self._draw(candidate, was_refused, give_up_at)
+        if not self._waiting:
+            self.retry_timer.cancel()
+
+    def _draw_refused(self) -> None:
         now = time.monotonic()
         refused = self.watch.refused(now)
         if refused and self.refused_publisher.get_subscription_count() > 0:
             for candidate in refused:
                 self._draw(candidate, refused=True, give_up_at=now + WAIT_FOR_FRAMES_S)
-        waiting, self._waiting = self._waiting, []
-        for candidate, was_refused, give_up_at in waiting:
-            self._draw(candidate, was_refused, give_up_at)
 
     def _draw(self, candidate: Candidate, refused: bool, give_up_at: float) -> None:
         what = "REFUSED candidate" if refused else "closure"
@@ -114,6 +131,8 @@ class ClosureViewNode(Node):
         if picture is None:
             if time.monotonic() < give_up_at:
                 self._waiting.append((candidate, refused, give_up_at))
+                if self.retry_timer.is_canceled():
+                    self.retry_timer.reset()
             else:
                 self.counter.drop("frames_not_kept", f"no thumbnail or features of query {candidate.query_id} or "
                                   "its place: no picture (image topic silent, or evicted by the byte bounds)")
