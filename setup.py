@@ -13,6 +13,7 @@ CONSOLE_SCRIPTS = [
     "fabmap_node = aefabmap_ros.nodes.fabmap_node:main",
     "verifier_node = aefabmap_ros.nodes.verifier_node:main",
     "pose_graph_node = aefabmap_ros.nodes.pose_graph_node:main",
+    "closure_view_node = aefabmap_ros.nodes.closure_view_node:main",
     "aefabmap_pipeline = aefabmap_ros.nodes.pipeline:main",
     "aefabmap_launch = aefabmap_ros.cli.launch:main",
     "aefabmap_train = aefabmap_ros.cli.train:main",
@@ -25,6 +26,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_demo = aefabmap_ros.cli.demo:main",
     "aefabmap_bench = aefabmap_ros.cli.bench:main",
     "aefabmap_ate = aefabmap_ros.cli.ate:main",
+    "aefabmap_view = aefabmap_ros.cli.view:main",
 ]
 
 setup(
@@ -34,11 +36,12 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob(f"{PACKAGE}/config/*.yaml") + glob(f"{PACKAGE}/config/*.xml")),
+        (f"share/{PACKAGE}/config", glob(f"{PACKAGE}/config/*.yaml") + glob(f"{PACKAGE}/config/*.xml")
+         + glob(f"{PACKAGE}/config/*.json")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
     # The YAML files are package data too: the CLIs find them beside the code in every kind of install.
-    package_data={PACKAGE: ["config/*.yaml", "config/*.xml", "py.typed"]},
+    package_data={PACKAGE: ["config/*.yaml", "config/*.xml", "config/*.json", "py.typed"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="aefabmap_ros developers",

@@ -77,7 +77,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("io", "features"),
     ("vocabulary", "fabmap", "verification"),
     ("model",),
-    ("evaluation", "backend"),
+    ("evaluation", "backend", "visualization"),
     ("datasets",),
     ("nodes",),
     ("cli",),

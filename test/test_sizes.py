@@ -15,10 +15,7 @@ MAX_FUNCTION_LINES = 60
 # Files being rewritten on other branches, at their present sizes: they may shrink, not grow. The entry
 # goes once its file is within the limits (test_every_allowance_is_still_needed says so).
 ALLOWED_OVERSIZE: dict[str, int] = {
-    "cli/demo.py": 454,
     "cli/demo.py:run_online": 77,
-    "cli/evaluate_run.py": 518,
-    "cli/evaluate_run.py:evaluate_images": 86,
     "model/training.py:train_model": 64,
     "nodes/verifier_node.py": 741,
     "nodes/verifier_node.py:VerifierNode": 533,

@@ -27,7 +27,7 @@ Keyframe poses are ``T_map_base``; ``map_to_odom`` is what a TF broadcaster publ
 from __future__ import annotations
 
 import bisect
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -47,6 +47,7 @@ MAX_EXTRA_ITERATIONS = 20
 SETTLED_M = 0.001
 # Two stamps this close (ns) are the same keyframe: a place seen again by a later closure reuses it.
 SAME_KEYFRAME_NS = 1_000_000
+MAX_DECIDED_KEPT = 5000
 
 
 class ClosureResult(Enum):
@@ -146,6 +147,8 @@ class PoseGraph:
         self.odometry = OdometryBuffer(config.max_odometry)
         self.keyframes: list[Keyframe] = []  # by stamp
         self.counts: Counter[str] = Counter()
+        # The latest closures decided (added or refused, not waiting): what a viewer draws as loop edges.
+        self.decided: deque[tuple[Closure, ClosureResult]] = deque(maxlen=MAX_DECIDED_KEPT)
         self._waiting: list[Closure] = []
         self._chain_factors: dict[tuple[int, int], int] = {}  # (key before, key after) -> iSAM2 factor index
         self._factors: dict[int, gtsam.NonlinearFactor] = {}  # iSAM2 factor index -> factor, the graph's own
@@ -172,6 +175,8 @@ class PoseGraph:
     def add_closure(self, closure: Closure) -> ClosureResult:
         result = self._add_closure(closure)
         self.counts[result.value] += 1
+        if result is not ClosureResult.WAITING:
+            self.decided.append((closure, result))
         return result
 
     def _add_closure(self, closure: Closure) -> ClosureResult:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 _CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 _NODE_MODULE = "aefabmap_ros.nodes."
+_VIEW_MODULE = "aefabmap_ros.cli.view"  # aefabmap_launch --view's server, sampled like a node
 
 
 @dataclass
@@ -62,6 +63,8 @@ def _node_name(pid: int) -> str | None:
         text = argument.decode(errors="replace")
         if text.startswith(_NODE_MODULE):
             return text.removeprefix(_NODE_MODULE)
+        if text == _VIEW_MODULE:
+            return "view"
     return None
 
 

@@ -9,7 +9,9 @@
    default, + aefabmap_replay with the bag's depth, CameraInfo and drifting odometry); every closure
    on /loop_closures (verified) is printed as it arrives and checked against the ground truth, FAB-MAP's
    raw candidates are counted; loop_closures, loop_closure_candidates and place_posteriors are
-   recorded to an mcap that Foxglove opens (aefabmap_record); then the closures' relative poses are
+   recorded to an mcap that Foxglove opens (aefabmap_record), with closure_view_node's picture of every
+   closure and refused candidate and the pose graph's markers and path (config/foxglove_layout.json);
+   then the closures' relative poses are
    scored against the ground truth and the ATE of odometry alone against odometry + closures printed,
    with the ATE of a second backend that was also sent one wrong closure (cli/demo_backend.py);
 4. evaluation: the paper's four methods offline, each also after geometric verification of its
@@ -23,30 +25,35 @@ import argparse
 import os
 import shutil
 import signal
-import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from types import FrameType
-from typing import Any
 
 import numpy as np
 
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
-from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, BackendCheck, ate_figures, ate_summary
+from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, ate_figures, ate_summary
+from aefabmap_ros.cli.demo_printer import ClosurePrinter
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
-from aefabmap_ros.evaluation.metrics import event_scores
 from aefabmap_ros.io.bags import list_topics, read_messages
 from aefabmap_ros.io.config_files import shipped_config
-from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC, POSTERIORS_TOPIC, verifier_store_path
-from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.nodes.launch_table import (
+    CANDIDATES_TOPIC,
+    CLOSURES_TOPIC,
+    POSTERIORS_TOPIC,
+    VIEW_TOPICS,
+    verifier_store_path,
+)
 
 # What the replay publishes beside the images (aefabmap_synth's bag): the verifier's depth and
 # intrinsics, and the backend's drifting odometry.
 COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
+# The recording: what aefabmap_eval scores and what Foxglove shows (closure pictures, the graph's markers and path;
+# the recorder's subscription is what makes closure_view_node draw them).
+RECORDED_TOPICS = tuple(dict.fromkeys((CLOSURES_TOPIC, CANDIDATES_TOPIC, POSTERIORS_TOPIC, *VIEW_TOPICS)))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,138 +132,6 @@ def train_models(args: argparse.Namespace, train: Path) -> dict[str, Path]:
     return models
 
 
-class ClosurePrinter:
-    """Prints the published (verified) loop closures as they arrive, counts FAB-MAP's raw candidates
-    and the posteriors (spun in a thread)."""
-
-    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray, poses: np.ndarray | None = None) -> None:
-        import rclpy
-        from aefabmap_msgs.msg import LoopClosure, PlacePosterior
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import qos_profile_sensor_data
-        from sensor_msgs.msg import Image
-
-        self._rclpy = rclpy
-        self._stamps = stamps_ns
-        self._gt = gt
-        self.posteriors = 0
-        self.closures: list[tuple[int, int, bool]] = []  # /loop_closures: what a backend gets
-        self.candidates: list[tuple[int, int, bool]] = []  # /loop_closure_candidates: FAB-MAP's raw closures
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("aefabmap_demo_printer", context=self.context)
-        self.node.create_subscription(LoopClosure, CLOSURES_TOPIC, self._on_closure, 100)
-        self.node.create_subscription(LoopClosure, CANDIDATES_TOPIC, self._on_candidate, 100)
-        self.node.create_subscription(PlacePosterior, POSTERIORS_TOPIC, self._on_posterior, 100)
-        # When each image went out (its stamp read from the serialized message: nothing is deserialized), for the
-        # latency from image to /loop_closures.
-        self.image_arrivals_ns: dict[int, int] = {}
-        self.closure_latencies_s: list[float] = []
-        self.posterior_latencies_s: list[float] = []  # the detection alone (features, words, FAB-MAP)
-        self.node.create_subscription(Image, "image", self._on_image, qos_profile_sensor_data, raw=True)
-        self.backend = BackendCheck(self.node, stamps_ns, poses) if poses is not None else None
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, name="demo-printer")
-        self._thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set():
-            self.executor.spin_once(timeout_sec=0.1)
-
-    def _frame(self, stamp: Any) -> int:
-        return int(np.searchsorted(self._stamps, stamp_to_ns(stamp)))
-
-    # The middleware's own times (the publisher's clock when it sent, ours when the sample arrived; one machine,
-    # one clock), not this printer's callback times: a busy printer would add its own queue to the figures.
-    def _on_image(self, data: bytes, info: Any) -> None:
-        self.image_arrivals_ns[serialized_header_stamp_ns(data)] = int(info["source_timestamp"])
-
-    def _latency_s(self, message: Any, info: Any) -> float | None:
-        sent_ns = self.image_arrivals_ns.get(stamp_to_ns(message.header.stamp))
-        return None if sent_ns is None else (int(info["received_timestamp"]) - sent_ns) / 1e9
-
-    def _on_posterior(self, message: Any, info: Any) -> None:
-        latency = self._latency_s(message, info)
-        if latency is not None:
-            self.posterior_latencies_s.append(latency)
-        self.posteriors += 1
-        if self.posteriors % 50 == 0:
-            print(f"    ... {self.posteriors}/{len(self._stamps)} images processed", flush=True)
-
-    def _judged(self, message: Any) -> tuple[int, int, bool]:
-        query, matched = self._frame(message.header.stamp), self._frame(message.matched_stamp)
-        true = bool(self._gt[query, matched]) if query < len(self._gt) and matched < len(self._gt) else False
-        return query, matched, true
-
-    def _on_candidate(self, message: Any) -> None:
-        self.candidates.append(self._judged(message))
-
-    def _on_closure(self, message: Any, info: Any) -> None:
-        latency = self._latency_s(message, info)
-        if latency is not None:
-            self.closure_latencies_s.append(latency)
-        query, matched, true = self._judged(message)
-        self.closures.append((query, matched, true))
-        if self.backend is not None:
-            self.backend.on_closure(message, query, matched)
-        verdict = "true revisit" if true else "NOT a revisit in the ground truth"
-        checked = f"{message.inliers} inliers" if message.inliers >= 0 else "not verified"
-        pose = ("metric pose" if message.translation_metric else "monocular pose") if message.pose_available \
-            else "no pose"
-        print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}, "
-              f"{pose}  ({verdict})", flush=True)
-
-    def wait_until_quiet(self, idle_s: float, at_most_s: float) -> None:
-        """Give the nodes time to finish the last frames: until nothing arrived for ``idle_s``."""
-        deadline = time.monotonic() + at_most_s
-        seen: tuple[int, int, int] | None = None
-        while time.monotonic() < deadline:
-            now = (self.posteriors, len(self.closures), len(self.candidates))
-            if now == seen:
-                return
-            seen = now
-            time.sleep(idle_s)
-
-    def summary(self, min_gap: int) -> str:
-        """Published closures, false ones and revisit events closed; the raw candidates for comparison."""
-        in_range = [(q, m) for q, m, _ in self.closures if q < len(self._gt) and m < len(self._gt)]
-        events = event_scores(in_range, self._gt, min_gap)
-        false = sum(1 for *_, ok in self.closures if not ok)
-        false_candidates = sum(1 for *_, ok in self.candidates if not ok)
-        return (f"    {len(self.closures)} loop closures published on /{CLOSURES_TOPIC} (verified), {false} false; "
-                f"{events.num_events_closed} of {events.num_events} revisit events closed\n"
-                f"    {len(self.candidates)} raw FAB-MAP candidates on /{CANDIDATES_TOPIC}, {false_candidates} false; "
-                f"{self.posteriors} posteriors\n    {latency_summary(self.closure_latencies_s)}\n"
-                f"    {latency_summary(self.posterior_latencies_s, 'place_posteriors', 'posterior')}")
-
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=10)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self._rclpy.try_shutdown(context=self.context)
-
-
-def latency_summary(latencies_s: list[float], topic: str = "loop_closures", what: str = "closure") -> str:
-    """Image to ``topic``: median, p95 and max over the messages whose image was seen going out."""
-    if not latencies_s:
-        return f"latency image -> /{topic}: no {what} to time"
-    p50, p95 = np.percentile(latencies_s, [50, 95])
-    return (f"latency image -> /{topic} over {len(latencies_s)} {what}s: median {p50:.3f} s, p95 {p95:.3f} s, "
-            f"max {max(latencies_s):.3f} s")
-
-
-def serialized_header_stamp_ns(data: bytes) -> int:
-    """The header stamp of a serialized message that starts with a std_msgs/Header (CDR: 4 bytes of
-    encapsulation, then int32 sec and uint32 nanosec, little-endian when the encapsulation says so)."""
-    order = "<" if data[1] == 1 else ">"
-    sec, nanosec = struct.unpack_from(f"{order}iI", data, 4)
-    return int(sec) * 1_000_000_000 + int(nanosec)
-
-
 def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while text not in log.read_text():
@@ -316,11 +191,11 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                 (logs / "injected_backend.log").open("w") as injected_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(map_file), "--backend", "--depth-topic", "/depth"],
+                 "--map", str(map_file), "--backend", "--pictures", "--depth-topic", "/depth"],
                 stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
             processes.append(subprocess.Popen(
-                [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics", CLOSURES_TOPIC,
-                 CANDIDATES_TOPIC, POSTERIORS_TOPIC, "--wait-publishers", "120"],
+                [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics",
+                 *RECORDED_TOPICS, "--wait-publishers", "120"],
                 stdout=record_log, stderr=subprocess.STDOUT))
             # The second backend: the same odometry, the published closures relayed by the demo plus a wrong one.
             processes.append(subprocess.Popen(
@@ -329,23 +204,10 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                  "-p", f"trajectory_file:={backend_dir / 'keyframes_injected.tum'}"],
                 stdout=injected_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt, read_kitti_poses(test / "poses.txt"))
-            _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
-            # The verifier must hear every frame's features: a place it never saw cannot be verified.
-            for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
-                         "verifier_node]: receiving features", "pose graph (example backend)"):
-                _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
-            _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
+            _wait_until_up(logs, processes)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images with "
                   f"{', '.join(COMPANION_TOPICS)}", flush=True)
-            # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
-            companions = [argument for topic in COMPANION_TOPICS
-                          for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
-            # Lockstep: each image once the last was answered (every frame, none lost). Live: the bag's own pace
-            # with a camera driver's QoS; nobody waits for the nodes.
-            pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
-            subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                            *companions, *pace, "--wait-subscribers", "2", "--quiet"],  # + the printer
-                           check=True, env=_driver_environment(args))
+            _replay(args, test)
             printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
             for process in reversed(processes):
                 process.send_signal(signal.SIGINT)
@@ -370,6 +232,30 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     return recording
 
 
+def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]]) -> None:
+    """Until the recorder records and every node hears its inputs (the nodes, the recorder, the injected backend)."""
+    _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
+    # The verifier must hear every frame's features: a place it never saw cannot be verified; closure_view_node
+    # every frame's image: a place without a thumbnail has no picture.
+    for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
+                 "verifier_node]: receiving features", "pose graph (example backend)", "closure pictures on"):
+        _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
+    _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
+
+
+def _replay(args: argparse.Namespace, test: Path) -> None:
+    """The test bag with its companions, in lockstep (each image once the last was answered: every frame, none
+    lost) or, --live, at the bag's own pace with a camera driver's QoS (nobody waits for the nodes)."""
+    # Both backends and the verifier (its odometry gate) must hear the odometry from its first message on.
+    companions = [argument for topic in COMPANION_TOPICS
+                  for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
+    pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
+    # Image subscribers: feature_node, closure_view_node and the printer.
+    subprocess.run([sys.executable, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
+                    *companions, *pace, "--wait-subscribers", "3", "--quiet"],
+                   check=True, env=_driver_environment(args))
+
+
 def _driver_environment(args: argparse.Namespace) -> dict[str, str]:
     """The replay stands in for the camera driver: live, it gets the shared memory large images need (unless
     --driver-default-dds or the user's own Fast DDS profile)."""
@@ -391,6 +277,21 @@ def print_backend_result(test: Path, backend_dir: Path) -> None:
         print(f"    no ATE: {exc}", flush=True)
         return
     print(ate_summary(figures), flush=True)
+    plot = backend_dir.parent / "evaluation_online" / "ate.png"  # the online report shows it
+    write_ate_plot(test, keyframes, plot)
+    print(f"    ATE plot: {plot}", flush=True)
+
+
+def write_ate_plot(test: Path, keyframes: Path, path: Path) -> None:
+    """Top view of odometry alone and of the backend's keyframes, each aligned (SE(3)) over the ground truth."""
+    from aefabmap_ros.evaluation.plots import plot_trajectories
+    from aefabmap_ros.evaluation.trajectory_error import absolute_trajectory_error, read_tum
+
+    reference = read_tum(test / "groundtruth.tum")
+    aligned = [(label, absolute_trajectory_error(reference, read_tum(file)).aligned.positions_xyz)
+               for label, file in (("odometry alone", test / "odometry.tum"), ("odometry + closures", keyframes))]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    plot_trajectories(reference.positions_xyz, aligned, path)
 
 
 def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, recording: Path | None) -> None:
@@ -433,7 +334,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"\nDone in {time.monotonic() - started:.0f} s.\n  tables: {args.out / 'evaluation' / 'results.md'}"
           + (f", {args.out / 'evaluation_online' / 'results.md'}" if recording else "")
           + f"\n  plots:  {args.out / 'evaluation'}/*.png"
-          + (f"\n  recording (opens in Foxglove): {recording}" if recording else ""))
+          + (f"\n  recording (opens in Foxglove with the layout {shipped_config('foxglove_layout.json')}): "
+             f"{recording}" if recording else ""))
     return 0
 
 

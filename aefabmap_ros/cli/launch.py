@@ -82,6 +82,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--backend", action="store_true",
                         help="also run pose_graph_node, the example SLAM backend (odometry on odom; "
                         "publishes pose_graph/path and map -> odom)")
+    parser.add_argument("--pictures", action="store_true",
+                        help="also run closure_view_node: each closure (closure_view/closures) and refused candidate "
+                        "(closure_view/refused) as a picture with its matches, drawn only while subscribed")
+    parser.add_argument("--view", action="store_true",
+                        help="--pictures, and serve the suite live to Foxglove (aefabmap_view on --view-port; layout "
+                        "aefabmap_ros/config/foxglove_layout.json)")
+    parser.add_argument("--view-port", type=int, default=8765, help="aefabmap_view's WebSocket port (default 8765)")
     parser.add_argument("--stop-timeout", type=float, default=STOP_TIMEOUT_S, metavar="SECONDS",
                         help="on Ctrl-C / SIGTERM, wait this long for each node's final save before killing it "
                         f"(default: {STOP_TIMEOUT_S:g}); a node still writing its files then (their size grew in "
@@ -104,10 +111,12 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
                                      verify=args.verify, backend=args.backend,
                                      camera_info_topic=args.camera_info_topic, depth_topic=args.depth_topic,
                                      odom_topic=args.odom_topic, closures_topic=args.closures_topic,
-                                     sensor_qos=args.sensor_qos or "", remaps=tuple(args.remap)))
+                                     sensor_qos=args.sensor_qos or "", remaps=tuple(args.remap),
+                                     pictures=args.pictures or args.view))
+    view = [[sys.executable, "-m", "aefabmap_ros.cli.view", "--port", str(args.view_port)]] if args.view else []
     if not args.pipeline:
         return [[sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
-                for node in nodes]
+                for node in nodes] + view
     # In one process, -p and -r apply to all three nodes; each uses only the names it knows.
     detection = [node for node in nodes if node.name in NODES]
     merged = NodeLaunch("pipeline", {k: v for node in detection for k, v in node.parameters.items()},
@@ -115,7 +124,7 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     return [[sys.executable, "-m", merged.module, *_ros_args(params, merged.parameters, merged.remaps)]] + [
         [sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
         for node in nodes if node.name not in NODES
-    ]
+    ] + view
 
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h

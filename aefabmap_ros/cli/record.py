@@ -15,9 +15,11 @@ from typing import Any
 from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io import bags
+from aefabmap_ros.nodes.launch_table import VIEW_TOPICS
 
 # The suite's topics and their types; other topics' types are discovered from the graph.
 KNOWN_TYPES = {
+    **VIEW_TOPICS,
     "loop_closures": "aefabmap_msgs/msg/LoopClosure",
     "loop_closure_candidates": "aefabmap_msgs/msg/LoopClosure",
     "place_posteriors": "aefabmap_msgs/msg/PlacePosterior",

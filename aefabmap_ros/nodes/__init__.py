@@ -2,12 +2,14 @@
 launchers in ``cli``) that imports rclpy or message types."""
 
 __all__ = [
+    "closure_view_node",
     "common",
     "delivery",
     "fabmap_node",
     "feature_node",
     "frame_gate",
     "future_stamps",
+    "graph_view",
     "gtsam_poses",
     "launch_table",
     "messages",
@@ -16,4 +18,5 @@ __all__ = [
     "quantizer_node",
     "sensor_inputs",
     "verifier_node",
+    "view_messages",
 ]

@@ -24,9 +24,23 @@ PACKAGE = "aefabmap_ros"
 CANDIDATES_TOPIC = "loop_closure_candidates"  # fabmap_node's raw FAB-MAP closures
 CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
 POSTERIORS_TOPIC = "place_posteriors"
+CLOSURE_PICTURES_TOPIC = "closure_view/closures"  # closure_view_node: each closure with its matches drawn
+REFUSED_PICTURES_TOPIC = "closure_view/refused"  # closure_view_node: FAB-MAP's candidates the verifier refused
+GRAPH_MARKERS_TOPIC = "pose_graph/markers"  # pose_graph_node: the graph as visualization_msgs/MarkerArray
+# What the live view (aefabmap_view) serves and a viewable recording holds, with the topics' types.
+VIEW_TOPICS = {
+    CLOSURE_PICTURES_TOPIC: "sensor_msgs/msg/CompressedImage",
+    REFUSED_PICTURES_TOPIC: "sensor_msgs/msg/CompressedImage",
+    GRAPH_MARKERS_TOPIC: "visualization_msgs/msg/MarkerArray",
+    "pose_graph/path": "nav_msgs/msg/Path",
+    CLOSURES_TOPIC: "aefabmap_msgs/msg/LoopClosure",
+    CANDIDATES_TOPIC: "aefabmap_msgs/msg/LoopClosure",
+    POSTERIORS_TOPIC: "aefabmap_msgs/msg/PlacePosterior",
+}
 DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
 VERIFIER_NODE = "verifier_node"
 BACKEND_NODE = "pose_graph_node"
+VIEW_NODE = "closure_view_node"
 # Thread pools that OpenMP (torch), OpenBLAS/MKL (numpy, scipy) and numba each size to the machine's
 # cores by default: with several node processes that is cores x processes x pools threads fighting
 # for the same cores, so the launchers give each process its share unless the user chose a value.
@@ -47,6 +61,7 @@ class SuiteOptions:
     image_qos: str = ""  # '' = the parameter file's value
     verify: bool = True
     backend: bool = False  # also start pose_graph_node, the example SLAM backend (odometry on ``odom``)
+    pictures: bool = False  # also start closure_view_node (closure pictures, drawn only while subscribed)
     camera_info_topic: str = ""
     depth_topic: str = ""
     odom_topic: str = ""
@@ -132,6 +147,8 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
                                 {**extra, **beside, **odometry, **published}))
     if options.backend:
         nodes.append(NodeLaunch(BACKEND_NODE, dict(sensors), {**extra, **odometry, **published}))
+    if options.pictures:
+        nodes.append(NodeLaunch(VIEW_NODE, {}, {"image": options.image_topic, **extra, **published}))
     return nodes
 
 

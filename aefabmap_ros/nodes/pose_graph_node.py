@@ -6,7 +6,10 @@ interpolated at the image stamps) and a robust loop factor, and the graph is re-
 iSAM2 (backend/pose_graph.py has the model). Publishes the optimised keyframe trajectory on
 ``pose_graph/path`` (``nav_msgs/Path`` in ``map_frame``) and ``map -> odom``: on ``/tf`` when the
 ``tf2_msgs`` package is installed, else as a ``geometry_msgs/TransformStamped`` on
-``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). On shutdown the keyframe
+``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). While something subscribes to
+``pose_graph/markers`` (``visualization_msgs/MarkerArray``), every decided closure republishes the graph:
+keyframes, odometry edges, loop edges green when added and red when refused, the odometry path and the
+optimised one (nodes/graph_view.py); nothing is drawn for nobody. On shutdown the keyframe
 trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not written).
 
 The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
@@ -48,6 +51,7 @@ from aefabmap_ros.nodes.common import (
     run_node,
 )
 from aefabmap_ros.nodes.future_stamps import FutureStamps
+from aefabmap_ros.nodes.graph_view import GraphView
 from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
 from aefabmap_ros.nodes.messages import (
     loop_closure_pose_problem,
@@ -92,6 +96,7 @@ class PoseGraphNode(Node):
         self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
         self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
+        self.graph_view = GraphView(self, self.map_frame)
         if TFMessage is not None:
             self.tf_publisher = self.create_publisher(TFMessage, "/tf", RESULT_QOS)
         else:
@@ -118,9 +123,12 @@ class PoseGraphNode(Node):
             self.counter.drop("stamp_in_future", f"odometry {problem}")
             return
         before = self.graph.counts["odometry_out_of_order"]
-        results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose))
+        pose = pose_to_gtsam(message.pose.pose)
+        results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose)
         if self.graph.counts["odometry_out_of_order"] > before:
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+        else:
+            self.graph_view.on_odometry(pose)
         self._report(results, stamp_to_ns(message.header.stamp))
 
     @node_callback
@@ -157,6 +165,8 @@ class PoseGraphNode(Node):
                 self.counter.ok(result.value)
         if ClosureResult.ADDED in results:
             self._publish(stamp_ns)
+        if any(result is not ClosureResult.WAITING for result in results):  # a loop edge to draw
+            self.graph_view.publish_if_watched(self.graph, stamp_ns)
 
     def _publish(self, stamp_ns: int) -> None:
         stamp = time_from_ns(stamp_ns)

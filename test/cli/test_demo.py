@@ -58,7 +58,7 @@ def test_closure_printer_summary_counts_published_false_and_events() -> None:
     """The online summary, by hand: gt of 30 frames, min gap 5; events 10-12 and 20-21."""
     import numpy as np
 
-    from aefabmap_ros.cli.demo import ClosurePrinter
+    from aefabmap_ros.cli.demo_printer import ClosurePrinter
 
     gt = np.zeros((30, 30), np.uint8)
     for query, place in ((10, 1), (11, 2), (12, 3), (20, 4), (21, 5)):
@@ -86,7 +86,7 @@ def test_the_image_stamp_is_read_from_the_serialized_message_as_rclpy_serializes
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import CompressedImage, Image
 
-    from aefabmap_ros.cli.demo import latency_summary, serialized_header_stamp_ns
+    from aefabmap_ros.cli.demo_printer import latency_summary, serialized_header_stamp_ns
 
     for message in (Image(height=2, width=2, encoding="mono8", step=2, data=bytes(4)), CompressedImage(format="png")):
         message.header.stamp = Time(sec=1_700_000_123, nanosec=456_789_012)

@@ -63,3 +63,12 @@ def test_every_input_and_output_of_a_robot_can_be_renamed() -> None:
 def test_a_remap_without_its_two_sides_is_refused_by_name() -> None:
     with pytest.raises(ConfigError, match="remap 'odom' must be FROM:=TO"):
         suite_nodes(SuiteOptions(model_dir="/m", remaps=("odom",)))
+
+
+def test_pictures_add_the_view_node_on_the_robots_image_and_closures_topics() -> None:
+    nodes = suite_nodes(SuiteOptions(model_dir="m", image_topic="/cam/image_raw", closures_topic="/lc/closures",
+                                     pictures=True))
+    view = nodes[-1]
+    assert view.name == "closure_view_node"
+    assert view.remaps == {"image": "/cam/image_raw", "loop_closures": "/lc/closures"}
+    assert "closure_view_node" not in [node.name for node in suite_nodes(SuiteOptions(model_dir="m"))]
