@@ -28,8 +28,8 @@ from aefabmap_ros.verification.frame_depths import (
     depth_image_to_metres,
     sample_depth_grid,
 )
-from aefabmap_ros.verification.geometric import SequenceDepths
 from aefabmap_ros.verification.relative_pose import CameraModel, camera_info_to_model
+from aefabmap_ros.verification.reranking import SequenceDepths
 
 
 def sequence_depths(args: argparse.Namespace, source: ImageSource,

@@ -52,7 +52,8 @@ from aefabmap_ros.io.rgbd import read_times
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.model.directory import Model, load_model, save_model
 from aefabmap_ros.model.training import TrainingConfig, config_digest, evenly_spaced, train_model
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, cached_pair_verifier
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.reranking import PairVerifier, cached_pair_verifier
 from aefabmap_ros.vocabulary.base import VocabularyConfig
 
 RECORDING_TOPICS = {"place_posteriors": "aefabmap_msgs/msg/PlacePosterior",

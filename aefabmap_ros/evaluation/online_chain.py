@@ -25,8 +25,9 @@ from aefabmap_ros.errors import DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import Candidate, PlaceRecognizer
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, rerank_by_inliers
+from aefabmap_ros.verification.geometric import VerificationConfig
 from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
+from aefabmap_ros.verification.reranking import PairVerifier, rerank_by_inliers
 
 
 @dataclass(frozen=True)

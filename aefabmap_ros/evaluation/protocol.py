@@ -75,7 +75,8 @@ from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.model.training import count_bow
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, verified_scores
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.reranking import PairVerifier, verified_scores
 
 # tf-idf cosine is not a calibrated probability: this default is near the best-F1 threshold (0.63) of
 # k-means BoW on the synthetic *training* sequence (vocabulary from kitti00_first300). Compare methods by

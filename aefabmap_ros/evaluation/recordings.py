@@ -40,7 +40,8 @@ from aefabmap_ros.evaluation.reports import (
     recall_cell,
 )
 from aefabmap_ros.stamps import stamp_to_ns
-from aefabmap_ros.verification.relative_pose import PoseError, pose_message_to_matrix, relative_pose_error
+from aefabmap_ros.verification.pose_error import PoseError, relative_pose_error
+from aefabmap_ros.verification.relative_pose import pose_message_to_matrix
 
 # A stamp read from a file of float seconds (a times file) matches the frame within this much.
 FLOAT_SECONDS_TOLERANCE_NS = 1_000_000

@@ -119,16 +119,9 @@ from aefabmap_ros.nodes.messages import (
 )
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import stamp_to_ns
+from aefabmap_ros.verification.feature_store import FeatureStore, FeatureStoreFolder
 from aefabmap_ros.verification.frame_depths import FrameDepthFolder, FrameDepthStore, depth_size_problem
-from aefabmap_ros.verification.geometric import (
-    FeatureStore,
-    FeatureStoreFolder,
-    Verification,
-    VerificationConfig,
-    matched_points,
-    rerank_by_inliers,
-    verify_pair,
-)
+from aefabmap_ros.verification.geometric import Verification, VerificationConfig, matched_points, verify_pair
 from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack
 from aefabmap_ros.verification.metric import KeypointDepths
 from aefabmap_ros.verification.relative_pose import (
@@ -137,6 +130,7 @@ from aefabmap_ros.verification.relative_pose import (
     camera_info_to_model,
     relative_pose,
 )
+from aefabmap_ros.verification.reranking import rerank_by_inliers
 
 # Posteriors kept by query stamp: a closure is published right after its query's posterior, so
 # only the last few are ever looked up; the rest bounds memory when no closures come.

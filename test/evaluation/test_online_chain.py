@@ -10,7 +10,8 @@ from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.online_chain import ChainClosure, run_online_chain
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import Features
-from aefabmap_ros.verification.geometric import VerificationConfig, cached_pair_verifier
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.reranking import cached_pair_verifier
 from test.fabmap.test_recognizer import SAMPLES, V, _tree
 from test.verification.test_geometric import HEIGHT, WIDTH, _two_views
 
