@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     test.add_argument("--camera-info", type=Path,
                       help="ROS camera_info.yaml of the test camera, K and distortion (with --depth)")
     test.add_argument("--camera-info-topic", help="with --bag: its sensor_msgs/CameraInfo topic (with --depth-topic)")
+    test.add_argument("--odometry-topic", help="with --bag: its nav_msgs/Odometry topic: the online chain checks its "
+                      "verified closures against it, as verifier_node's odometry gate does (the odometry's child "
+                      "frame is taken to be the camera's)")
     truth = parser.add_argument_group("ground truth (a loop matrix, or poses and a rule)")
     truth.add_argument("--gt", type=Path, help=".npz with key 'gt': (N, N) 0/1, gt[i, j] = 1: frame i revisits j")
     truth.add_argument("--poses", type=Path, help="KITTI pose file (one 3x4 camera-to-world matrix per line)")

@@ -21,12 +21,13 @@ from tqdm import tqdm
 
 from aefabmap_ros.cli.common import no_empty_folders_left_on_error
 from aefabmap_ros.cli.evaluate import SECTIONS
-from aefabmap_ros.cli.evaluate_depth import sequence_depths
+from aefabmap_ros.cli.evaluate_depth import chain_inputs, sequence_depths
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.evaluation.ground_truth import check_gt_matches, load_gt_npz, load_gt_stamps, loop_matrix_from_kitti
 from aefabmap_ros.evaluation.methods import METHODS, method_kinds, methods_of_kind, parse_methods
 from aefabmap_ros.evaluation.metrics import DEFAULT_EVENT_GAP, evaluate_scores
+from aefabmap_ros.evaluation.online_chain import ChainInputs
 from aefabmap_ros.evaluation.plots import Curve, plot_pr_curves, plot_reliability, plot_score_matrix
 from aefabmap_ros.evaluation.protocol import EvaluationConfig, MethodResult, evaluate_model, leave_one_out_samples
 from aefabmap_ros.evaluation.recordings import (
@@ -316,12 +317,14 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     results: list[MethodResult] = []
     features_by_config: dict[str, list[Features]] = {}
     verifiers: dict[str, PairVerifier] = {}  # one per feature config: methods share the pairs they verify
+    chains: dict[str, ChainInputs] = {}  # one per feature config: what verifier_node's chain verifies with
     for label, model, path, exclude in entries:
         key = config_digest(model.feature_config)
         if key not in features_by_config:
             features_by_config[key] = run.features(source, model.feature_config)
             depths = sequence_depths(args, source, features_by_config[key]) if args.verify else None
             verifiers[key] = cached_pair_verifier(features_by_config[key], settings.verification, depths)
+            chains[key] = chain_inputs(args, features_by_config[key], settings.verification, depths)
         test_features = features_by_config[key]
         verification = (settings.verification, verifiers[key]) if args.verify else None
         wanted = methods_of_kind(model.quantizer.kind, methods)
@@ -332,7 +335,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
                                       on_frame=progress.tick, label=label, model_path=str(path),
-                                      verification=verification, stamps_ns=stamps_ns)
+                                      verification=verification, stamps_ns=stamps_ns, chain_inputs=chains[key])
     order = {name: index for index, name in enumerate(METHODS)}
     results.sort(key=lambda r: (order[r.name], r.label, r.verified))
     header = {

@@ -67,7 +67,7 @@ from aefabmap_ros.evaluation.metrics import (
     event_scores,
     missed_with_a_true_place_ranked,
 )
-from aefabmap_ros.evaluation.online_chain import run_online_chain
+from aefabmap_ros.evaluation.online_chain import ChainInputs, run_online_chain
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
@@ -297,14 +297,16 @@ def evaluate_model(
     model_path: str = "",
     verification: tuple[VerificationConfig, PairVerifier] | None = None,
     stamps_ns: np.ndarray | None = None,
+    chain_inputs: ChainInputs | None = None,
 ) -> list[MethodResult]:
     """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
 
     With ``verification`` (its config and a verifier of the test features' pairs), every method also
     gets a "+ GV" result: its scores after geometric verification (see ``verification.geometric``). With
     the frames' ``stamps_ns``, every FAB-MAP method also runs the nodes' decision chain with
-    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, verification when
-    given): its ``online`` scores.
+    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, and with ``verification``
+    verifier_node's chain on ``chain_inputs``: the test features, and the depths and odometry where the
+    evaluation has them): its ``online`` scores.
     """
     kind = model.quantizer.kind
     for name in methods:
@@ -315,6 +317,8 @@ def evaluate_model(
                               f"is {kind}")
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
+    if verification is not None and chain_inputs is None:
+        chain_inputs = ChainInputs(verification[0], features)
     started = time.monotonic()
     counts = count_bow(model.quantizer, features)
     quantize_seconds = time.monotonic() - started
@@ -330,7 +334,8 @@ def evaluate_model(
             )
             threshold = config.threshold
             if stamps_ns is not None:
-                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config, verification)
+                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config,
+                                       chain_inputs if verification is not None else None)
         else:
             scores = tfidf_matrix(counts, model.new_place_samples)
             threshold = config.bow_threshold
@@ -349,10 +354,9 @@ def evaluate_model(
 
 
 def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
-                  fabmap_config: FabMapConfig,
-                  verification: tuple[VerificationConfig, PairVerifier] | None) -> OnlineScores:
-    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event
-    (pairs verified through the evaluation's shared verifier: the "+ GV" rows verify many of them too)."""
+                  fabmap_config: FabMapConfig, verification: ChainInputs | None) -> OnlineScores:
+    """The nodes' chain on the sequence (verified by verifier_node's chain with ``verification``), its
+    candidates and published closures scored per revisit event."""
     chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
                              verification)
 

@@ -16,6 +16,8 @@ from aefabmap_ros.io.chunk_folder import ChunkFolder
 from aefabmap_ros.io.npz_files import read_versioned_npz
 
 STORE_FORMAT_VERSION = 1
+# Strongest keypoints kept per frame by default (verifier_node's max_stored_features): ~128 KiB a frame of SIFT.
+DEFAULT_MAX_STORED_FEATURES = 500
 
 
 class FeatureStore:
@@ -48,8 +50,12 @@ class FeatureStore:
     def nbytes(self) -> int:
         return self._nbytes
 
-    def add(self, stamp_ns: int, features: Features) -> None:
-        """Store (or replace) the features of the frame stamped ``stamp_ns``.
+    def stamps(self) -> list[int]:
+        """The stored frames' stamps, in the order they were added."""
+        return list(self._frames)
+
+    def add(self, stamp_ns: int, features: Features) -> np.ndarray:
+        """Store (or replace) the features of the frame stamped ``stamp_ns``; the rows of ``features`` kept.
 
         DataError for malformed features and for a descriptor kind (type, dtype, length) other than
         that of the frames already stored: one store is saved as one kind, and a stray frame of
@@ -60,23 +66,18 @@ class FeatureStore:
         stored_kind = self.descriptor_kind
         if stored_kind is not None and kind != stored_kind:
             raise DataError(f"features of kind {kind} (type, dtype, length), but the store holds {stored_kind}")
-        keep = np.arange(len(features))
-        if self.max_features_per_frame and len(features) > self.max_features_per_frame:
-            if features.keypoints.shape[1] < 5:
-                raise DataError(f"stored frame keypoints of shape {features.keypoints.shape} have no response "
-                                "column (5th) to keep the strongest by")
-            # Strongest first; a stable sort keeps the detector's order among equal responses.
-            keep = np.sort(np.argsort(-features.keypoints[:, 4], kind="stable")[: self.max_features_per_frame])
+        keep = stored_rows(features, self.max_features_per_frame)
         descriptors = features.descriptors[keep]
         descriptors = descriptors.astype(kind_of(descriptors).stored_dtype, copy=False)
         compact = Features(keypoints=np.ascontiguousarray(features.keypoints[keep, :2], dtype=np.float32),
                            descriptors=np.ascontiguousarray(descriptors), descriptor_type=features.descriptor_type)
-        self._forget(stamp_ns)
+        self.forget(stamp_ns)
         self._frames[stamp_ns] = compact
         self._unsaved[stamp_ns] = None
         self._nbytes += compact.keypoints.nbytes + compact.descriptors.nbytes
         while len(self._frames) > self.max_frames:
-            self._forget(next(iter(self._frames)))
+            self.forget(next(iter(self._frames)))
+        return keep
 
     @property
     def descriptor_kind(self) -> tuple[str, str, int] | None:
@@ -109,17 +110,29 @@ class FeatureStore:
         self._unsaved.clear()
         self._nbytes = 0
         for stamp_ns, features in frames:
-            self._forget(stamp_ns)  # a later chunk's copy of a frame replaces the earlier one
+            self.forget(stamp_ns)  # a later chunk's copy of a frame replaces the earlier one
             self._frames[stamp_ns] = features
             self._nbytes += features.keypoints.nbytes + features.descriptors.nbytes
         while len(self._frames) > self.max_frames:
-            self._forget(next(iter(self._frames)))
+            self.forget(next(iter(self._frames)))
 
-    def _forget(self, stamp_ns: int) -> None:
+    def forget(self, stamp_ns: int) -> None:
+        """Drop that frame's features (nothing when they are not stored)."""
         stored = self._frames.pop(stamp_ns, None)
         self._unsaved.pop(stamp_ns, None)
         if stored is not None:
             self._nbytes -= stored.keypoints.nbytes + stored.descriptors.nbytes
+
+
+def stored_rows(features: Features, max_features: int) -> np.ndarray:
+    """The rows of ``features`` a store keeps: the ``max_features`` strongest (0 = all), in their order."""
+    if not max_features or len(features) <= max_features:
+        return np.arange(len(features))
+    if features.keypoints.shape[1] < 5:
+        raise DataError(f"stored frame keypoints of shape {features.keypoints.shape} have no response "
+                        "column (5th) to keep the strongest by")
+    # Strongest first; a stable sort keeps the detector's order among equal responses.
+    return np.sort(np.argsort(-features.keypoints[:, 4], kind="stable")[:max_features])
 
 
 def _kind(descriptor_type: str, descriptors: np.ndarray) -> tuple[str, str, int]:

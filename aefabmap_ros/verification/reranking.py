@@ -30,7 +30,7 @@ import numpy as np
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features
-from aefabmap_ros.verification.frame_depths import DepthGrid
+from aefabmap_ros.verification.frame_depths import DepthGrid, FrameDepths
 from aefabmap_ros.verification.geometric import Verification, VerificationConfig, verify_pair
 from aefabmap_ros.verification.metric import KeypointDepths
 from aefabmap_ros.verification.relative_pose import CameraModel
@@ -49,6 +49,9 @@ class SequenceDepths:
     image_size: tuple[int, int]  # (width, height)
     keypoint_depths: Sequence[np.ndarray | None]
     depth_grids: Sequence[DepthGrid | None] | None = None  # each frame's depth on its coarse grid
+    # Each frame's depths as verifier_node keeps them (at its stored keypoints, from the image as float16):
+    # what the offline chain (evaluation/online_chain.py) verifies with.
+    stored: Sequence[FrameDepths | None] | None = None
 
     def pair(self, query: int, place: int) -> KeypointDepths | None:
         query_depths, place_depths = self.keypoint_depths[query], self.keypoint_depths[place]

@@ -7,11 +7,10 @@ import pytest
 import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.online_chain import ChainClosure, run_online_chain
+from aefabmap_ros.evaluation.online_chain import ChainClosure, ChainInputs, run_online_chain
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.geometric import VerificationConfig
-from aefabmap_ros.verification.reranking import cached_pair_verifier
 from test.fabmap.test_recognizer import SAMPLES, V, _tree
 from test.verification.test_geometric import HEIGHT, WIDTH, _two_views
 
@@ -46,7 +45,7 @@ def test_consistent_candidates_and_verified_closures():
     stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
     config = VerificationConfig()
     result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
-                              (config, cached_pair_verifier(features, config)))
+                              ChainInputs(config, features))
     # Frame 7 matches place 1 but is the first of its run: no candidate. Frames 8 and 9 continue it.
     assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
     assert all(c.probability > 0.5 and c.inliers == -1 for c in result.candidates)
@@ -100,7 +99,7 @@ def test_loop_tracking_closes_a_weak_frame_of_a_verified_revisit(track_seconds, 
     observations, features, stamps = _weak_revisit(gap_s)
     config = VerificationConfig(track_seconds=track_seconds)
     result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
-                              (config, cached_pair_verifier(features, config)))
+                              ChainInputs(config, features))
     # Frame 9 is no candidate: its best place is 3, but below the match threshold ...
     assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2)]
     weak = result.best[-1]
@@ -124,7 +123,7 @@ def test_loop_tracking_verifies_the_frames_next_to_the_tracked_place_that_fabmap
     verification = VerificationConfig(track_seconds=1.0, track_island_seconds=2.5, track_frames=track_frames,
                                       track_min_age_seconds=min_age_s)
     result = run_online_chain(sp.csr_matrix(observations), stamps, _tree(), SAMPLES, config,
-                              (verification, cached_pair_verifier(features, verification)))
+                              ChainInputs(verification, features))
     assert result.best[-1].matched_frame == 5
     # The frames next to place 2 (2 s) at least min_age before 8.5 s, nearest first: 2, 1, 3, 0. Frame 3
     # sees scene 3, as frame 9 does from the other pose: geometry accepts it. At 6 s it is too recent.
