@@ -129,3 +129,29 @@ def test_loop_tracking_verifies_the_frames_next_to_the_tracked_place_that_fabmap
     # sees scene 3, as frame 9 does from the other pose: geometry accepts it. At 6 s it is too recent.
     tracked = [(c.query_frame, c.matched_frame, c.nearby_frame, c.probability) for c in result.published if c.tracked]
     assert tracked == ([] if matched is None else [(9, matched, True, 0.0)])
+
+
+@pytest.mark.parametrize("consistent", [True, False])
+def test_the_chain_gates_closures_by_the_sequences_odometry(consistent: bool) -> None:
+    """The revisit (8, 2) of test_consistent_candidates_and_verified_closures, now with intrinsics and odometry:
+    published when odometry moved the camera by what the closure's pose says, refused when odometry puts the
+    place 20 m away (an aliased corner), as verifier_node's gate decides."""
+    import gtsam
+
+    from aefabmap_ros.verification.relative_pose import CameraModel
+    from test.verification.test_geometric import FOCAL, _rotation_y
+
+    observations, features = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    # Frame 2 is _two_views(seed=2)'s first view, frame 8 its second: in frame 8's camera frame, frame 2's camera
+    # is at (R, t) of _two_views. Odometry holds the robot there until frame 7, then at the origin.
+    place_in_query = gtsam.Pose3(gtsam.Rot3(_rotation_y(0.15)), np.array([0.8, 0.1, 0.3]))
+    before = place_in_query if consistent else gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.array([20.0, 0.0, 0.0]))
+    odometry = [(int(stamp), before if frame < 8 else gtsam.Pose3()) for frame, stamp in enumerate(stamps)]
+    camera = CameraModel(np.array([[FOCAL, 0.0, WIDTH / 2], [0.0, FOCAL, HEIGHT / 2], [0.0, 0.0, 1.0]]))
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              ChainInputs(VerificationConfig(), features, camera=camera, odometry=odometry))
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
+    assert [(c.query_frame, c.matched_frame) for c in result.published] == ([(8, 2)] if consistent else [])
+    assert result.outcomes.get("dropped_inconsistent_with_odometry", 0) == (0 if consistent else 1)
+    assert result.outcomes["accepted"] == 1 and result.outcomes["pose_ok"] == 1
