@@ -301,20 +301,12 @@ def evaluate_model(
 ) -> list[MethodResult]:
     """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
 
-    With ``verification`` (its config and a verifier of the test features' pairs), every method also
-    gets a "+ GV" result: its scores after geometric verification (see ``verification.geometric``). With
-    the frames' ``stamps_ns``, every FAB-MAP method also runs the nodes' decision chain with
-    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, and with ``verification``
-    verifier_node's chain on ``chain_inputs``: the test features, and the depths and odometry where the
-    evaluation has them): its ``online`` scores.
+    With ``verification`` (a config and a verifier of the test features' pairs) every method also gets a
+    "+ GV" result (``verification.geometric``). With ``stamps_ns`` every FAB-MAP method also runs the nodes'
+    chain (``fabmap_config`` as the nodes use it; with ``verification``, verifier_node's chain on
+    ``chain_inputs``: features, and depths and odometry where the evaluation has them): its ``online`` scores.
     """
-    kind = model.quantizer.kind
-    for name in methods:
-        if name not in METHODS:
-            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
-        if METHODS[name][0] != kind:
-            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {model.vocabulary_id} "
-                              f"is {kind}")
+    _check_methods(methods, kind := model.quantizer.kind, model.vocabulary_id)
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
     if verification is not None and chain_inputs is None:
@@ -351,6 +343,14 @@ def evaluate_model(
             results.append(verified_result(results[-1], verification, gt, config.min_gap,
                                            config.verify_more_candidates))
     return results
+
+
+def _check_methods(methods: Sequence[str], kind: str, vocabulary_id: str) -> None:
+    for name in methods:
+        if name not in METHODS:
+            raise ConfigError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+        if METHODS[name][0] != kind:
+            raise ConfigError(f"method {name} needs a {METHODS[name][0]} vocabulary, model {vocabulary_id} is {kind}")
 
 
 def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
