@@ -41,8 +41,13 @@ class FeatureClock:
 
 def startup_summary(p: VerifierParameters) -> str:
     config = p.config
+    metric_test = (f" or, with depth, >= {config.metric_min_inliers} PnP inliers (matches at ratio "
+                   f"{config.metric_ratio:g}), {config.metric_min_view_overlap:.0%} view overlap and "
+                   f"{config.metric_min_covisibility:.0%} covisibility"
+                   if p.depth_topic and config.metric_min_inliers else "")
     return (f"verifying loop closures: >= {config.min_inliers} fundamental-matrix inliers and "
-            f"{config.min_inlier_ratio:.0%} of the keypoints, re-ranking the best {config.candidates} candidates, "
+            f"{config.min_inlier_ratio:.0%} of the keypoints{metric_test}, re-ranking the best {config.candidates} "
+            "candidates, "
             f"tracking loops for {config.track_seconds:g} s, at most {p.max_frames} frames and "
             f"{p.max_store_bytes / 2**20:g} MiB kept, " + (f"closures checked against odometry on odom once it "
             f"arrives (waiting {p.odometry_wait_s:g} s for it)" if p.odometry_gate else "no odometry gate"))
