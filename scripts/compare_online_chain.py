@@ -6,8 +6,9 @@ TEST_DIR is an aefabmap_synth sequence (bag/ with /image, /depth, /camera_info, 
 ``aefabmap_demo --online-only`` output (its online_recording and evaluation_online/closures.csv). The
 chain gets the frames the nodes processed (the recorded place_posteriors' stamps: feature_node's
 detection rate skips others), their features as the model extracts them, the bag's depth (as
-verifier_node keeps it), intrinsics and odometry, and the shipped configs; it prints how many closures
-each published and every one that differs.
+verifier_node keeps it) for the frames the run kept a depth of (its store's depth chunks: a depth image
+that waited too long for its features is not kept, which varies from run to run), intrinsics and odometry,
+and the shipped configs; it prints how many closures each published and every one that differs.
 """
 
 from __future__ import annotations
@@ -51,7 +52,11 @@ def main() -> int:
     stamps_ns = np.array(stamps, dtype=np.int64)
     camera, size = _camera_from_bag(bag, "/camera_info")
     depths: list[FrameDepths | None] = [None] * len(features)
+    kept_depth = {int(stamp) for chunk in (args.run / "map.features").glob("depth-*.npz")
+                  for stamp in np.load(chunk)["stamps_ns"]}
     for index, depth in _depth_from_bag(bag, "/depth", stamps_ns):
+        if int(stamps_ns[index]) not in kept_depth:
+            continue
         rows = stored_rows(features[index], DEFAULT_MAX_STORED_FEATURES)
         depths[index] = FrameDepths.sample(depth.astype(np.float16).astype(np.float32),
                                            features[index].keypoints[rows, :2].astype(np.float32))
