@@ -113,7 +113,7 @@ def test_verifier_node_keeps_a_burst_of_odometry_it_was_too_busy_to_take(reliabi
             message.pose.pose.orientation.w = 1.0
             message.pose.pose.position.x = 0.01 * index
             publisher.publish(message)
-        gate = node.odometry_gate
+        gate = node.chain.odometry.gate
         assert gate is not None
         _spin_until(executor, lambda: len(gate.odometry) == ODOMETRY_BURST, attempts=ODOMETRY_BURST + 400)
         assert node.counter.counts.get("dropped_before_callback", 0) == 0
