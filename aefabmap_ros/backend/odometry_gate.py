@@ -14,20 +14,12 @@ true closure the backend would take is not refused here for want of a graph.
 
 from __future__ import annotations
 
-from enum import Enum
-
 import gtsam
 import numpy as np
 
 from aefabmap_ros.backend.odometry import OdometryBuffer, closure_in_base_frame, odometry_disagreement
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig, drift_covariance, loop_factor_covariance
-
-
-class GateResult(Enum):
-    CONSISTENT = "consistent_with_odometry"
-    INCONSISTENT = "inconsistent_with_odometry"  # further from odometry than its drift can explain
-    NOT_YET = "waiting_for_odometry"  # a stamp after the newest odometry: ask again when more has come
-    NO_ODOMETRY = "no_odometry_at_stamps"  # a stamp before the oldest odometry kept: it will never be covered
+from aefabmap_ros.verification.gate import GateResult
 
 
 class OdometryGate:
@@ -42,6 +34,10 @@ class OdometryGate:
     def active(self) -> bool:
         """True once odometry has arrived: before that (a robot without odometry) closures pass unchecked."""
         return len(self.odometry) > 0
+
+    @property
+    def threshold(self) -> float:
+        return self.config.gate_chi2
 
     def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3) -> bool:
         """Buffer ``T_odom_base`` at that stamp; False (ignored) unless it is after the last one."""

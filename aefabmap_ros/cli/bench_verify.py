@@ -28,16 +28,12 @@ from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.datasets.synth.config import SynthConfig
 from aefabmap_ros.datasets.synth.town import generate_sequence
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.verification.feature_store import FeatureStore
 from aefabmap_ros.verification.frame_depths import FrameDepths
-from aefabmap_ros.verification.geometric import (
-    FeatureStore,
-    VerificationConfig,
-    match_descriptors,
-    rerank_by_inliers,
-    verify_pair,
-)
+from aefabmap_ros.verification.geometric import VerificationConfig, match_descriptors, verify_pair
 from aefabmap_ros.verification.metric import KeypointDepths
 from aefabmap_ros.verification.relative_pose import CameraModel
+from aefabmap_ros.verification.reranking import rerank_by_inliers
 
 
 def _ms(values_s: list[float]) -> str:

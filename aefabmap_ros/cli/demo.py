@@ -300,7 +300,7 @@ def evaluate(args: argparse.Namespace, models: dict[str, Path], test: Path, reco
     if not args.online_only:
         _run(["aefabmap_ros.cli.evaluate", "--bag", test / "bag", "--topic", "/image", "--gt", gt,
               "--model", models["kmeans"], "--model", models["autoencoder"], "--verify", "--depth-topic", "/depth",
-              "--camera-info-topic", "/camera_info", "--out", args.out / "evaluation"],
+              "--camera-info-topic", "/camera_info", "--odometry-topic", "/odom", "--out", args.out / "evaluation"],
              "offline evaluation of the four methods (each also after geometric verification: + GV)")
     if recording is not None:
         print("\n    the online run (AE-FABMAP through the ROS nodes), scored from its recording:", flush=True)

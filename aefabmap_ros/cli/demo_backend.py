@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from aefabmap_ros.verification.relative_pose import PoseError, pose_message_to_matrix, relative_pose_error
+from aefabmap_ros.verification.pose_error import PoseError, relative_pose_error
+from aefabmap_ros.verification.relative_pose import pose_message_to_matrix
 
 INJECTED_TOPIC = "demo/loop_closures_injected"
 INJECTED_NODE = "pose_graph_injected"

@@ -116,6 +116,9 @@ def _add_test_sequence_options(parser: argparse.ArgumentParser) -> None:
     test.add_argument("--camera-info", type=Path,
                       help="ROS camera_info.yaml of the test camera, K and distortion (with --depth)")
     test.add_argument("--camera-info-topic", help="with --bag: its sensor_msgs/CameraInfo topic (with --depth-topic)")
+    test.add_argument("--odometry-topic", help="with --bag: its nav_msgs/Odometry topic: the online chain checks its "
+                      "verified closures against it, as verifier_node's odometry gate does (the odometry's child "
+                      "frame is taken to be the camera's)")
 
 
 def _add_ground_truth_options(parser: argparse.ArgumentParser) -> None:

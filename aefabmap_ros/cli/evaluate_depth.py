@@ -1,4 +1,5 @@
-"""aefabmap_eval's depth inputs: the test sequence's depth and intrinsics, for verification's metric test.
+"""aefabmap_eval's depth and odometry inputs: the test sequence's depth and intrinsics, for verification's
+metric test, and its odometry, for the online chain's odometry gate (``--odometry-topic``).
 
 With them the "+ GV" rows and the online chain verify as verifier_node does with ``depth_topic`` and
 camera_info: a pair the epipolar test refuses gets the metric test (verification/metric.py). A bag
@@ -14,21 +15,28 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import cv2
+import gtsam
 import numpy as np
 
+from aefabmap_ros.backend.odometry_gate import OdometryGate
+from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.evaluation.online_chain import ChainInputs
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.image_messages import depth_image_to_metres, depth_message_to_metres
 from aefabmap_ros.io.rgbd import list_depth_files, read_camera_info_yaml
 from aefabmap_ros.io.sources import ImageSource
+from aefabmap_ros.verification.feature_store import DEFAULT_MAX_STORED_FEATURES, stored_rows
 from aefabmap_ros.verification.frame_depths import (
     DepthGrid,
+    FrameDepths,
     depth_at_pixels,
     sample_depth_grid,
 )
-from aefabmap_ros.verification.geometric import SequenceDepths
-from aefabmap_ros.verification.relative_pose import CameraModel, camera_info_to_model
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.relative_pose import CameraModel, camera_info_to_model, pose_message_to_matrix
+from aefabmap_ros.verification.reranking import SequenceDepths
 
 
 def sequence_depths(args: argparse.Namespace, source: ImageSource,
@@ -54,15 +62,19 @@ def sequence_depths(args: argparse.Namespace, source: ImageSource,
               else _depth_from_bag(args.bag, args.depth_topic, source.stamps_ns()))
     keypoint_depths: list[np.ndarray | None] = [None] * len(features)
     depth_grids: list[DepthGrid | None] = [None] * len(features)
+    stored: list[FrameDepths | None] = [None] * len(features)
     for index, depth in images:  # one image at a time: a long sequence's depth does not fit in memory
         if (depth.shape[1], depth.shape[0]) != size:
             raise DataError(f"depth image {index} is {depth.shape[1]}x{depth.shape[0]}, the camera's images "
                             f"{size[0]}x{size[1]}")
         keypoint_depths[index] = depth_at_pixels(depth, features[index].keypoints[:, :2])
         depth_grids[index] = sample_depth_grid(depth)
+        rows = stored_rows(features[index], DEFAULT_MAX_STORED_FEATURES)
+        stored[index] = FrameDepths.sample(depth.astype(np.float16).astype(np.float32),
+                                           features[index].keypoints[rows, :2].astype(np.float32))
     if all(depths is None for depths in keypoint_depths):
         raise DataError(f"no depth image of {args.depth or args.depth_topic} belongs to a test image")
-    return SequenceDepths(camera, size, keypoint_depths, depth_grids)
+    return SequenceDepths(camera, size, keypoint_depths, depth_grids, stored)
 
 
 def _camera_from_yaml(path: Path) -> tuple[CameraModel, tuple[int, int]]:
@@ -97,3 +109,32 @@ def _depth_from_folder(folder: Path, num_frames: int) -> Iterator[tuple[int, np.
         if image is None or image.dtype != np.uint16 or image.ndim != 2:
             raise DataError(f"depth image {path} must be a readable 16-bit single-channel PNG")
         yield index, depth_image_to_metres(image, "16UC1")
+
+
+def chain_inputs(args: argparse.Namespace, features: Sequence[Features], config: VerificationConfig,
+                 depths: SequenceDepths | None) -> ChainInputs:
+    """What verifier_node's chain verifies with offline: the features, the depths and intrinsics when given,
+    and the odometry of ``--odometry-topic`` (its gate)."""
+    odometry = [] if args.odometry_topic is None else _odometry_from_bag(args.bag, args.odometry_topic)
+    if depths is None:
+        return ChainInputs(config, features, odometry=odometry, gate_factory=example_backend_gate)
+    return ChainInputs(config, features, depths.stored, depths.camera, depths.image_size, odometry,
+                       gate_factory=example_backend_gate)
+
+
+def example_backend_gate() -> OdometryGate:
+    """verifier_node's gate with its default drift model, the camera at the odometry's base frame."""
+    return OdometryGate(PoseGraphConfig(), gtsam.Pose3())
+
+
+def _odometry_from_bag(bag: Path | None, topic: str) -> list[tuple[int, gtsam.Pose3]]:
+    """(stamp, T_odom_base) of every odometry message of the bag, in stamp order (a repeated stamp once)."""
+    if bag is None:
+        raise ConfigError("--odometry-topic is a topic of --bag")
+    odometry: dict[int, gtsam.Pose3] = {}
+    for message in bags.read_messages(bag, [topic]):
+        matrix = pose_message_to_matrix(message.message.pose.pose)
+        odometry[int(message.stamp_ns)] = gtsam.Pose3(np.asarray(matrix, dtype=np.float64))
+    if not odometry:
+        raise DataError(f"{bag} has no messages on {topic}")
+    return sorted(odometry.items(), key=lambda item: item[0])

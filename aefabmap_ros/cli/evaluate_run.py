@@ -18,13 +18,14 @@ from tqdm import tqdm
 
 from aefabmap_ros.cli.common import no_empty_folders_left_on_error
 from aefabmap_ros.cli.evaluate import SECTIONS
-from aefabmap_ros.cli.evaluate_depth import sequence_depths
+from aefabmap_ros.cli.evaluate_depth import chain_inputs, sequence_depths
 from aefabmap_ros.cli.evaluate_outputs import prepare_output, write_report, write_results
 from aefabmap_ros.cli.evaluate_recording import evaluate_recording, load_ground_truth
 from aefabmap_ros.cli.train_run import extract_all, source_provenance
 from aefabmap_ros.errors import ConfigError, ModelError
 from aefabmap_ros.evaluation.ground_truth import check_gt_matches
 from aefabmap_ros.evaluation.methods import METHODS, method_kinds, methods_of_kind, parse_methods
+from aefabmap_ros.evaluation.online_chain import ChainInputs
 from aefabmap_ros.evaluation.protocol import EvaluationConfig, MethodResult, evaluate_model, leave_one_out_samples
 from aefabmap_ros.evaluation.reports import online_markdown, results_markdown
 from aefabmap_ros.fabmap.config import FabMapConfig
@@ -33,7 +34,8 @@ from aefabmap_ros.io.config_files import build_config, read_sections
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.model.directory import Model, load_model, save_model
 from aefabmap_ros.model.training import TrainingConfig, config_digest, evenly_spaced, train_model
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, cached_pair_verifier
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.reranking import PairVerifier, cached_pair_verifier
 from aefabmap_ros.vocabulary.base import VocabularyConfig
 
 # The FAB-MAP settings that shape the evaluation's scores (the others are fixed by the protocol).
@@ -250,12 +252,14 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
     results: list[MethodResult] = []
     features_by_config: dict[str, list[Features]] = {}
     verifiers: dict[str, PairVerifier] = {}  # one per feature config: methods share the pairs they verify
+    chains: dict[str, ChainInputs] = {}  # one per feature config: what verifier_node's chain verifies with
     for label, model, path, exclude in entries:
         key = config_digest(model.feature_config)
         if key not in features_by_config:
             features_by_config[key] = run.features(source, model.feature_config)
             depths = sequence_depths(args, source, features_by_config[key]) if args.verify else None
             verifiers[key] = cached_pair_verifier(features_by_config[key], settings.verification, depths)
+            chains[key] = chain_inputs(args, features_by_config[key], settings.verification, depths)
         test_features = features_by_config[key]
         verification = (settings.verification, verifiers[key]) if args.verify else None
         wanted = methods_of_kind(model.quantizer.kind, methods)
@@ -266,7 +270,7 @@ def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResu
             results += evaluate_model(model, test_features, gt, wanted, settings.evaluation, settings.fabmap,
                                       exclude_samples=None if exclude is None else exclude.tolist(),
                                       on_frame=progress.tick, label=label, model_path=str(path),
-                                      verification=verification, stamps_ns=stamps_ns)
+                                      verification=verification, stamps_ns=stamps_ns, chain_inputs=chains[key])
     order = {name: index for index, name in enumerate(METHODS)}
     results.sort(key=lambda r: (order[r.name], r.label, r.verified))
     header = {

@@ -17,7 +17,8 @@ import numpy as np
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.recordings import RecordedClosure, seconds_text
 from aefabmap_ros.stamps import stamp_to_ns
-from aefabmap_ros.verification.relative_pose import PoseError, pose_message_to_matrix, relative_pose_error
+from aefabmap_ros.verification.pose_error import PoseError, relative_pose_error
+from aefabmap_ros.verification.relative_pose import pose_message_to_matrix
 
 # A closure's two stamps take the ground-truth poses nearest in time within this much (as the ATE does).
 POSE_TRUTH_MAX_OFFSET_NS = 10_000_000

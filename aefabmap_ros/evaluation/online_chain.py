@@ -8,25 +8,38 @@ inliers (``rerank_by_inliers(..., require_best=True)``); for a while after a ver
 tracks the loop through frames without a candidate, by their top candidates near the last verified place
 and then by the frames nearest it in time (verification/loop_tracking.py). This module does exactly
 that on recorded features and words, with the sequence's own stamps, so the online figures (closures published,
-false ones, revisits closed) can be measured and tuned in seconds instead of a replay through ROS.
-verifier_node's odometry gate (backend/odometry_gate.py) is not modelled: it needs relative poses and
-odometry, so these figures are the nodes' without odometry (or with ``odometry_gate: false``).
+false ones, revisits closed) can be measured and tuned in minutes instead of a replay through ROS.
+
+It is verifier_node's own chain (verification/chain.py, with its frame store and odometry gate), fed in
+the order a lockstep replay feeds the node: for each frame the odometry up to its stamp, its features and
+depths, then FAB-MAP's posterior and detection. With the sequence's odometry (``ChainInputs.odometry``)
+closures are gated as the node gates them; without it they are published as the node publishes them on a
+robot without odometry (or with ``odometry_gate: false``).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+import gtsam
 import numpy as np
 import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
-from aefabmap_ros.fabmap.recognizer import Candidate, PlaceRecognizer
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, rerank_by_inliers
-from aefabmap_ros.verification.loop_tracking import FrameTimeline, LoopTrack
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer, Recognition
+from aefabmap_ros.features.extraction import Features
+from aefabmap_ros.verification.chain import LoopClosureChain
+from aefabmap_ros.verification.closures import Closure, Detection, Posterior, RankedPlace
+from aefabmap_ros.verification.feature_store import DEFAULT_MAX_STORED_FEATURES
+from aefabmap_ros.verification.frame_depths import FrameDepths
+from aefabmap_ros.verification.frame_store import FrameStore
+from aefabmap_ros.verification.gate import ClosureGate
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.relative_pose import CameraModel, RelativePoseConfig
 
 
 @dataclass(frozen=True)
@@ -54,6 +67,41 @@ class ChainResult:
     # (query frame, frame of the place) of every place each frame's posterior reports (its top_k): which
     # revisits the ranking found, whatever the decision after it made of them.
     ranked: list[tuple[int, int]] = field(default_factory=list)
+    outcomes: dict[str, int] = field(default_factory=dict)  # the verifier's counters (verifier_node's names)
+
+
+@dataclass(frozen=True)
+class ChainInputs:
+    """What verifier_node would receive besides FAB-MAP's answers: each frame's features, and optionally its
+    depths (node-style, ``FrameDepths`` at the stored keypoints), the intrinsics and the robot's odometry."""
+
+    config: VerificationConfig
+    features: Sequence[Features]
+    depths: Sequence[FrameDepths | None] | None = None
+    camera: CameraModel | None = None
+    image_size: tuple[int, int] | None = None  # (width, height) of the images: the metric test needs it
+    odometry: Sequence[tuple[int, gtsam.Pose3]] = ()  # (stamp_ns, T_odom_base), stamps increasing
+    pose_config: RelativePoseConfig = field(default_factory=RelativePoseConfig)
+    # A fresh odometry gate for each run of the chain (the example backend's, backend/odometry_gate.py, in the
+    # evaluation); without one, or without odometry, verified closures are published unchecked.
+    gate_factory: Callable[[], ClosureGate] | None = None
+    max_stored_features: int = DEFAULT_MAX_STORED_FEATURES
+    # Generous: a sequence is replayed in lockstep, so odometry is never late; only one that is missing waits.
+    odometry_wait_s: float = 10.0
+
+
+class _Outcomes:
+    """The chain's counters offline: kept, no log."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+
+    def ok(self, what: str = "processed") -> None:
+        self.counts[what] += 1
+
+    def drop(self, reason: str, detail: str, count: int = 1) -> None:
+        del detail
+        self.counts[f"dropped_{reason}"] += count
 
 
 def run_online_chain(
@@ -62,14 +110,13 @@ def run_online_chain(
     tree: ChowLiuTree,
     new_place_samples: sp.csr_matrix | None,
     config: FabMapConfig,
-    verification: tuple[VerificationConfig, PairVerifier] | None = None,
+    verification: ChainInputs | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> ChainResult:
     """Run the chain over (N, V) observations stamped ``stamps_ns`` (N,) increasing nanoseconds.
 
-    With ``verification`` (its config and a verifier of (query frame, place frame) pairs, e.g.
-    ``cached_pair_verifier``, which the evaluation shares with its "+ GV" rows), candidates are
-    verified as verifier_node does; without it they are published as they are (``--no-verify``).
+    With ``verification`` candidates are verified, re-ranked, tracked and gated by verifier_node's chain;
+    without it they are published as they are (``--no-verify``).
     """
     matrix = sp.csr_matrix(observations)
     stamps = np.asarray(stamps_ns, dtype=np.int64)
@@ -78,92 +125,78 @@ def run_online_chain(
         raise DataError(f"{stamps.size} stamps for {num_frames} frames")
     if num_frames > 1 and np.any(np.diff(stamps) <= 0):
         raise DataError("stamps must increase strictly (the nodes drop out-of-order frames)")
+    if verification is not None and len(verification.features) != num_frames:
+        raise DataError(f"{len(verification.features)} frames of features for {num_frames} frames")
     matrix.sort_indices()
     recognizer = PlaceRecognizer(tree, new_place_samples, config, "online-chain")
+    frame_of = {int(stamp): frame for frame, stamp in enumerate(stamps.tolist())}
     place_frames: list[int] = []
     result = ChainResult([], [], 0)
-    track = None if verification is None else LoopTrack(verification[0].track_seconds,
-                                                         verification[0].track_island_seconds)
-    timeline = FrameTimeline(max(num_frames, 1))  # as verifier_node's: each frame's place, from its posterior
+    feed = None if verification is None else _ChainFeed(verification, frame_of, result.published)
     for frame in range(num_frames):
         words = matrix.indices[matrix.indptr[frame] : matrix.indptr[frame + 1]].astype(np.int64)
         recognition = recognizer.process(words, int(stamps[frame]))
         if recognition.added_place_id >= 0:
             place_frames.append(frame)
-        if recognition.current_place_id >= 0:
-            timeline.add(int(stamps[frame]), recognition.current_place_id)
         if recognition.candidates:
             top = recognition.candidates[0]
             result.best.append(ChainClosure(frame, place_frames[top.place_id], top.probability))
             result.ranked.extend((frame, place_frames[c.place_id]) for c in recognition.candidates)
         closure = recognition.loop_closure
-        published: ChainClosure | None = None
         if closure is not None:
             candidate = ChainClosure(frame, place_frames[closure.place_id], closure.probability)
             result.candidates.append(candidate)
-            if verification is None:
-                published = candidate
-            else:
-                published = _verified(frame, closure, recognition.candidates, place_frames, *verification)
-        if published is None and track is not None and verification is not None and recognition.informative:
-            published = _tracked(frame, stamps, recognition.candidates, place_frames, track, timeline,
-                                 *verification)
-        if published is not None:
-            result.published.append(published)
-            if track is not None:
-                track.accept(int(stamps[frame]), int(stamps[published.matched_frame]))
+            if feed is None:
+                result.published.append(candidate)
+        if feed is not None:
+            feed.frame(frame, int(stamps[frame]), recognition)
         if on_frame is not None:
             on_frame(frame)
     result.num_places = recognizer.num_places
+    if feed is not None:
+        result.outcomes = dict(feed.outcomes.counts)
     return result
 
 
-def _verified(
-    frame: int,
-    closure: Candidate,
-    candidates: Sequence[Candidate],
-    place_frames: list[int],
-    config: VerificationConfig,
-    verify: PairVerifier,
-) -> ChainClosure | None:
-    """verifier_node's decision: the matched place first, then the query's other top candidates."""
-    ranked = [closure, *(c for c in candidates if c.place_id != closure.place_id)][: config.candidates]
-    frames = [place_frames[c.place_id] for c in ranked]
-    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place), require_best=True)
-    if outcome is None:
-        return None
-    return ChainClosure(frame, frames[outcome.winner], closure.probability, outcome.verification.inliers)
+class _ChainFeed:
+    """One frame after another into verifier_node's chain, in the order a lockstep replay delivers them."""
 
+    def __init__(self, inputs: ChainInputs, frame_of: dict[int, int], published: list[ChainClosure]) -> None:
+        self.inputs = inputs
+        self.frame_of = frame_of
+        self.published = published
+        self.outcomes = _Outcomes()
+        num_frames = max(len(inputs.features), 1)
+        # Every frame fits: the evaluation measures the chain's decisions, not the store's bounds.
+        store = FrameStore(num_frames, 2**62, inputs.max_stored_features, keep_depths=inputs.depths is not None)
+        gate = inputs.gate_factory() if inputs.odometry and inputs.gate_factory is not None else None
+        self.chain = LoopClosureChain(store, inputs.config, inputs.pose_config, self._publish, self.outcomes,
+                                      gate=gate, max_pending=num_frames, odometry_wait_s=inputs.odometry_wait_s,
+                                      max_awaiting_odometry=num_frames)
+        self.chain.pairs.camera = inputs.camera
+        self.next_odometry = 0
 
-def _tracked(
-    frame: int,
-    stamps: np.ndarray,
-    candidates: Sequence[Candidate],
-    place_frames: list[int],
-    track: LoopTrack,
-    timeline: FrameTimeline,
-    config: VerificationConfig,
-    verify: PairVerifier,
-) -> ChainClosure | None:
-    """verifier_node's loop tracking: the query's top candidates near the tracked place, then the frames
-    nearest that place in time not tried yet; the best verified of the first group that has one wins."""
-    stamp_ns = int(stamps[frame])
-    near = track.near(stamp_ns, candidates, lambda candidate: candidate.stamp_ns)[: config.candidates]
-    frames = [place_frames[c.place_id] for c in near]
-    outcome = rerank_by_inliers(frames, lambda place: verify(frame, place))
-    if outcome is not None:
-        winner = near[outcome.winner]
-        return ChainClosure(frame, frames[outcome.winner], winner.probability, outcome.verification.inliers,
-                            tracked=True)
-    tried = {int(stamps[place]) for place in frames}
-    nearby = track.nearby_frames(stamp_ns, timeline, config.track_frames,
-                                 round(config.track_min_age_seconds * 1e9))
-    others = [int(np.searchsorted(stamps, nearby_ns)) for nearby_ns in nearby if nearby_ns not in tried]
-    outcome = rerank_by_inliers(others, lambda place: verify(frame, place))
-    if outcome is None:
-        return None
-    matched = others[outcome.winner]
-    place_id = timeline.place_of(int(stamps[matched]))
-    ranked = [c.probability for c in candidates if c.place_id == place_id]
-    return ChainClosure(frame, matched, ranked[0] if ranked else 0.0, outcome.verification.inliers, tracked=True,
-                        nearby_frame=True)
+    def frame(self, frame: int, stamp_ns: int, recognition: Recognition) -> None:
+        odometry = self.inputs.odometry
+        while self.next_odometry < len(odometry) and odometry[self.next_odometry][0] <= stamp_ns:
+            self.chain.add_odometry(*odometry[self.next_odometry])
+            self.next_odometry += 1
+        depths = None if self.inputs.depths is None else self.inputs.depths[frame]
+        if depths is not None and self.chain.store.depths is not None:
+            self.chain.store.depths.keep(stamp_ns, depths)
+        self.chain.add_features(stamp_ns, self.inputs.features[frame], self.inputs.image_size)
+        candidates = tuple(RankedPlace(c.place_id, c.stamp_ns, c.probability, c.log_likelihood)
+                           for c in recognition.candidates)
+        match = recognition.loop_closure
+        self.chain.add_posterior(Posterior(stamp_ns, recognition.query_id, recognition.assigned_place_id,
+                                           recognition.current_place_id, match is not None, candidates))
+        if match is not None:
+            self.chain.add_detection(Detection(stamp_ns, recognition.query_id, recognition.assigned_place_id,
+                                               match.place_id, match.stamp_ns, match.probability,
+                                               match.log_likelihood))
+
+    def _publish(self, closure: Closure) -> None:
+        detection = closure.detection
+        self.published.append(ChainClosure(
+            self.frame_of[detection.query_ns], self.frame_of[detection.matched_ns], detection.probability,
+            closure.inliers, tracked=closure.tracked, nearby_frame=closure.nearby_frame))

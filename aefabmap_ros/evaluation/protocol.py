@@ -66,7 +66,7 @@ from aefabmap_ros.evaluation.metrics import (
     event_scores,
     missed_with_a_true_place_ranked,
 )
-from aefabmap_ros.evaluation.online_chain import run_online_chain
+from aefabmap_ros.evaluation.online_chain import ChainInputs, run_online_chain
 from aefabmap_ros.evaluation.tfidf import tfidf_score_matrix
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
@@ -74,7 +74,8 @@ from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.model.training import count_bow
-from aefabmap_ros.verification.geometric import PairVerifier, VerificationConfig, verified_scores
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.reranking import PairVerifier, verified_scores
 
 # tf-idf cosine is not a calibrated probability: this default is near the best-F1 threshold (0.63) of
 # k-means BoW on the synthetic *training* sequence (vocabulary from kitti00_first300). Compare methods by
@@ -293,19 +294,20 @@ def evaluate_model(
     model_path: str = "",
     verification: tuple[VerificationConfig, PairVerifier] | None = None,
     stamps_ns: np.ndarray | None = None,
+    chain_inputs: ChainInputs | None = None,
 ) -> list[MethodResult]:
     """Run the ``methods`` (all of this model's vocabulary kind) on the test features and score them.
 
-    With ``verification`` (its config and a verifier of the test features' pairs), every method also
-    gets a "+ GV" result: its scores after geometric verification (see ``verification.geometric``). With
-    the frames' ``stamps_ns``, every FAB-MAP method also runs the nodes' decision chain with
-    ``fabmap_config`` as the nodes use it (places, time exclusion, consistency, verification when
-    given): its ``online`` scores.
+    With ``verification`` (a config and a verifier of the test features' pairs) every method also gets a
+    "+ GV" result (``verification.geometric``). With ``stamps_ns`` every FAB-MAP method also runs the nodes'
+    chain (``fabmap_config`` as the nodes use it; with ``verification``, verifier_node's chain on
+    ``chain_inputs``: features, and depths and odometry where the evaluation has them): its ``online`` scores.
     """
-    kind = model.quantizer.kind
     _check_methods(methods, model)
     if len(features) != gt.shape[0]:
         raise DataError(f"{len(features)} test frames but the ground truth is {gt.shape[0]}x{gt.shape[1]}")
+    if verification is not None and chain_inputs is None:
+        chain_inputs = ChainInputs(verification[0], features)
     started = time.monotonic()
     counts = count_bow(model.quantizer, features)
     quantize_seconds = time.monotonic() - started
@@ -321,17 +323,18 @@ def evaluate_model(
             )
             threshold = config.threshold
             if stamps_ns is not None:
-                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config, verification)
+                online = online_scores(model, counts, stamps_ns, gt, config.min_gap, fabmap_config,
+                                       chain_inputs if verification is not None else None)
         else:
             scores = tfidf_matrix(counts, model.new_place_samples)
             threshold = config.bow_threshold
         seconds = time.monotonic() - started
         results.append(MethodResult(
-            name=name, vocabulary_kind=kind, vocabulary_size=model.quantizer.size, vocabulary_id=model.vocabulary_id,
+            name=name, vocabulary_kind=model.quantizer.kind, vocabulary_size=model.quantizer.size,
             scores=scores, metrics=evaluate_scores(scores, gt, config.min_gap, threshold), seconds=seconds,
             new_place=new_place, model_path=model_path, label=label, quantize_seconds=quantize_seconds,
             reliability=None if online is None else online.reliability,
-            online=online,
+            online=online, vocabulary_id=model.vocabulary_id,
         ))
         if verification is not None:
             results.append(verified_result(results[-1], verification, gt, config.min_gap,
@@ -350,10 +353,9 @@ def _check_methods(methods: Sequence[str], model: Model) -> None:
 
 
 def online_scores(model: Model, counts: sp.csr_matrix, stamps_ns: np.ndarray, gt: np.ndarray, min_gap: int,
-                  fabmap_config: FabMapConfig,
-                  verification: tuple[VerificationConfig, PairVerifier] | None) -> OnlineScores:
-    """The nodes' chain on the sequence, its candidates and published closures scored per revisit event
-    (pairs verified through the evaluation's shared verifier: the "+ GV" rows verify many of them too)."""
+                  fabmap_config: FabMapConfig, verification: ChainInputs | None) -> OnlineScores:
+    """The nodes' chain on the sequence (verified by verifier_node's chain with ``verification``), its
+    candidates and published closures scored per revisit event."""
     chain = run_online_chain(counts, stamps_ns, model_tree(model), model.new_place_samples, fabmap_config,
                              verification)
 

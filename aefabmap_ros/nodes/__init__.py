@@ -2,6 +2,7 @@
 launchers in ``cli``) that imports rclpy or message types."""
 
 __all__ = [
+    "closure_messages",
     "closure_view_node",
     "common",
     "delivery",
@@ -18,5 +19,7 @@ __all__ = [
     "quantizer_node",
     "sensor_inputs",
     "verifier_node",
+    "verifier_parameters",
+    "verifier_summary",
     "view_messages",
 ]

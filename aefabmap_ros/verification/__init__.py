@@ -1,4 +1,21 @@
-"""Geometric verification of loop-closure candidates (with depth, the metric and covisibility tests too), what is
-kept of each frame's depth for them, loop tracking, and the relative pose of a closure."""
+"""The decision between FAB-MAP's candidates and /loop_closures, without ROS: geometric verification (with
+depth, the metric and covisibility tests too), re-ranking, loop tracking, the odometry gate's interface, one
+frame store bounded by bytes, and the relative pose of a closure (chain.py ties them together)."""
 
-__all__ = ["frame_depths", "geometric", "loop_tracking", "metric", "relative_pose"]
+__all__ = [
+    "chain",
+    "closures",
+    "feature_store",
+    "frame_depths",
+    "frame_store",
+    "gate",
+    "geometric",
+    "loop_tracking",
+    "metric",
+    "odometry_wait",
+    "pair_check",
+    "pose_error",
+    "relative_pose",
+    "reranking",
+    "rigid_alignment",
+]

@@ -175,9 +175,24 @@ class FrameDepthStore:
         self._waiting_keypoints: dict[int, np.ndarray] = {}
         self._unsaved: dict[int, None] = {}  # stamps sampled since the last save, in order (an ordered set)
         self._skipped: dict[int, None] = {}  # recent frames announced as skipped (an ordered set)
+        self._nbytes = 0  # of the kept FrameDepths' arrays
 
     def __len__(self) -> int:
         return len(self._depths)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the kept frames' arrays (keypoint depths and grids; not the images waiting for features)."""
+        return self._nbytes
+
+    def forget(self, stamp_ns: int) -> None:
+        """Drop that frame's depths (and anything of it still waiting)."""
+        dropped = self._depths.pop(stamp_ns, None)
+        if dropped is not None:
+            self._nbytes -= _frame_nbytes(dropped)
+        self._unsaved.pop(stamp_ns, None)
+        self._images.pop(stamp_ns, None)
+        self._waiting_keypoints.pop(stamp_ns, None)
 
     def __contains__(self, stamp_ns: object) -> bool:
         return stamp_ns in self._depths
@@ -196,10 +211,12 @@ class FrameDepthStore:
         """Replace the kept depths by saved ones (oldest first; the newest ``max_frames`` stay); they count as saved."""
         self._depths.clear()
         self._unsaved.clear()
+        self._nbytes = 0
         for stamp, depths in frames:
-            self._depths.pop(stamp, None)
+            self.forget(stamp)
             self._depths[stamp] = depths
-        _trim(self._depths, self.max_frames)
+            self._nbytes += _frame_nbytes(depths)
+        self._trim_depths()
 
     def skip_frame(self, stamp_ns: int) -> None:
         """A frame the detector will not process (feature_node's detection rate): its depth image, come or to
@@ -214,7 +231,7 @@ class FrameDepthStore:
         depth_m = depth_m.astype(np.float16)  # kept so, whichever comes first: the same depths in either order
         keypoints = self._waiting_keypoints.pop(stamp_ns, None)
         if keypoints is not None:
-            self._keep(stamp_ns, FrameDepths.sample(depth_m.astype(np.float32), keypoints))
+            self.keep(stamp_ns, FrameDepths.sample(depth_m.astype(np.float32), keypoints))
             return
         self._images[stamp_ns] = depth_m
         _trim(self._images, self.max_images)
@@ -229,20 +246,24 @@ class FrameDepthStore:
         if image is not None:
             problem = None if image_size is None else depth_size_problem((image.shape[1], image.shape[0]), image_size)
             if problem is None:
-                self._keep(stamp_ns, FrameDepths.sample(image.astype(np.float32), keypoints))
+                self.keep(stamp_ns, FrameDepths.sample(image.astype(np.float32), keypoints))
                 return
         self._waiting_keypoints[stamp_ns] = keypoints
         _trim(self._waiting_keypoints, self.max_images)
         if problem is not None:
             raise DataError(problem)
 
-    def _keep(self, stamp_ns: int, depths: FrameDepths) -> None:
-        self._depths.pop(stamp_ns, None)
+    def keep(self, stamp_ns: int, depths: FrameDepths) -> None:
+        """Keep a frame's depths as sampled (the nodes sample them here; the offline chain brings its own)."""
+        self.forget(stamp_ns)
         self._depths[stamp_ns] = depths
+        self._nbytes += _frame_nbytes(depths)
         self._unsaved[stamp_ns] = None
-        _trim(self._depths, self.max_frames)
-        if len(self._unsaved) > self.max_frames:  # forgotten before any save: nothing to write for them
-            self._unsaved = {stamp: None for stamp in self._unsaved if stamp in self._depths}
+        self._trim_depths()
+
+    def _trim_depths(self) -> None:
+        while len(self._depths) > self.max_frames:
+            self.forget(next(iter(self._depths)))
 
 
 DEPTH_FORMAT_VERSION = 1
@@ -314,6 +335,10 @@ def _read_grids(chunk: Path, arrays: dict[str, np.ndarray], num_frames: int) -> 
             raise ModelError(f"keypoint depth chunk {chunk}: {error}") from error
         start += size
     return grids
+
+
+def _frame_nbytes(depths: FrameDepths) -> int:
+    return depths.keypoints.nbytes + (0 if depths.grid is None else depths.grid.values.nbytes)
 
 
 def _trim(frames: dict[int, FrameDepths] | dict[int, np.ndarray] | dict[int, None], limit: int) -> None:

@@ -78,14 +78,16 @@ class LoopTrack:
         tracked_ns = self._last[1]
         return [candidate for candidate in candidates if abs(place_ns(candidate) - tracked_ns) <= self._island_ns]
 
-    def nearby_frames(self, query_ns: int, timeline: FrameTimeline, count: int, min_age_ns: int) -> list[int]:
+    def nearby_frames(self, query_ns: int, timeline: FrameTimeline, count: int, min_age_ns: int,
+                      usable: Callable[[int], bool] | None = None) -> list[int]:
         """Stamps of up to ``count`` timeline frames within ``island_seconds`` of the tracked place and at
-        least ``min_age_ns`` before the query, nearest the tracked place first; [] when inactive."""
+        least ``min_age_ns`` before the query (and ``usable``, when given), nearest the tracked place first;
+        [] when inactive."""
         if self._last is None or not self.is_active(query_ns) or count < 1:
             return []
         tracked_ns = self._last[1]
         newest_ns = min(int(tracked_ns + self._island_ns), query_ns - min_age_ns)
-        return timeline.nearest(tracked_ns, int(tracked_ns - self._island_ns), newest_ns, count)
+        return timeline.nearest(tracked_ns, int(tracked_ns - self._island_ns), newest_ns, count, usable)
 
     def reset(self) -> None:
         self._last = None
@@ -134,6 +136,10 @@ class FrameTimeline:
         if len(self):
             self._newest_saved = self._stamps[-1]
 
+    def frames(self) -> list[tuple[int, int]]:
+        """(stamp, place) of every frame kept, oldest first."""
+        return list(zip(self._stamps[self._start:], self._places[self._start:], strict=True))
+
     def restore(self, frames: Sequence[tuple[int, int]]) -> None:
         """Replace the frames by saved (stamp, place) ones (the newest ``max_frames`` of them, in stamp
         order; of two copies of a stamp the later one); they count as saved."""
@@ -150,9 +156,11 @@ class FrameTimeline:
             return self._places[index]
         return None
 
-    def nearest(self, centre_ns: int, oldest_ns: int, newest_ns: int, count: int) -> list[int]:
-        """Stamps of up to ``count`` frames stamped in [oldest_ns, newest_ns], nearest ``centre_ns``
-        first (of two equally near, the older)."""
+    def nearest(self, centre_ns: int, oldest_ns: int, newest_ns: int, count: int,
+                usable: Callable[[int], bool] | None = None) -> list[int]:
+        """Stamps of up to ``count`` frames stamped in [oldest_ns, newest_ns] (and ``usable``, when given:
+        frames whose features were evicted are skipped, not counted), nearest ``centre_ns`` first (of two
+        equally near, the older)."""
         first = bisect_left(self._stamps, oldest_ns, lo=self._start)
         end = bisect_right(self._stamps, newest_ns, lo=first)
         # Merge outwards from the centre: the two sides are each sorted by distance already.
@@ -163,11 +171,13 @@ class FrameTimeline:
             take_left = right >= end or (left >= first and
                                          centre_ns - self._stamps[left] <= self._stamps[right] - centre_ns)
             if take_left:
-                chosen.append(self._stamps[left])
+                stamp_ns = self._stamps[left]
                 left -= 1
             else:
-                chosen.append(self._stamps[right])
+                stamp_ns = self._stamps[right]
                 right += 1
+            if usable is None or usable(stamp_ns):
+                chosen.append(stamp_ns)
         return chosen
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.verification.rigid_alignment import misfit, rigid_alignment
 
 # Below this many correspondences RANSAC has no redundancy (5-point essential, 4-point PnP + checks).
 MIN_POSE_POINTS = 8
@@ -305,66 +306,11 @@ def pnp_pose(query_points: np.ndarray, place_points: np.ndarray, place_depths_m:
                                     inliers=int(inlier_index.size)), PoseStatus.OK)
 
 
-# The rigid alignment's RANSAC: a 3-D match fits when the place's point, moved, lies within this distance of the
-# query's (metres, plus a share of the query point's depth: depth noise grows with range).
-RIGID_TOLERANCE_M = 0.05
-RIGID_RELATIVE_TOLERANCE = 0.05
+# The rigid alignment replaces PnP's pose only when it still explains the image:
 RIGID_MIN_REPROJECTED = 0.9  # share of PnP's inliers the alignment must reproject within its threshold ...
 # ... or within this many pixels, if more: the alignment is not fitted to the image, and at the published pose's
 # 1 px the far views it is for failed (dense video: 94-97 % of their inliers within 2 px, 85-89 % within 1 px).
 RIGID_CHECK_MIN_PX = 2.0
-# Minimal triplets drawn, all at once (fixed seed: the same pair gives the same pose). PnP's inliers are mostly
-# consistent: at half of them outliers, 64 triplets miss an all-inlier one with probability 2e-4.
-RIGID_HYPOTHESES = 64
-
-
-def _kabsch(place_xyz: np.ndarray, query_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotations and translations (batched: (..., N, 3) point sets) with query = R place + t."""
-    place_centre = place_xyz.mean(axis=-2, keepdims=True)
-    query_centre = query_xyz.mean(axis=-2, keepdims=True)
-    covariance = np.swapaxes(place_xyz - place_centre, -1, -2) @ (query_xyz - query_centre)
-    u, _, vt = np.linalg.svd(covariance)
-    v, ut = np.swapaxes(vt, -1, -2), np.swapaxes(u, -1, -2)
-    reflection = np.sign(np.linalg.det(v @ ut))  # a proper rotation: no mirror image
-    fix = np.broadcast_to(np.eye(3), covariance.shape).copy()
-    fix[..., 2, 2] = reflection
-    rotation = v @ fix @ ut
-    translation = query_centre[..., 0, :] - (rotation @ place_centre[..., 0, :, None])[..., 0]
-    return rotation, translation
-
-
-def _scaled_distances(rotation: np.ndarray, translation: np.ndarray, place_xyz: np.ndarray,
-                      query_xyz: np.ndarray) -> np.ndarray:
-    """Each 3-D match's distance under the motion(s) (R: (..., 3, 3), t: (..., 3)) in units of its tolerance:
-    (..., N); below 1 it agrees."""
-    moved = place_xyz @ np.swapaxes(rotation, -1, -2) + translation[..., None, :]
-    tolerance = RIGID_TOLERANCE_M + RIGID_RELATIVE_TOLERANCE * query_xyz[:, 2]
-    scaled: np.ndarray = np.linalg.norm(moved - query_xyz, axis=-1) / tolerance
-    return scaled
-
-
-def _misfit(rotation: np.ndarray, translation: np.ndarray, place_xyz: np.ndarray, query_xyz: np.ndarray) -> float:
-    """A motion's truncated 3-D misfit (MSAC): the sum of each match's squared scaled distance, at most 1 each."""
-    return float(np.minimum(_scaled_distances(rotation, translation, place_xyz, query_xyz) ** 2, 1.0).sum())
-
-
-def rigid_alignment(place_xyz: np.ndarray, query_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The rigid motion (R, t; query = R place + t) most 3-D matches agree on, and its (N,) bool inliers.
-
-    RANSAC over minimal triplets (Kabsch), refitted on the inliers; None with fewer than
-    ``MIN_POSE_POINTS`` matches or inliers."""
-    count = place_xyz.shape[0]
-    if count < MIN_POSE_POINTS:
-        return None
-    # A triplet drawing one match twice is degenerate and simply loses.
-    triplets = np.random.default_rng(0).integers(0, count, (RIGID_HYPOTHESES, 3))
-    rotations, translations = _kabsch(place_xyz[triplets], query_xyz[triplets])
-    fits = _scaled_distances(rotations, translations, place_xyz, query_xyz) < 1.0
-    inliers = fits[int(np.argmax(fits.sum(axis=1)))]
-    if np.count_nonzero(inliers) < MIN_POSE_POINTS:
-        return None
-    rotation, translation = _kabsch(place_xyz[inliers], query_xyz[inliers])
-    return rotation, translation, inliers
 
 
 def _depth_consistent(rvec: np.ndarray, tvec: np.ndarray, objects: np.ndarray, images: np.ndarray,
@@ -388,8 +334,8 @@ def _depth_consistent(rvec: np.ndarray, tvec: np.ndarray, objects: np.ndarray, i
     if alignment is None:
         return rvec, tvec
     rotation, translation, _ = alignment
-    if _misfit(_rotation_matrix(rvec), tvec.reshape(3), place_xyz, query_xyz) \
-            <= _misfit(rotation, translation, place_xyz, query_xyz):
+    if misfit(_rotation_matrix(rvec), tvec.reshape(3), place_xyz, query_xyz) \
+            <= misfit(rotation, translation, place_xyz, query_xyz):
         return rvec, tvec
     aligned = _rotation_vector(rotation).reshape(3, 1), translation.reshape(3, 1)
     distortion = camera.distortion if camera.distortion.size else None
@@ -414,33 +360,6 @@ def relative_pose(query_points: np.ndarray, place_points: np.ndarray, camera: Ca
         if metric.pose is not None:
             return metric
     return essential_pose(query_points, place_points, camera, config)
-
-
-@dataclass(frozen=True)
-class PoseError:
-    """A measured relative pose against the ground truth's."""
-
-    rotation_deg: float  # angle of R_true^T R_measured
-    direction_deg: float  # angle between the translations (NaN when the true one is shorter than 1 mm)
-    translation_m: float  # |t_measured - t_true| (meaningful for a metric pose only)
-
-
-def relative_pose_error(query_to_world: np.ndarray, place_to_world: np.ndarray, measured: np.ndarray) -> PoseError:
-    """Error of a measured place-in-query pose (4x4, ``X_query = R X_place + t``) given both cameras'
-    ground-truth camera-to-world poses ((3|4, 4))."""
-    def full(pose: np.ndarray) -> np.ndarray:
-        matrix = np.eye(4)
-        matrix[:3, :] = np.asarray(pose, dtype=np.float64)[:3, :]
-        return matrix
-
-    truth = np.linalg.inv(full(query_to_world)) @ full(place_to_world)
-    estimate = full(measured)
-    rotation = np.degrees(np.linalg.norm(_rotation_vector(truth[:3, :3].T @ estimate[:3, :3])))
-    true_t, measured_t = truth[:3, 3], estimate[:3, 3]
-    lengths = np.linalg.norm(true_t) * np.linalg.norm(measured_t)
-    direction = (float(np.degrees(np.arccos(np.clip(true_t @ measured_t / lengths, -1.0, 1.0))))
-                 if np.linalg.norm(true_t) > 1e-3 and lengths > 0 else float("nan"))
-    return PoseError(float(rotation), direction, float(np.linalg.norm(measured_t - true_t)))
 
 
 def pose_message_to_matrix(pose: Any) -> np.ndarray:

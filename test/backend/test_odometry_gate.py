@@ -6,8 +6,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from aefabmap_ros.backend.odometry_gate import GateResult, OdometryGate
+from aefabmap_ros.backend.odometry_gate import OdometryGate
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
+from aefabmap_ros.verification.gate import GateResult
 
 SECOND = 1_000_000_000
 CONFIG = PoseGraphConfig()

@@ -126,7 +126,7 @@ def test_ate_figures_compare_odometry_and_closures_on_the_keyframe_stamps(tmp_pa
 
 def test_pose_errors_summary_gives_the_medians() -> None:
     from aefabmap_ros.cli.demo_backend import PoseErrors
-    from aefabmap_ros.verification.relative_pose import PoseError
+    from aefabmap_ros.verification.pose_error import PoseError
 
     errors = PoseErrors(metric=[PoseError(0.2, 1.0, 0.01), PoseError(0.4, 2.0, 0.03), PoseError(9.0, 9.0, 9.0)],
                         without_pose=2)

@@ -7,10 +7,10 @@ import pytest
 import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError
-from aefabmap_ros.evaluation.online_chain import ChainClosure, run_online_chain
+from aefabmap_ros.evaluation.online_chain import ChainClosure, ChainInputs, run_online_chain
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.features.extraction import Features
-from aefabmap_ros.verification.geometric import VerificationConfig, cached_pair_verifier
+from aefabmap_ros.verification.geometric import VerificationConfig
 from test.fabmap.test_recognizer import SAMPLES, V, _tree
 from test.verification.test_geometric import HEIGHT, WIDTH, _two_views
 
@@ -45,7 +45,7 @@ def test_consistent_candidates_and_verified_closures():
     stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
     config = VerificationConfig()
     result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
-                              (config, cached_pair_verifier(features, config)))
+                              ChainInputs(config, features))
     # Frame 7 matches place 1 but is the first of its run: no candidate. Frames 8 and 9 continue it.
     assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
     assert all(c.probability > 0.5 and c.inliers == -1 for c in result.candidates)
@@ -99,7 +99,7 @@ def test_loop_tracking_closes_a_weak_frame_of_a_verified_revisit(track_seconds, 
     observations, features, stamps = _weak_revisit(gap_s)
     config = VerificationConfig(track_seconds=track_seconds)
     result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
-                              (config, cached_pair_verifier(features, config)))
+                              ChainInputs(config, features))
     # Frame 9 is no candidate: its best place is 3, but below the match threshold ...
     assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2)]
     weak = result.best[-1]
@@ -123,9 +123,38 @@ def test_loop_tracking_verifies_the_frames_next_to_the_tracked_place_that_fabmap
     verification = VerificationConfig(track_seconds=1.0, track_island_seconds=2.5, track_frames=track_frames,
                                       track_min_age_seconds=min_age_s)
     result = run_online_chain(sp.csr_matrix(observations), stamps, _tree(), SAMPLES, config,
-                              (verification, cached_pair_verifier(features, verification)))
+                              ChainInputs(verification, features))
     assert result.best[-1].matched_frame == 5
     # The frames next to place 2 (2 s) at least min_age before 8.5 s, nearest first: 2, 1, 3, 0. Frame 3
     # sees scene 3, as frame 9 does from the other pose: geometry accepts it. At 6 s it is too recent.
     tracked = [(c.query_frame, c.matched_frame, c.nearby_frame, c.probability) for c in result.published if c.tracked]
     assert tracked == ([] if matched is None else [(9, matched, True, 0.0)])
+
+
+@pytest.mark.parametrize("consistent", [True, False])
+def test_the_chain_gates_closures_by_the_sequences_odometry(consistent: bool) -> None:
+    """The revisit (8, 2) of test_consistent_candidates_and_verified_closures, now with intrinsics and odometry:
+    published when odometry moved the camera by what the closure's pose says, refused when odometry puts the
+    place 20 m away (an aliased corner), as verifier_node's gate decides."""
+    import gtsam
+
+    from aefabmap_ros.backend.odometry_gate import OdometryGate
+    from aefabmap_ros.backend.pose_graph import PoseGraphConfig
+    from aefabmap_ros.verification.relative_pose import CameraModel
+    from test.verification.test_geometric import FOCAL, _rotation_y
+
+    observations, features = _sequence()
+    stamps = np.arange(observations.shape[0], dtype=np.int64) * SECOND
+    # Frame 2 is _two_views(seed=2)'s first view, frame 8 its second: in frame 8's camera frame, frame 2's camera
+    # is at (R, t) of _two_views. Odometry holds the robot there until frame 7, then at the origin.
+    place_in_query = gtsam.Pose3(gtsam.Rot3(_rotation_y(0.15)), np.array([0.8, 0.1, 0.3]))
+    before = place_in_query if consistent else gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), np.array([20.0, 0.0, 0.0]))
+    odometry = [(int(stamp), before if frame < 8 else gtsam.Pose3()) for frame, stamp in enumerate(stamps)]
+    camera = CameraModel(np.array([[FOCAL, 0.0, WIDTH / 2], [0.0, FOCAL, HEIGHT / 2], [0.0, 0.0, 1.0]]))
+    result = run_online_chain(observations, stamps, _tree(), SAMPLES, CONFIG,
+                              ChainInputs(VerificationConfig(), features, camera=camera, odometry=odometry,
+                                          gate_factory=lambda: OdometryGate(PoseGraphConfig(), gtsam.Pose3())))
+    assert [(c.query_frame, c.matched_frame) for c in result.candidates] == [(8, 2), (9, 3)]
+    assert [(c.query_frame, c.matched_frame) for c in result.published] == ([(8, 2)] if consistent else [])
+    assert result.outcomes.get("dropped_inconsistent_with_odometry", 0) == (0 if consistent else 1)
+    assert result.outcomes["accepted"] == 1 and result.outcomes["pose_ok"] == 1

@@ -234,7 +234,7 @@ def test_gv_rows_search_past_the_best_candidates_only_when_they_all_fail():
     """Query 3's true place 0 is FAB-MAP's third: with 2 candidates the "+ GV" row misses it, with 1 more it is
     found and keeps its own score (the best accepted one's); query 2's best candidate passes, so its deeper
     candidate is never verified."""
-    from test.verification.test_geometric import FakeVerifier
+    from test.verification.test_reranking import FakeVerifier
 
     scores = np.zeros((4, 4))
     scores[3, :3] = [0.1, 0.2, 0.3]

@@ -6,6 +6,8 @@ from typing import Any
 
 import pytest
 
+from aefabmap_ros.backend.odometry_gate import OdometryGate
+
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("aefabmap_msgs.msg")
 
@@ -113,8 +115,8 @@ def test_verifier_node_keeps_a_burst_of_odometry_it_was_too_busy_to_take(reliabi
             message.pose.pose.orientation.w = 1.0
             message.pose.pose.position.x = 0.01 * index
             publisher.publish(message)
-        gate = node.odometry_gate
-        assert gate is not None
+        gate = node.chain.odometry.gate
+        assert isinstance(gate, OdometryGate)
         _spin_until(executor, lambda: len(gate.odometry) == ODOMETRY_BURST, attempts=ODOMETRY_BURST + 400)
         assert node.counter.counts.get("dropped_before_callback", 0) == 0
         reliability.drops(f"verifier_node, {ODOMETRY_BURST} odometry messages sent while it took none",

@@ -212,7 +212,7 @@ def test_every_input_of_the_verifier_and_the_backend_hears_a_driver_of_either_qo
     qos = PUBLISHER_QOS[offered]
     try:
         camera_info = driver.create_publisher(CameraInfo, "camera_info", qos)
-        assert _publish_until(executor, camera_info, _camera_info, lambda: verifier.camera is not None)
+        assert _publish_until(executor, camera_info, _camera_info, lambda: verifier.chain.pairs.camera is not None)
         depth = driver.create_publisher(Image, "/camera/depth", qos)
         depth_input = next(i for i in verifier.inputs if i.topic == "/camera/depth")
         assert _publish_until(executor, depth, _depth, lambda: depth_input.received > 0)

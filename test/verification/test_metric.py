@@ -12,9 +12,10 @@ import pytest
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.frame_depths import DepthGrid, sample_depth_grid
-from aefabmap_ros.verification.geometric import SequenceDepths, VerificationConfig, cached_pair_verifier, verify_pair
+from aefabmap_ros.verification.geometric import VerificationConfig, verify_pair
 from aefabmap_ros.verification.metric import KeypointDepths, covisibility, metric_check, view_overlap
 from aefabmap_ros.verification.relative_pose import CameraModel, RelativePose
+from aefabmap_ros.verification.reranking import SequenceDepths, cached_pair_verifier
 from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH, _features, _rotation_y
 
 CAMERA = CameraModel(np.array([[FOCAL, 0.0, WIDTH / 2], [0.0, FOCAL, HEIGHT / 2], [0.0, 0.0, 1.0]]))
