@@ -1,10 +1,13 @@
-"""verifier_node's messages <-> the verification chain's plain values (verification/closures.py)."""
+"""verifier_node's messages <-> the verification chain's plain values (verification/closures.py), and what it
+refuses of them before the chain sees them."""
 
 from __future__ import annotations
 
 from aefabmap_msgs.msg import LoopClosure, PlacePosterior
+from nav_msgs.msg import Odometry
 
-from aefabmap_ros.nodes.messages import fill_relative_pose, time_from_ns
+from aefabmap_ros.nodes.future_stamps import FutureStamps
+from aefabmap_ros.nodes.messages import fill_relative_pose, loop_closure_stamp_problem, odometry_problem, time_from_ns
 from aefabmap_ros.stamps import stamp_to_ns
 from aefabmap_ros.verification.closures import Closure, Detection, Posterior, RankedPlace
 
@@ -36,3 +39,28 @@ def closure_to_message(closure: Closure) -> LoopClosure:
     message.matched_stamp = time_from_ns(detection.matched_ns)
     fill_relative_pose(message, closure.pose)
     return message
+
+
+def candidate_refusal(message: LoopClosure) -> tuple[str, str] | None:
+    """(drop name, why) for a candidate the chain must not take: stamps that are not ROS times, a matched place
+    not before its query (it would be verified against itself or a later frame), a posterior outside [0, 1]."""
+    problem = loop_closure_stamp_problem(message)
+    if problem is not None:
+        return "bad_closure_stamp", problem
+    query_ns, matched_ns = stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp)
+    text = f"candidate of query {message.query_id} -> place {message.matched_place_id}"
+    if matched_ns >= query_ns:
+        return "bad_candidate", f"{text}: its place ({matched_ns} ns) is not before the query ({query_ns} ns)"
+    if not 0.0 <= message.probability <= 1.0:  # NaN fails too
+        return "bad_candidate", f"{text}: probability {message.probability} is not in [0, 1]"
+    return None
+
+
+def odometry_refusal(message: Odometry, future: FutureStamps) -> tuple[str, str] | None:
+    """(drop name, why) for odometry the gate must not take: a broken stamp or pose (it would interpolate NaN
+    between its neighbours), or a stamp far in the future (every later message would be out of order)."""
+    problem = odometry_problem(message)
+    if problem is not None:
+        return "bad_odometry", problem
+    problem = future.problem(stamp_to_ns(message.header.stamp))
+    return None if problem is None else ("stamp_in_future", f"odometry {problem}")

@@ -6,7 +6,8 @@ A thin adapter around the ROS-free decision chain (verification/chain.py) and it
 ``camera_matrix``), the depth topic and ``aefabmap/skipped_frames`` (``depth_topic``), ``odom``
 (``odometry_gate``). Out: verified, odometry-consistent closures with inliers and relative pose. Malformed
 input is counted and dropped by name (``bad_features``, ``depth_size_mismatch``, ``bad_depth``,
-``bad_camera_info``, ``bad_posterior``, ``bad_odometry``, ``odometry_out_of_order``, ``bad_closure_pose``).
+``bad_camera_info``, ``bad_posterior``, ``bad_closure_stamp``, ``bad_candidate``, ``bad_odometry``,
+``stamp_in_future``, ``odometry_out_of_order``, ``bad_stamp``, ``bad_closure_pose``).
 """
 
 from __future__ import annotations
@@ -25,23 +26,12 @@ from std_msgs.msg import Header
 from aefabmap_ros.backend.odometry_gate import OdometryGate
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.io.image_messages import depth_message_to_metres
-from aefabmap_ros.nodes.closure_messages import closure_to_message, detection_from_message, posterior_from_message
-from aefabmap_ros.nodes.common import (
-    LOG_THROTTLE_S,
-    ODOMETRY_QOS,
-    RESULT_QOS,
-    DropCounter,
-    PeriodicSave,
-    RuntimeParameters,
-    counted_subscription,
-    node_callback,
-    pipeline_qos,
-    report_when_connected,
-    result_qos,
-    run_node,
-)
+from aefabmap_ros.nodes import closure_messages as convert
+from aefabmap_ros.nodes import common
+from aefabmap_ros.nodes.common import counted_subscription, node_callback, pipeline_qos, result_qos
+from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.gtsam_poses import pose_to_gtsam
-from aefabmap_ros.nodes.messages import message_to_features, odometry_problem, posterior_problem
+from aefabmap_ros.nodes.messages import header_stamp_problem, message_to_features, posterior_problem
 from aefabmap_ros.nodes.sensor_inputs import SensorInput
 from aefabmap_ros.nodes.verifier_parameters import RUNTIME_SETTINGS, declare_verifier_parameters
 from aefabmap_ros.nodes.verifier_summary import FeatureClock, shutdown_summary, startup_summary
@@ -57,13 +47,14 @@ class VerifierNode(Node):
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("verifier_node", **node_kwargs)
         p = declare_verifier_parameters(self)
-        self.counter = DropCounter(self)
-        self.publisher = self.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
+        self.counter = common.DropCounter(self)
+        self.publisher = self.create_publisher(LoopClosure, "loop_closures", common.RESULT_QOS)
         self.store = FrameStore(p.max_frames, p.max_store_bytes, p.max_features, keep_depths=bool(p.depth_topic),
                                 folder=Path(p.store_dir) if p.store_dir else None)
         for note in self.store.load():
             self.get_logger().info(note)
         self.clock = FeatureClock(p.max_lag_s)
+        self.future_stamps = FutureStamps(self)
         self.chain = LoopClosureChain(
             self.store, p.config, p.pose_config, self._publish, self.counter,
             gate=OdometryGate(p.drift_model, p.base_to_camera) if p.odometry_gate else None,
@@ -74,7 +65,7 @@ class VerifierNode(Node):
         depth = p.queue_depth
         features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
                                         self.counter, pass_source_time=True)
-        report_when_connected(self, features, "features")  # a place the verifier never heard cannot be verified
+        common.report_when_connected(self, features, "features")  # a place the verifier never heard cannot be verified
         if p.depth_topic:  # the depth images of frames feature_node skips wait for no features
             self.create_subscription(Header, "aefabmap/skipped_frames", self._on_skipped_frame,
                                      pipeline_qos(max(depth, 100)))
@@ -86,8 +77,9 @@ class VerifierNode(Node):
         if self.chain.needs_posteriors:
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, result_qos(depth),
                                  self.counter)
-        self.store_saver = PeriodicSave(self, self.store.folder, self.store.save, "the feature store", p.save_period_s)
-        self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
+        self.store_saver = common.PeriodicSave(self, self.store.folder, self.store.save, "the feature store",
+                                               p.save_period_s)
+        self.runtime_parameters = common.RuntimeParameters(self, RUNTIME_SETTINGS, self._reconfigure)
         self.get_logger().info(startup_summary(p))
 
     def _sensor_inputs(self, depth_topic: str, policy: str, depth: int, gate: bool) -> list[SensorInput]:
@@ -101,7 +93,7 @@ class VerifierNode(Node):
             inputs.append(sensor(Image, depth_topic, self._on_depth, depth=depth,
                                  without_it="no metric poses and no metric test (monocular poses only)"))
         if gate:
-            inputs.append(sensor(Odometry, "odom", self._on_odometry, depth=ODOMETRY_QOS.depth,
+            inputs.append(sensor(Odometry, "odom", self._on_odometry, depth=common.ODOMETRY_QOS.depth,
                                  without_it="closures are published without the odometry gate"))
         return inputs
 
@@ -134,7 +126,10 @@ class VerifierNode(Node):
 
     @node_callback
     def _on_skipped_frame(self, message: Header) -> None:
-        if self.store.depths is not None:
+        problem = header_stamp_problem(message, "skipped frame")
+        if problem is not None:
+            self.counter.drop("bad_stamp", problem)
+        elif self.store.depths is not None:
             self.store.depths.skip_frame(stamp_to_ns(message.stamp))
 
     @node_callback
@@ -152,9 +147,9 @@ class VerifierNode(Node):
 
     @node_callback
     def _on_odometry(self, message: Odometry) -> None:
-        problem = odometry_problem(message)
-        if problem is not None:  # the gate would interpolate NaN between its neighbours
-            self.counter.drop("bad_odometry", problem)
+        refusal = convert.odometry_refusal(message, self.future_stamps)
+        if refusal is not None:
+            self.counter.drop(*refusal)
         elif not self.chain.add_odometry(stamp_to_ns(message.header.stamp), pose_to_gtsam(message.pose.pose)):
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
 
@@ -164,19 +159,23 @@ class VerifierNode(Node):
         if problem is not None:  # re-ranking and tracking index the four arrays by one rank
             self.counter.drop("bad_posterior", problem)
             return
-        self.chain.add_posterior(posterior_from_message(message))
+        self.chain.add_posterior(convert.posterior_from_message(message))
 
     @node_callback
     def _on_loop_closure(self, message: LoopClosure) -> None:
-        self.chain.add_detection(detection_from_message(message))
+        refusal = convert.candidate_refusal(message)
+        if refusal is not None:
+            self.counter.drop(*refusal)
+        else:
+            self.chain.add_detection(convert.detection_from_message(message))
 
     def _publish(self, closure: Closure) -> None:
-        self.publisher.publish(closure_to_message(closure))
+        self.publisher.publish(convert.closure_to_message(closure))
         self.clock.published(closure.detection.query_ns)
 
     def _log(self, text: str, throttled: bool) -> None:
         if throttled:  # rclpy fixes a call site's throttling at its first call: one site each
-            self.get_logger().info(text, throttle_duration_sec=LOG_THROTTLE_S)
+            self.get_logger().info(text, throttle_duration_sec=common.LOG_THROTTLE_S)
         else:
             self.get_logger().info(text)
 
@@ -194,7 +193,7 @@ class VerifierNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(VerifierNode, args)
+    return common.run_node(VerifierNode, args)
 
 
 if __name__ == "__main__":

@@ -469,9 +469,9 @@ def _skipped_frame(data: st.DataObject, stamps: Stamps) -> Any:
     return Header(stamp=bad_stamp(data, stamps), frame_id="busy")
 
 
-# What verifier_node takes unchecked (the drop names are proposals): a candidate is verified whatever its stamps
-# and probability, and an odometry message stamped years ahead makes every later one "out of order".
-VERIFIER_UNCHECKED_KINDS = [
+# verifier_node's candidates (stamps, order, probability), odometry stamped years ahead (it would make every later
+# one "out of order") and skipped-frame stamps, each waited for a little longer (answer_wait_s).
+VERIFIER_CANDIDATE_AND_STAMP_KINDS = [
     kind("candidate: nanosec beyond a second", "/loop_closure_candidates", "bad_closure_stamp",
          lambda d, s: _broken_candidate(d, s, "bad stamp")),
     kind("candidate: matched place is the query itself", "/loop_closure_candidates", "bad_candidate",
