@@ -11,8 +11,8 @@ from sklearn.metrics import normalized_mutual_info_score
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.model.training import sequence_pairs
 from aefabmap_ros.vocabulary.autoencoder import (
-    CHECKPOINT_NAME,
     AutoencoderQuantizer,
     ConvAutoencoder,
     student_t,
@@ -22,11 +22,11 @@ from aefabmap_ros.vocabulary.base import (
     Quantizer,
     VocabularyConfig,
     bag_of_words,
-    sequence_pairs,
     train_vocabulary,
     word_usage,
 )
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, kmeans, reseed_empty
+from aefabmap_ros.vocabulary.training_checkpoint import CHECKPOINT_NAME, Checkpoint
 
 K_TRUE = 8
 
@@ -156,14 +156,12 @@ def test_training_is_deterministic_given_seed(blobs: tuple[np.ndarray, np.ndarra
 
 def test_interrupted_training_resumes_from_checkpoint(blobs: tuple[np.ndarray, np.ndarray, np.ndarray],
                                                       tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import aefabmap_ros.vocabulary.autoencoder as ae_module
-
     x = blobs[0][:600]
     config = _small_ae(ae_epochs=3)
     reference = train_vocabulary(x, config, progress=False)
     assert isinstance(reference, AutoencoderQuantizer)
 
-    real_save = ae_module._Checkpoint.save
+    real_save = Checkpoint.save
     calls: list[int] = []
 
     def save_then_interrupt(self: object, stage: str, epoch: int, *args: object, **kwargs: object) -> None:
@@ -172,11 +170,11 @@ def test_interrupted_training_resumes_from_checkpoint(blobs: tuple[np.ndarray, n
         if epoch == 1:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(ae_module._Checkpoint, "save", save_then_interrupt)
+    monkeypatch.setattr(Checkpoint, "save", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         train_vocabulary(x, config, progress=False, work_dir=tmp_path)
     assert (tmp_path / CHECKPOINT_NAME).exists()
-    monkeypatch.setattr(ae_module._Checkpoint, "save", real_save)
+    monkeypatch.setattr(Checkpoint, "save", real_save)
     resumed = train_vocabulary(x, config, progress=False, work_dir=tmp_path)
     assert isinstance(resumed, AutoencoderQuantizer)
     # Epochs 0-1 came from the checkpoint, epoch 2 ran again: the result is the uninterrupted one.
