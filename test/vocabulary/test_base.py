@@ -10,8 +10,7 @@ import torch
 from sklearn.metrics import normalized_mutual_info_score
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
-from aefabmap_ros.model.training import sequence_pairs
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.vocabulary.autoencoder import (
     AutoencoderQuantizer,
     ConvAutoencoder,
@@ -305,27 +304,6 @@ def test_bag_of_words_sorted_unique_counts() -> None:
         bag_of_words(np.zeros((2, 2), np.int64), 10)
     with pytest.raises(DataError, match="integers"):
         bag_of_words(np.array([0.5]), 10)
-
-
-def test_sequence_pairs_index_into_concatenated_descriptors() -> None:
-    rng = np.random.default_rng(1)
-    base = np.zeros((200, 260), np.uint8)
-    for _ in range(50):
-        cv2.circle(base, (int(rng.integers(0, 260)), int(rng.integers(0, 200))), int(rng.integers(3, 12)),
-                   int(rng.integers(60, 255)), -1)
-    frames = [extract_features(base[:, s:s + 220], FeatureConfig()) for s in (0, 4, 8)]
-    pairs = sequence_pairs(frames, max_gap=1)
-    offsets = np.cumsum([0] + [len(f) for f in frames])
-    assert len(pairs) > 10
-    all_kp = np.concatenate([f.keypoints for f in frames])
-    frame_of = np.searchsorted(offsets, pairs, side="right") - 1
-    np.testing.assert_array_equal(frame_of[:, 1] - frame_of[:, 0], 1)
-    shift = all_kp[pairs[:, 1], 0] - all_kp[pairs[:, 0], 0]
-    np.testing.assert_allclose(np.median(shift), -4, atol=0.5)
-    with pytest.raises(ConfigError, match="max_gap=0"):
-        sequence_pairs(frames, max_gap=0)
-    assert sequence_pairs([Features(np.zeros((0, 5), np.float32), np.zeros((0, 128), np.float32), "sift")]).shape \
-        == (0, 2)
 
 
 @pytest.fixture(scope="module")
