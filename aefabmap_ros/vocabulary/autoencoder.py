@@ -1,6 +1,7 @@
 """The paper's autoencoder quantizer (DESIGN 4.3): self-supervised vector quantization.
 
-Descriptors -> PCA -> [0, 1] (``pca.py``) -> encoder -> embedding -> K centres in embedding space; the
+Descriptors -> linear projection -> [0, 1] (``pca.py``: principal axes, or with ``ae_input: matches`` the
+axes that keep one scene point's descriptors together across frames) -> encoder -> embedding -> K centres in embedding space; the
 word is the argmax of the Student-t soft assignment, i.e. the nearest centre (the kernel is monotone in
 distance). The encoder is the paper's 1-D convolutional network (``ConvAutoencoder``), or by default a
 one-hidden-layer MLP distilled from it (``distilled.py``) that quantizes in numpy: counted in
@@ -38,9 +39,9 @@ AUTOENCODER = "autoencoder.pt"  # the network's state_dict
 STUDENT_FILE = "student.npz"  # the distilled encoder (``distilled.py``), when there is one
 QUANTIZE_BATCH = 8192
 # Batches are padded to a multiple of this many rows. oneDNN (torch's CPU convolutions) caches a
-# compiled primitive per input shape: images give a different number of features each, and a node
-# quantizing them unpadded grew from 0.35 to 1.4 GiB over 600 images (measured, random sizes 50-2,000);
-# padded, it stayed at 0.4 GiB. At most QUANTIZE_BATCH / QUANTIZE_ROWS_STEP shapes ever occur.
+# compiled primitive per input shape, and images give a different number of features each: unpadded, a
+# node's memory grows with every new count (docs/vocabulary.md); padded, at most
+# QUANTIZE_BATCH / QUANTIZE_ROWS_STEP shapes ever occur.
 QUANTIZE_ROWS_STEP = 256
 
 
