@@ -1,15 +1,17 @@
 """The paper's autoencoder quantizer (DESIGN 4.3): self-supervised vector quantization.
 
-Descriptors -> linear projection -> [0, 1] (``pca.py``: principal axes, or with ``ae_input: matches`` the
-axes that keep one scene point's descriptors together across frames) -> encoder -> embedding -> K centres in embedding space; the
-word is the argmax of the Student-t soft assignment, i.e. the nearest centre (the kernel is monotone in
-distance). The encoder is the paper's 1-D convolutional network (``ConvAutoencoder``), or by default a
-one-hidden-layer MLP distilled from it (``distilled.py``) that quantizes in numpy: counted in
-multiply-adds per descriptor (P = E = 64, K = 1000, SIFT D = 128) the network alone is about 5x
-k-means' search on raw SIFT (K * D = 128k), the student P * H + H * E + K * E = 97k at H = 256. A
-model directory without ``student.npz`` quantizes with the network. Training is
-``autoencoder_training.py``; the settings are ``config.AutoencoderOptions``; measured retrieval and
-timing figures, with the commands that made them, are in docs/vocabulary.md.
+Descriptors -> linear projection -> [0, 1] (``pca.py``: the principal axes, or with ``ae_input: matches``
+the axes that keep one scene point's descriptors together across frames) -> encoder -> embedding -> K
+centres in embedding space. The word is the argmax of the Student-t soft assignment, i.e. the nearest
+centre (the kernel is monotone in distance).
+
+The encoder is the paper's 1-D convolutional network (``ConvAutoencoder``), or by default a
+one-hidden-layer MLP distilled from it (``distilled.py``) that quantizes in numpy. Counted in
+multiply-adds per descriptor (P = E = 64, K = 1000, SIFT D = 128), the network alone is about 5x
+k-means' search on raw SIFT (K * D = 128k); the student costs P * H + H * E + K * E = 97k at H = 256.
+A model directory without ``student.npz`` quantizes with the network. Training is
+``autoencoder_training.py``, the settings ``config.AutoencoderOptions``; measured retrieval and timing
+figures, with the commands that made them, are in docs/vocabulary.md.
 """
 
 from __future__ import annotations
