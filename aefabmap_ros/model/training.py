@@ -143,6 +143,21 @@ def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: flo
     return np.concatenate(chunks).astype(np.int64) if chunks else np.zeros((0, 2), np.int64)
 
 
+def uses_pairs(config: VocabularyConfig) -> bool:
+    """Whether training this vocabulary needs self-supervision pairs (the match term or the match projection)."""
+    return config.kind == "autoencoder" and (config.ae_match_weight > 0 or config.ae_input == "matches")
+
+
+def training_pairs(sequences: Sequence[Sequence[Features]], max_gap: int) -> np.ndarray:
+    """``sequence_pairs`` of every sequence, as row indices into all their descriptors concatenated in order;
+    pairs never cross from one sequence into the next."""
+    offset, chunks = 0, [np.zeros((0, 2), np.int64)]
+    for sequence in sequences:
+        chunks.append(sequence_pairs(sequence, max_gap=max_gap) + offset)
+        offset += sum(len(f.descriptors) for f in sequence)
+    return np.concatenate(chunks)
+
+
 # ------------------------------------------------------------------------------------- BoW, model
 
 
@@ -197,7 +212,7 @@ def train_model(
     log: Progress = _no_progress,
 ) -> tuple[Model, TrainingReport]:
     """Train a complete model from the features of one or more training sequences."""
-    report = TrainingReport()
+    report = TrainingReport()  # filled as the stages run
     all_features = [f for sequence in sequences for f in sequence]
     report.num_images = len(all_features)
     report.images_without_features = sum(1 for f in all_features if len(f.descriptors) == 0)
@@ -210,16 +225,11 @@ def train_model(
         )
 
     pairs = None
-    if vocabulary_config.kind == "autoencoder" and (vocabulary_config.ae_match_weight > 0
-                                                    or vocabulary_config.ae_input == "matches"):
+    if uses_pairs(vocabulary_config):
         started = time.monotonic()
         log("matching features between neighbouring frames (self-supervision pairs)")
-        offset, chunks = 0, []
-        for sequence in sequences:  # pairs never cross from one sequence into the next
-            chunks.append(sequence_pairs(sequence, max_gap=training_config.pair_max_gap) + offset)
-            offset += sum(len(f.descriptors) for f in sequence)
-        pairs = np.concatenate(chunks) if chunks else None
-        report.num_pairs = 0 if pairs is None else len(pairs)
+        pairs = training_pairs(sequences, training_config.pair_max_gap)
+        report.num_pairs = len(pairs)
         report.seconds["pairs"] = time.monotonic() - started
 
     started = time.monotonic()

@@ -75,17 +75,11 @@ def train_autoencoder_quantizer(
     """Train PCA + autoencoder + centres on (N, D) descriptors (uint8 rows = binary).
 
     ``pairs``: optional (M, 2) int64 row indices of descriptors of the same scene point in
-    neighbouring frames, used by the match term when ``options.ae_match_weight`` > 0.
+    neighbouring frames, used by the match term (``ae_match_weight`` > 0) and the match projection
+    (``ae_input: matches``).
     """
-    kind = kind_of(descriptors)
-    n = descriptors.shape[0]
-    if n < options.size:
-        raise DataError(f"autoencoder vocabulary of size={options.size} needs >= {options.size} descriptors, got {n}")
-    if (options.ae_match_weight > 0 or options.ae_input == "matches") and (pairs is None or len(pairs) < 2):
-        raise DataError("ae_match_weight > 0 or ae_input 'matches': needs matched descriptor pairs (none given)")
-    if pairs is not None and len(pairs) and (pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0
-                                             or pairs.max() >= n):
-        raise DataError(f"pairs must be (M, 2) row indices in [0, {n}), got shape {pairs.shape}")
+    _check_inputs(descriptors, options, pairs)
+    kind, n = kind_of(descriptors), descriptors.shape[0]
     rows = kind.vectors(descriptors)
     clock = _StageClock()
     with _torch_settings(options.num_threads):
@@ -119,22 +113,32 @@ def train_autoencoder_quantizer(
             clock.lap("distill_s")
         labels, _ = nearest(centres, z_all)
         fallback = _nearest_rows(rows, z_all, centres)
-        means = cluster_means(rows, labels, options.size, fallback)
-        centroids = kind.centres(means)
+        centroids = kind.centres(cluster_means(rows, labels, options.size, fallback))
         clock.lap("centroids_s")
         checkpoint.finish()
     quantizer = AutoencoderQuantizer(pca, model, centres, centroids, kind.binary, descriptors.shape[1],
                                      options.alpha, student)
-    counts = np.bincount(labels, minlength=options.size)
-    quantizer.training_info = {
-        **clock.seconds,
-        "descriptors": float(n),
-        "ae_train_descriptors": float(train_idx.size),
-        "empty_words": float(np.sum(counts == 0)),
-        "largest_word_fraction": float(counts.max() / max(1, n)),
-        **student_info,
-    }
+    quantizer.training_info = {**clock.seconds, **_word_usage_info(labels, options.size, train_idx.size),
+                               **student_info}
     return quantizer
+
+
+def _word_usage_info(labels: np.ndarray, size: int, pretrained_rows: int) -> dict[str, float]:
+    counts = np.bincount(labels, minlength=size)
+    return {"descriptors": float(labels.size), "ae_train_descriptors": float(pretrained_rows),
+            "empty_words": float(np.sum(counts == 0)),
+            "largest_word_fraction": float(counts.max() / max(1, labels.size))}
+
+
+def _check_inputs(descriptors: np.ndarray, options: VocabularyConfig, pairs: np.ndarray | None) -> None:
+    n = descriptors.shape[0]
+    if n < options.size:
+        raise DataError(f"autoencoder vocabulary of size={options.size} needs >= {options.size} descriptors, got {n}")
+    if (options.ae_match_weight > 0 or options.ae_input == "matches") and (pairs is None or len(pairs) < 2):
+        raise DataError("ae_match_weight > 0 or ae_input 'matches': needs matched descriptor pairs (none given)")
+    if pairs is not None and len(pairs) and (pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0
+                                             or pairs.max() >= n):
+        raise DataError(f"pairs must be (M, 2) row indices in [0, {n}), got shape {pairs.shape}")
 
 
 def _fit_input_projection(rows: np.ndarray, pairs: np.ndarray | None, options: VocabularyConfig) -> PCA:
