@@ -12,14 +12,9 @@ MAX_MODULE_LINES = 400
 MAX_CLASS_LINES = 250
 MAX_FUNCTION_LINES = 60
 
-# Files being rewritten on other branches, at their present sizes: they may shrink, not grow. The entry
-# goes once its file is within the limits (test_every_allowance_is_still_needed says so).
-ALLOWED_OVERSIZE: dict[str, int] = {
-    "cli/demo.py:run_online": 77,
-    "model/training.py:train_model": 64,
-    "vocabulary/autoencoder.py": 793,
-    "vocabulary/autoencoder.py:train_autoencoder_quantizer": 71,
-}
+# Definitions allowed over the limits, at their present sizes: they may shrink, not grow. An entry
+# goes once it is within them (test_every_allowance_is_still_needed says so). None is needed today.
+ALLOWED_OVERSIZE: dict[str, int] = {}
 
 
 def _definitions(body: list[ast.stmt], prefix: str) -> Iterator[tuple[str, ast.AST, int]]:

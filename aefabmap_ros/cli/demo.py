@@ -168,16 +168,7 @@ def _demo_params(args: argparse.Namespace, backend_dir: Path) -> Path:
 
 def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
     """Replay the test bag through the nodes and the backend; returns the recording."""
-    recording: Path = args.out / "online_recording"
-    shutil.rmtree(recording, ignore_errors=True)
-    map_file = args.out / "map.npz"
-    # Every run replays the same bag from an empty map: a map saved by the last run would make the
-    # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
-    map_file.unlink(missing_ok=True)
-    shutil.rmtree(verifier_store_path(map_file), ignore_errors=True)  # the verifier's features of those places
-    backend_dir = args.out / "backend"
-    shutil.rmtree(backend_dir, ignore_errors=True)  # no trajectory of an earlier run can be scored by mistake
-    backend_dir.mkdir(parents=True)
+    recording, map_file, backend_dir = _fresh_outputs(args.out)
     stamps = np.array([m.stamp_ns for m in read_messages(test / "bag", ["/image"])], dtype=np.int64)
     gt = np.load(test / "loop_gt.npz")["gt"]
     logs = args.out / "logs"
@@ -220,16 +211,35 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
         if printer is not None:
             printer.close()
     if printer is not None:
-        from aefabmap_ros.evaluation.protocol import EvaluationConfig  # torch: only once the nodes are done
-
-        print(printer.summary(EvaluationConfig().min_gap), flush=True)
-        if not args.live:
-            print("    (lockstep: the replay waits for FAB-MAP, not for the verifier, which is let fall behind; "
-                  "--live gives a camera's latency)", flush=True)
-        if printer.backend is not None:
-            print(printer.backend.errors.summary(), flush=True)
-        print_backend_result(test, backend_dir)
+        _print_results(args, printer, test, backend_dir)
     return recording
+
+
+def _fresh_outputs(out: Path) -> tuple[Path, Path, Path]:
+    """(recording, map file, backend folder), emptied of an earlier run's."""
+    recording = out / "online_recording"
+    shutil.rmtree(recording, ignore_errors=True)
+    map_file = out / "map.npz"
+    # Every run replays the same bag from an empty map: a map saved by the last run would make the
+    # FAB-MAP node drop every frame as already seen (its stamps are not after the newest place's).
+    map_file.unlink(missing_ok=True)
+    shutil.rmtree(verifier_store_path(map_file), ignore_errors=True)  # the verifier's features of those places
+    backend_dir = out / "backend"
+    shutil.rmtree(backend_dir, ignore_errors=True)  # no trajectory of an earlier run can be scored by mistake
+    backend_dir.mkdir(parents=True)
+    return recording, map_file, backend_dir
+
+
+def _print_results(args: argparse.Namespace, printer: ClosurePrinter, test: Path, backend_dir: Path) -> None:
+    from aefabmap_ros.evaluation.protocol import EvaluationConfig  # torch: only once the nodes are done
+
+    print(printer.summary(EvaluationConfig().min_gap), flush=True)
+    if not args.live:
+        print("    (lockstep: the replay waits for FAB-MAP, not for the verifier, which is let fall behind; "
+              "--live gives a camera's latency)", flush=True)
+    if printer.backend is not None:
+        print(printer.backend.errors.summary(), flush=True)
+    print_backend_result(test, backend_dir)
 
 
 def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]]) -> None:

@@ -2,6 +2,7 @@
 
     aefabmap_train --bag run1/ --bag run2/ --topic /camera/image_raw --out models/office
     aefabmap_train --images frames/ --vocabulary kmeans --size 1000 --out models/baseline
+    aefabmap_train --images frames/ --ae-input matches --out models/learned   # words from video matches
 
 Stages: features (cached per input in the work directory) -> vocabulary (autoencoder or k-means;
 the autoencoder checkpoints, so an interrupted run resumes) -> bag-of-words of the training
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from aefabmap_ros.cli.common import RESUME_HINT, ArgumentParser, deferred, run_cli
 from aefabmap_ros.features.kinds import FEATURE_TYPES
+from aefabmap_ros.vocabulary.config import AE_INPUTS
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
 
@@ -29,6 +31,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", type=Path, help="YAML with sections feature:, vocabulary:, training:")
     parser.add_argument("--vocabulary", choices=VOCABULARY_KINDS, help="vocabulary kind")
     parser.add_argument("--size", type=int, help="number of visual words")
+    parser.add_argument("--ae-input", choices=AE_INPUTS,
+                        help="autoencoder's input projection (vocabulary: ae_input; 'matches' learns it from "
+                        "features matched between neighbouring frames)")
     parser.add_argument("--feature", choices=FEATURE_TYPES, help="feature type")
     parser.add_argument("--max-features", type=int, help="keypoints per image at most")
     parser.add_argument("--seed", type=int, help="random seed")

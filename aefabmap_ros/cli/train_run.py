@@ -31,7 +31,7 @@ def load_configs(args: argparse.Namespace) -> tuple[FeatureConfig, VocabularyCon
     sections = read_sections(args.config, set(SECTIONS))
     overrides: dict[str, dict[str, Any]] = {
         "feature": {"type": args.feature, "max_features": args.max_features},
-        "vocabulary": {"kind": args.vocabulary, "size": args.size, "seed": args.seed},
+        "vocabulary": {"kind": args.vocabulary, "size": args.size, "seed": args.seed, "ae_input": args.ae_input},
         "training": {},
     }
     built: list[Any] = []

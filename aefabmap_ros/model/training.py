@@ -24,9 +24,11 @@ from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.fabmap.chowliu import learn_chow_liu_tree
 from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.features.matching import match_indices
 from aefabmap_ros.io.atomic import atomic_open
 from aefabmap_ros.model.directory import Model
-from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, sequence_pairs, train_vocabulary
+from aefabmap_ros.verification.geometric import VerificationConfig, epipolar_inliers
+from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer
 
 
@@ -42,7 +44,7 @@ class TrainingConfig:
     pair_max_gap: int = field(
         default=1,
         metadata={"description": "Self-supervision: match features between frames up to this many apart "
-                  "(used when the vocabulary's ae_match_weight > 0)."},
+                  "(used when the vocabulary's ae_match_weight > 0 or its ae_input is 'matches')."},
     )
     max_new_place_samples: int = field(
         default=2000,
@@ -115,6 +117,47 @@ def extract_sequence_features(
     return features
 
 
+# ------------------------------------------------------------------------- self-supervision pairs
+
+
+def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: float = 0.8) -> np.ndarray:
+    """Matched descriptor pairs between frames up to ``max_gap`` apart in an image sequence.
+
+    Returns (M, 2) int64 row indices into ``np.concatenate([f.descriptors for f in features])``:
+    the self-supervised signal for ``train_vocabulary(..., pairs=...)``. The same matches the verifier
+    counts (``features.matching``, then the epipolar inliers of its default settings).
+    """
+
+    if max_gap < 1:
+        raise ConfigError(f"max_gap={max_gap} must be >= 1")
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
+    geometry = VerificationConfig()
+    chunks = []
+    for i in range(len(features)):
+        for j in range(i + 1, min(len(features), i + max_gap + 1)):
+            local = match_indices(features[i], features[j], ratio=ratio)
+            points = (features[i].keypoints[local[:, 0], :2].astype(np.float32),
+                      features[j].keypoints[local[:, 1], :2].astype(np.float32))
+            local = local[epipolar_inliers(*points, geometry)]
+            chunks.append(local + np.array([offsets[i], offsets[j]]))
+    return np.concatenate(chunks).astype(np.int64) if chunks else np.zeros((0, 2), np.int64)
+
+
+def uses_pairs(config: VocabularyConfig) -> bool:
+    """Whether training this vocabulary needs self-supervision pairs (the match term or the match projection)."""
+    return config.kind == "autoencoder" and (config.ae_match_weight > 0 or config.ae_input == "matches")
+
+
+def training_pairs(sequences: Sequence[Sequence[Features]], max_gap: int) -> np.ndarray:
+    """``sequence_pairs`` of every sequence, as row indices into all their descriptors concatenated in order;
+    pairs never cross from one sequence into the next."""
+    offset, chunks = 0, [np.zeros((0, 2), np.int64)]
+    for sequence in sequences:
+        chunks.append(sequence_pairs(sequence, max_gap=max_gap) + offset)
+        offset += sum(len(f.descriptors) for f in sequence)
+    return np.concatenate(chunks)
+
+
 # ------------------------------------------------------------------------------------- BoW, model
 
 
@@ -169,7 +212,7 @@ def train_model(
     log: Progress = _no_progress,
 ) -> tuple[Model, TrainingReport]:
     """Train a complete model from the features of one or more training sequences."""
-    report = TrainingReport()
+    report = TrainingReport()  # filled as the stages run
     all_features = [f for sequence in sequences for f in sequence]
     report.num_images = len(all_features)
     report.images_without_features = sum(1 for f in all_features if len(f.descriptors) == 0)
@@ -182,15 +225,11 @@ def train_model(
         )
 
     pairs = None
-    if vocabulary_config.kind == "autoencoder" and vocabulary_config.ae_match_weight > 0:
+    if uses_pairs(vocabulary_config):
         started = time.monotonic()
         log("matching features between neighbouring frames (self-supervision pairs)")
-        offset, chunks = 0, []
-        for sequence in sequences:  # pairs never cross from one sequence into the next
-            chunks.append(sequence_pairs(sequence, max_gap=training_config.pair_max_gap) + offset)
-            offset += sum(len(f.descriptors) for f in sequence)
-        pairs = np.concatenate(chunks) if chunks else None
-        report.num_pairs = 0 if pairs is None else len(pairs)
+        pairs = training_pairs(sequences, training_config.pair_max_gap)
+        report.num_pairs = len(pairs)
         report.seconds["pairs"] = time.monotonic() - started
 
     started = time.monotonic()

@@ -1,4 +1,4 @@
-"""A small encoder distilled from the paper's convolutional autoencoder (issue 14), run in numpy.
+"""A small encoder distilled from the paper's convolutional autoencoder, run in numpy.
 
 The paper's encoder (conv 32/64/128 + dense, ``autoencoder.py``) costs about five times k-means'
 nearest-centre search per descriptor in multiply-adds, so no leaner forward pass of it can quantize
@@ -152,7 +152,7 @@ def word_assignment_loss(student_z: torch.Tensor, teacher_z: torch.Tensor, centr
     between the centres near the teacher's point, weighted by how near they are, and leaves the rest
     to the MSE. A soft target rather than the teacher's hard word: cross-entropy on the hard word grows
     without bound as the student pushes its point away from every other centre, off the teacher's
-    embedding (measured on kitti00: 90.5 % agreement against 92.8 % for the MSE alone).
+    embedding (docs/vocabulary.md: 90.5 % agreement against 92.8 % for the MSE alone).
     """
     squared_norms = (centres * centres).sum(dim=1)
 

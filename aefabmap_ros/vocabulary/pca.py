@@ -1,6 +1,9 @@
 """PCA fitted on training descriptors, with a [0, 1] scaling for the autoencoder.
 
-``transform`` projects descriptors onto the first ``dim`` principal axes (centred).
+``transform`` projects descriptors onto the first ``dim`` principal axes (centred), or, fitted by
+``fit_match_projection``, onto the ``dim`` axes along which descriptors of different scene points
+differ most relative to how one point's descriptors differ between neighbouring frames (both are
+a linear projection, stored alike).
 ``scale`` maps projections into [0, 1] using a robust range fitted on the training
 projections (the ``clip_percentile`` and ``100 - clip_percentile`` percentiles), and
 clips there: the autoencoder's binary cross-entropy needs inputs in [0, 1].
@@ -18,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from aefabmap_ros.errors import ConfigError, DataError
 
@@ -25,8 +29,8 @@ from aefabmap_ros.errors import ConfigError, DataError
 @dataclass(frozen=True)
 class PCA:
     mean: np.ndarray  # (D,) float32, training mean
-    components: np.ndarray  # (P, D) float32, orthonormal rows, by decreasing variance
-    explained_variance: np.ndarray  # (P,) float32
+    components: np.ndarray  # (P, D) float32, by decreasing variance (ratio): orthonormal rows for PCA
+    explained_variance: np.ndarray  # (P,) float32 (for a match projection: variance over match variance)
     scale_lo: np.ndarray  # (P,) float32, projection value mapped to 0
     scale_hi: np.ndarray  # (P,) float32, projection value mapped to 1 (> scale_lo)
 
@@ -131,6 +135,51 @@ def fit_pca(
         scale_lo=lo.astype(np.float32),
         scale_hi=hi.astype(np.float32),
     )
+
+
+def fit_match_projection(
+    descriptors: np.ndarray,
+    pairs: np.ndarray,
+    dim: int,
+    per_component: bool = False,
+    clip_percentile: float = 0.5,
+    ridge: float = 1e-3,
+) -> PCA:
+    """The ``dim`` discriminant axes of (N, D) descriptors given (M, 2) row pairs of one scene point.
+
+    Linear discriminant analysis with each scene point a class: the generalised eigenvectors of
+    ``S_all w = l S_match w``, S_all the descriptors' covariance and S_match half the covariance of
+    the pairs' differences (the spread of one point's descriptor from frame to frame), largest l
+    first. Scaled so that ``w' S_match w = 1``: squared distances in the projection are in units of
+    that frame-to-frame spread, the same for every axis, which is what nearest-centre words need to
+    keep the two views of a point in one word. ``ridge`` (times the mean match variance) keeps
+    S_match invertible along directions the pairs never vary in.
+    """
+    if descriptors.ndim != 2 or descriptors.shape[0] < 2:
+        raise DataError(f"fit_match_projection needs (N >= 2, D) descriptors, got shape {descriptors.shape}")
+    d = descriptors.shape[1]
+    if not 1 <= dim <= d:
+        raise ConfigError(f"pca_dim={dim} must be in [1, {d}] for {d}-d descriptors")
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or len(pairs) < 2 or pairs.min() < 0 or pairs.max() >= len(descriptors):
+        raise DataError(f"the match projection needs (M >= 2, 2) row pairs into {len(descriptors)} descriptors, "
+                        f"got shape {pairs.shape}")
+    x = np.asarray(descriptors, np.float64)
+    if not np.all(np.isfinite(x)):
+        raise DataError("fit_match_projection: descriptors contain NaN or infinity")
+    mean = x.mean(axis=0)
+    covariance = np.cov(x - mean, rowvar=False, bias=True)
+    differences = x[pairs[:, 0]] - x[pairs[:, 1]]
+    match_covariance = differences.T @ differences / (2.0 * len(differences))
+    match_covariance += ridge * np.trace(match_covariance) / d * np.eye(d)
+    ratios, vectors = scipy.linalg.eigh(covariance, match_covariance)
+    order = np.argsort(ratios)[::-1][:dim]
+    components = vectors[:, order].T
+    signs = np.sign(components[np.arange(dim), np.argmax(np.abs(components), axis=1)])
+    components *= np.where(signs == 0, 1.0, signs)[:, None]
+    lo, hi = _scale_range((x - mean) @ components.T, per_component, clip_percentile)
+    return PCA(mean=mean.astype(np.float32), components=components.astype(np.float32),
+               explained_variance=ratios[order].astype(np.float32), scale_lo=lo.astype(np.float32),
+               scale_hi=hi.astype(np.float32))
 
 
 def _scale_range(projections: np.ndarray, per_component: bool, clip_percentile: float) -> tuple[

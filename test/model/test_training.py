@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pytest
 
-from aefabmap_ros.features.extraction import FeatureConfig, Features
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
 from aefabmap_ros.model.directory import load_model, save_model
-from aefabmap_ros.model.training import TrainingConfig, train_model
+from aefabmap_ros.model.training import TrainingConfig, sequence_pairs, train_model
 from aefabmap_ros.vocabulary.base import VocabularyConfig
 
 WORDS = 6
@@ -41,3 +44,24 @@ def test_a_kmeans_model_has_no_vocabulary_training_record(tmp_path: Path) -> Non
     config = VocabularyConfig(kind="kmeans", size=WORDS)
     model, _ = train_model([_frames(10)], FeatureConfig(), config, TrainingConfig(), {"sources": []}, progress=False)
     assert "vocabulary_training" not in model.provenance
+
+
+def test_sequence_pairs_index_into_concatenated_descriptors() -> None:
+    rng = np.random.default_rng(1)
+    base = np.zeros((200, 260), np.uint8)
+    for _ in range(50):
+        cv2.circle(base, (int(rng.integers(0, 260)), int(rng.integers(0, 200))), int(rng.integers(3, 12)),
+                   int(rng.integers(60, 255)), -1)
+    frames = [extract_features(base[:, s:s + 220], FeatureConfig()) for s in (0, 4, 8)]
+    pairs = sequence_pairs(frames, max_gap=1)
+    offsets = np.cumsum([0] + [len(f) for f in frames])
+    assert len(pairs) > 10
+    all_kp = np.concatenate([f.keypoints for f in frames])
+    frame_of = np.searchsorted(offsets, pairs, side="right") - 1
+    np.testing.assert_array_equal(frame_of[:, 1] - frame_of[:, 0], 1)
+    shift = all_kp[pairs[:, 1], 0] - all_kp[pairs[:, 0], 0]
+    np.testing.assert_allclose(np.median(shift), -4, atol=0.5)
+    with pytest.raises(ConfigError, match="max_gap=0"):
+        sequence_pairs(frames, max_gap=0)
+    assert sequence_pairs([Features(np.zeros((0, 5), np.float32), np.zeros((0, 128), np.float32), "sift")]).shape \
+        == (0, 2)

@@ -217,7 +217,7 @@ def test_verifier_node_counts_every_malformed_input(probed: list[TopicProbe], re
     _check_and_record("verifier_node", kinds, verdicts, reliability)
 
 
-def test_verifier_node_counts_bad_candidates_future_odometry_and_skipped_frame_stamps(probed: list[TopicProbe], reliability: Recorder) -> None:
+def test_verifier_node_counts_bad_candidates_and_stamps(probed: list[TopicProbe], reliability: Recorder) -> None:
     probe, valid_frame, clocks = _verifier(probed, answer_wait_s=2.0)
     kinds = malformed.VERIFIER_CANDIDATE_AND_STAMP_KINDS
     verdicts = Verdicts()

@@ -10,9 +10,8 @@ import torch
 from sklearn.metrics import normalized_mutual_info_score
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.features.extraction import FeatureConfig, Features, extract_features
+from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.vocabulary.autoencoder import (
-    CHECKPOINT_NAME,
     AutoencoderQuantizer,
     ConvAutoencoder,
     student_t,
@@ -22,11 +21,11 @@ from aefabmap_ros.vocabulary.base import (
     Quantizer,
     VocabularyConfig,
     bag_of_words,
-    sequence_pairs,
     train_vocabulary,
     word_usage,
 )
 from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, kmeans, reseed_empty
+from aefabmap_ros.vocabulary.training_checkpoint import CHECKPOINT_NAME, Checkpoint
 
 K_TRUE = 8
 
@@ -156,14 +155,12 @@ def test_training_is_deterministic_given_seed(blobs: tuple[np.ndarray, np.ndarra
 
 def test_interrupted_training_resumes_from_checkpoint(blobs: tuple[np.ndarray, np.ndarray, np.ndarray],
                                                       tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import aefabmap_ros.vocabulary.autoencoder as ae_module
-
     x = blobs[0][:600]
     config = _small_ae(ae_epochs=3)
     reference = train_vocabulary(x, config, progress=False)
     assert isinstance(reference, AutoencoderQuantizer)
 
-    real_save = ae_module._Checkpoint.save
+    real_save = Checkpoint.save
     calls: list[int] = []
 
     def save_then_interrupt(self: object, stage: str, epoch: int, *args: object, **kwargs: object) -> None:
@@ -172,11 +169,11 @@ def test_interrupted_training_resumes_from_checkpoint(blobs: tuple[np.ndarray, n
         if epoch == 1:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(ae_module._Checkpoint, "save", save_then_interrupt)
+    monkeypatch.setattr(Checkpoint, "save", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         train_vocabulary(x, config, progress=False, work_dir=tmp_path)
     assert (tmp_path / CHECKPOINT_NAME).exists()
-    monkeypatch.setattr(ae_module._Checkpoint, "save", real_save)
+    monkeypatch.setattr(Checkpoint, "save", real_save)
     resumed = train_vocabulary(x, config, progress=False, work_dir=tmp_path)
     assert isinstance(resumed, AutoencoderQuantizer)
     # Epochs 0-1 came from the checkpoint, epoch 2 ran again: the result is the uninterrupted one.
@@ -307,27 +304,6 @@ def test_bag_of_words_sorted_unique_counts() -> None:
         bag_of_words(np.zeros((2, 2), np.int64), 10)
     with pytest.raises(DataError, match="integers"):
         bag_of_words(np.array([0.5]), 10)
-
-
-def test_sequence_pairs_index_into_concatenated_descriptors() -> None:
-    rng = np.random.default_rng(1)
-    base = np.zeros((200, 260), np.uint8)
-    for _ in range(50):
-        cv2.circle(base, (int(rng.integers(0, 260)), int(rng.integers(0, 200))), int(rng.integers(3, 12)),
-                   int(rng.integers(60, 255)), -1)
-    frames = [extract_features(base[:, s:s + 220], FeatureConfig()) for s in (0, 4, 8)]
-    pairs = sequence_pairs(frames, max_gap=1)
-    offsets = np.cumsum([0] + [len(f) for f in frames])
-    assert len(pairs) > 10
-    all_kp = np.concatenate([f.keypoints for f in frames])
-    frame_of = np.searchsorted(offsets, pairs, side="right") - 1
-    np.testing.assert_array_equal(frame_of[:, 1] - frame_of[:, 0], 1)
-    shift = all_kp[pairs[:, 1], 0] - all_kp[pairs[:, 0], 0]
-    np.testing.assert_allclose(np.median(shift), -4, atol=0.5)
-    with pytest.raises(ConfigError, match="max_gap=0"):
-        sequence_pairs(frames, max_gap=0)
-    assert sequence_pairs([Features(np.zeros((0, 5), np.float32), np.zeros((0, 128), np.float32), "sift")]).shape \
-        == (0, 2)
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """Tests for the encoder distilled from the autoencoder (aefabmap_ros/vocabulary/distilled.py) and its use by
-the autoencoder quantizer (vocabulary/autoencoder.py)."""
+the autoencoder quantizer (vocabulary/autoencoder.py, vocabulary/autoencoder_training.py)."""
 
 from collections.abc import Iterator
 
@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-import aefabmap_ros.vocabulary.autoencoder as autoencoder_module
+import aefabmap_ros.vocabulary.autoencoder_training as training_module
 from aefabmap_ros.errors import ConfigError, DataError
-from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer, _distill, noisy_copies
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder_training import _distill, noisy_copies
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
 from aefabmap_ros.vocabulary.distilled import (
     CentreSearch,
@@ -277,7 +278,7 @@ def test_noisy_copies_teach_the_student_the_network_off_the_training_descriptors
 
     def agreement_around(noise_rows: int) -> float:
         options = VocabularyConfig(size=words, seed=0, ae_student_hidden=16, ae_student_epochs=5, ae_batch_size=256,
-                                   ae_student_noise_rows=noise_rows).ae_options()
+                                   ae_student_noise_rows=noise_rows)
         student, _ = _distill(x, network(x), centres, options, teacher=network)
         return float(np.mean(_brute_force_words(centres, student.embed(around)) == network_words))
 
@@ -288,19 +289,19 @@ def test_noisy_copies_teach_the_student_the_network_off_the_training_descriptors
 def test_noisy_copies_are_at_most_two_per_training_row(monkeypatch: pytest.MonkeyPatch) -> None:
     # The default 300k copies would drown a small training set (and slow its distillation) in copies of itself.
     drawn: list[int] = []
-    real = autoencoder_module.noisy_copies
+    real = training_module.noisy_copies
 
     def recording(x: np.ndarray, rows: int, scale: float, seed: int) -> np.ndarray:
         drawn.append(rows)
         return real(x, rows, scale, seed)
 
-    monkeypatch.setattr(autoencoder_module, "noisy_copies", recording)
+    monkeypatch.setattr(training_module, "noisy_copies", recording)
     x = np.random.default_rng(0).uniform(0.2, 0.8, (400, 8)).astype(np.float32)
     z = x[:, :4] * 3.0
     centres = z[:6].copy()
     for requested, expected in ((VocabularyConfig().ae_student_noise_rows, 2 * (400 - 20)), (100, 100)):
         options = VocabularyConfig(size=6, seed=0, ae_student_hidden=8, ae_student_epochs=1,
-                                   ae_student_noise_rows=requested).ae_options()
+                                   ae_student_noise_rows=requested)
         _distill(x, z, centres, options, teacher=lambda rows: rows[:, :4] * 3.0)
         assert drawn[-1] == expected  # 400 rows, 5 % (20) held out
 

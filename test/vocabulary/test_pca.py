@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.errors import ConfigError, DataError
-from aefabmap_ros.vocabulary.pca import PCA, fit_pca
+from aefabmap_ros.vocabulary.pca import PCA, fit_match_projection, fit_pca
 
 
 def _data(n: int = 2000, d: int = 16, seed: int = 0) -> np.ndarray:
@@ -77,3 +77,42 @@ def test_constant_component_still_gets_a_range() -> None:
     pca = fit_pca(x, 3, per_component=True)
     assert np.all(pca.scale_hi > pca.scale_lo)
     assert np.all(np.isfinite(pca.transform_scaled(x)))
+
+
+def _two_views(points: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Scene points seen twice: axes 0-1 vary widely between points but as widely between the two views of a
+    point (std 10 each); axes 2-3 vary less between points (std 3) and hardly between views (std 0.1)."""
+    rng = np.random.default_rng(seed)
+    scene = rng.normal(size=(points, 4)) * np.array([10.0, 10.0, 3.0, 3.0])
+    view_noise = np.array([10.0, 10.0, 0.1, 0.1])
+    views = [scene + rng.normal(size=scene.shape) * view_noise for _ in range(2)]
+    pairs = np.stack([np.arange(points), np.arange(points) + points], axis=1)
+    return np.concatenate(views).astype(np.float32), pairs
+
+
+def test_match_projection_keeps_the_axes_views_agree_on() -> None:
+    x, pairs = _two_views()
+    projection = fit_match_projection(x, pairs, 2, ridge=0.0)
+    # Closed form for these diagonal covariances: the discriminant axes are e2 and e3, with ratio
+    # (point variance + view variance) / view variance = (9 + 0.01) / 0.01 = 901, scaled to w' S_match w = 1,
+    # i.e. |w| = 1 / 0.1.
+    assert np.all(np.abs(projection.components[:, :2]) < 0.05 * np.abs(projection.components[:, 2:]).max())
+    np.testing.assert_allclose(np.linalg.norm(projection.components, axis=1), 10.0, rtol=0.05)
+    np.testing.assert_allclose(projection.explained_variance, 901.0, rtol=0.1)
+    differences = projection.transform(x[pairs[:, 0]]) - projection.transform(x[pairs[:, 1]])
+    np.testing.assert_allclose(differences.var(axis=0) / 2.0, 1.0, rtol=0.1)
+    # The default ridge adds 1e-3 of the mean match variance ((100 + 100 + 0.01 + 0.01) / 4) to every axis's.
+    ridged = fit_match_projection(x, pairs, 2)
+    np.testing.assert_allclose(np.linalg.norm(ridged.components, axis=1), 1.0 / np.sqrt(0.01 + 0.05), rtol=0.05)
+    # PCA of the same rows keeps the widest axes instead, the ones the two views disagree on.
+    assert np.all(np.abs(fit_pca(x, 2).components[:, 2:]) < 0.05)
+
+
+def test_match_projection_refuses_bad_pairs() -> None:
+    x, pairs = _two_views(50)
+    with pytest.raises(DataError, match="row pairs"):
+        fit_match_projection(x, pairs[:, :1], 2)
+    with pytest.raises(DataError, match="row pairs"):
+        fit_match_projection(x, pairs + 100, 2)
+    with pytest.raises(ConfigError, match="pca_dim=5"):
+        fit_match_projection(x, pairs, 5)

@@ -1,0 +1,81 @@
+"""Tests for the vocabulary settings by kind (vocabulary/config.py) and for model folders saved before them."""
+
+import json
+import shutil
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.io.config_files import build_config, read_sections
+from aefabmap_ros.model.directory import load_model
+from aefabmap_ros.vocabulary.config import (
+    SAVED_BEFORE,
+    AutoencoderOptions,
+    CommonVocabularyOptions,
+    KMeansOptions,
+    VocabularyConfig,
+)
+
+DEMO_MODELS = Path("/work/main/output/demo/models")
+KIND_CLASSES = (CommonVocabularyOptions, KMeansOptions, AutoencoderOptions)
+
+
+def test_every_key_is_declared_by_exactly_one_kind() -> None:
+    owners: dict[str, list[str]] = {}
+    for options in KIND_CLASSES:
+        for name in options.__annotations__:
+            owners.setdefault(name, []).append(options.__name__)
+    assert {name for name, classes in owners.items() if len(classes) > 1} == set()
+    assert set(owners) == {f.name for f in fields(VocabularyConfig)}
+    assert len(fields(VocabularyConfig)) == 30  # the 29 flat keys YAML files and model folders already use + ae_input
+
+
+def test_the_config_is_each_kinds_options_with_the_same_values() -> None:
+    config = VocabularyConfig(kind="kmeans", size=12, kmeans_iterations=3, ae_epochs=2)
+    assert isinstance(config, KMeansOptions) and isinstance(config, AutoencoderOptions)
+    assert (config.kmeans_iterations, config.ae_epochs, config.size) == (3, 2, 12)
+
+
+def test_a_yaml_section_in_the_flat_keys_builds_it(tmp_path: Path) -> None:
+    path = tmp_path / "train.yaml"
+    path.write_text("vocabulary:\n  kind: kmeans\n  size: 40\n  ae_learning_rate: 1\n  refine: true\n")
+    section = read_sections(path, {"vocabulary"})["vocabulary"]
+    config = build_config(VocabularyConfig, section, str(path))
+    assert (config.kind, config.size, config.ae_learning_rate, config.refine) == ("kmeans", 40, 1.0, True)
+    with pytest.raises(ConfigError, match="unknown key"):
+        build_config(VocabularyConfig, {"epochs": 3}, "inline")
+
+
+@pytest.mark.parametrize(("key", "value", "match"), [
+    ("kmeans_iterations", -1, "kmeans_iterations=-1 must be >= 0"),
+    ("ae_batch_size", 1, "ae_batch_size=1 must be >= 2"),
+    ("num_threads", -2, "num_threads=-2 must be >= 0"),
+])
+def test_each_kinds_rules_are_checked(key: str, value: int, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        VocabularyConfig(**{key: value})  # type: ignore[arg-type]
+
+
+def test_settings_saved_before_the_student_read_back_as_trained() -> None:
+    saved = {k: v for k, v in VocabularyConfig().to_dict().items() if k not in SAVED_BEFORE}
+    restored = VocabularyConfig.from_dict(saved)
+    assert (restored.ae_student_hidden, restored.ae_student_epochs, restored.ae_student_noise_rows) == (0, 10, 0)
+
+
+@pytest.mark.skipif(not DEMO_MODELS.is_dir(), reason="the demo's trained models are not on this machine")
+@pytest.mark.parametrize("kind", ["autoencoder", "kmeans"])
+def test_a_model_folder_written_before_the_split_still_loads(kind: str, tmp_path: Path) -> None:
+    folder = tmp_path / kind
+    shutil.copytree(DEMO_MODELS / kind, folder)
+    saved = json.loads((folder / "metadata.json").read_text())["vocabulary_config"]
+    model = load_model(folder)
+    restored = model.vocabulary_config.to_dict()
+    assert {key: restored[key] for key in saved} == saved
+    assert restored["ae_input"] == "pca"  # saved before the match projection: trained on principal axes
+    assert model.quantizer.kind == kind
+    descriptors = np.random.default_rng(0).uniform(0, 100, (50, 128)).astype(np.float32)
+    words = model.quantizer.quantize(descriptors)
+    assert words.shape == (50,) and words.min() >= 0 and words.max() < model.quantizer.size
