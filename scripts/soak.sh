@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Soak (issue 16): the default launch (camera QoS, verification) plus the example backend (--backend) on a
+# Soak: the default launch (camera QoS, verification) plus the example backend (--backend) on a
 # model, fed an RGB-D bag -- images with their depth, camera_info and odometry -- looped with best-effort
 # sensor QoS at RATE times its speed (the demo's test bag is 10 Hz: RATE 5 = 50 Hz). Every 30 s the RSS of
 # each node; at the end every node's counters, and the closures the verifier accepted against those the

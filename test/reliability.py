@@ -1,4 +1,4 @@
-"""Issue 16's figures, gathered from the tests that exercise them (``scripts/reliability_figures.sh``).
+"""The reliability figures, gathered from the tests that exercise them (``scripts/reliability_figures.sh``).
 
 A test marked ``reliability`` records, through the ``reliability`` fixture, what it did: the bad
 inputs it fed a node and how many the node survived (counted, dropped, and the next input
@@ -67,7 +67,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    config.addinivalue_line("markers", "reliability: records issue 16's figures (scripts/reliability_figures.sh)")
+    config.addinivalue_line("markers", "reliability: records the reliability figures (scripts/reliability_figures.sh)")
 
 
 @pytest.fixture
@@ -154,6 +154,6 @@ def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> Non
 
         atomic_write_text(Path(document), markdown(_RECORDS, os.environ.get("RELIABILITY_COMMAND",
                                                                              "pytest -m reliability")))
-    terminalreporter.write_sep("=", "issue 16 figures")
+    terminalreporter.write_sep("=", "reliability figures")
     terminalreporter.write_line(tables(_RECORDS))
     terminalreporter.write_line(f"(written to {path})")

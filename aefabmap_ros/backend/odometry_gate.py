@@ -3,7 +3,7 @@
 Appearance and local geometry cannot tell apart two places that look the same: the same shop front
 and road markings at two street corners give a FAB-MAP match, 30-60 inliers of one fundamental
 matrix, and keypoint depths that agree with the PnP pose (measured on a synthetic town, seed 7, with
-the dense-video route: 22 such closures of 1,540, all passing every local check we tried). The
+the dense-video route: 22 such closures of 1,540, all passing every local check). The
 robot's odometry can: the closure says the two camera poses are related by T, odometry says by
 T_odom, with an error that grows with the distance travelled between the two stamps. The gate
 refuses a closure whose disagreement exceeds what that drift explains: the example backend's gate

@@ -94,6 +94,21 @@ def deferred(target: str) -> Callable[[argparse.Namespace], int]:
     return run
 
 
+def with_ros(work: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``work`` inside an initialised ROS context, shut down however it ends (rclpy imported only then)."""
+
+    def run(args: argparse.Namespace) -> int:
+        import rclpy
+
+        rclpy.init()
+        try:
+            return work(args)
+        finally:
+            rclpy.try_shutdown()
+
+    return run
+
+
 def ros_message_class(msgtype: str) -> Any:
     """The Python class of a ROS message type named as bags name it (``package/msg/Name``); the
     package is imported only now, so a CLI's ``--help`` does not load ROS."""

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli
+from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli, with_ros
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io import bags
 from aefabmap_ros.nodes.launch_table import VIEW_TOPICS
@@ -128,18 +128,8 @@ def record(args: argparse.Namespace) -> int:
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
-    import rclpy
-
-    rclpy.init()
-    try:
-        return record(args)
-    finally:
-        rclpy.try_shutdown()
-
-
 def main(argv: list[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, run)
+    return run_cli(build_parser(), argv, with_ros(record))
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from typing import Any
 import foxglove
 from foxglove.websocket import ServerListener
 
-from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli
+from aefabmap_ros.cli.common import ArgumentParser, ros_message_class, run_cli, with_ros
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.bag_messages import get_typestore
 from aefabmap_ros.nodes.launch_table import VIEW_TOPICS
@@ -146,18 +146,8 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def run(args: argparse.Namespace) -> int:
-    import rclpy
-
-    rclpy.init()
-    try:
-        return serve(args)
-    finally:
-        rclpy.try_shutdown()
-
-
 def main(argv: list[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, run)
+    return run_cli(build_parser(), argv, with_ros(serve))
 
 
 if __name__ == "__main__":

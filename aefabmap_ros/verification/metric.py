@@ -21,16 +21,16 @@ With the depth at each keypoint and the camera intrinsics, both can be measured 
 * **the views are covisible** (with both depth images, kept as coarse grids: ``frame_depths``): the
   query's pixels with depth, carried by the motion, land on the surface the place itself saw, within
   ``metric_depth_tolerance_m`` + ``metric_depth_relative_tolerance`` x depth -- the covisibility
-  ground truth's own rule, occlusion included. The demo's one false closure (session 27) was the
-  same corner seen 31 degrees round with its pose right: 62 % of the query's keypoints fall inside
+  ground truth's own rule, occlusion included. A corner of the demo's town seen 31 degrees round, with
+  its pose right, is refused by it: 62 % of the query's keypoints fall inside
   the place's image, but a building the place saw in front hides most of them, so 22 % of its
   surface is covisible, under the ground truth's 30 %.
 
 With the query's depths the motion is also picked between PnP's two near-equal solutions for a far,
 nearly planar facade (``relative_pose.pnp_pose``): measured on the dense synthetic video, PnP alone
-gave streets seen again from 10-30 m further back poses 5-15 degrees and metres off, which the
-covisibility test then refused as not covisible (2 % of the true pairs accepted before); with the
-3-D alignment they are within 0.4 degrees and 0.4 m, and covisible.
+gives streets seen again from 10-30 m further back poses 5-15 degrees and metres off, which the
+covisibility test then refuses as not covisible; with the 3-D alignment they are within 0.4 degrees
+and 0.4 m, and covisible.
 
 The query's depths check the motion independently of the place's, which PnP used. A candidate is
 accepted by this test when at least ``metric_min_inliers`` matches fit the motion and at least
@@ -42,18 +42,14 @@ and the overlap keep chance matches out, and a far view's true matches are often
 facade's repeated windows, a smaller scale). Taking them by the geometry already fitted costs no second
 robust fit (a refit gives the same closures: 1,692 against 1,687 on the dense video's offline chain). A pair the
 epipolar test accepted is checked too, on its epipolar inliers: when they fit one motion under which the
-views do not overlap, it is refused (session 26: the same corner seen 50 degrees and 2 m further round,
+views do not overlap, it is refused (e.g. the same corner seen 50 degrees and 2 m further round,
 60 inliers and 13 % of the keypoints, is the ground truth's edge, not a revisit). Pairs with few
 keypoint depths (a keypoint on a depth edge samples the background) keep the epipolar decision.
 
-Measured on the dense synthetic video (kitti00-trained autoencoder vocabulary, depth from the bag):
-recall over revisiting frames 0.551 -> 0.621 through the nodes (0.622 in the offline chain), 8 of 8
-events, no false closure (0.600 before session 26's metric_ratio and overlap of accepted pairs). A first
-version ran PnP on all matches: at 25 inliers it accepted a perpendicular view on the demo's town with a
-wrong motion (26 inliers, 90 % overlap under its own motion), so the default asks 30, a margin kept though
-25 adds no false closure with PnP on the epipolar inliers (README, "Verification with depth"). What it
-does not stop: a look-alike built as a copy (the second synthetic town's copied corners) fits one motion
-and overlaps as a true revisit does; odometry refuses those (``backend.odometry_gate``).
+The default asks 30 inliers of the motion: with 25, PnP on all matches accepted a perpendicular view of the
+demo's town under a wrong motion (26 inliers, 90 % overlap under its own motion). Figures:
+docs/verification.md. What it does not stop: a look-alike built as a copy (the second synthetic town's
+copied corners) fits one motion and overlaps as a true revisit does; odometry refuses those (``backend.odometry_gate``).
 """
 
 from __future__ import annotations

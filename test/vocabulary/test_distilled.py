@@ -117,7 +117,7 @@ def test_network_setting_trains_no_student() -> None:
 
 
 def test_the_default_vocabulary_quantizes_with_a_256_unit_student() -> None:
-    # Issue 14: the distilled encoder is the default; saved settings from before it report no student.
+    # The distilled encoder is the default; saved settings from before it report no student.
     defaults = VocabularyConfig()
     student_defaults = (defaults.ae_student_hidden, defaults.ae_student_epochs, defaults.ae_student_noise_rows)
     assert student_defaults == (256, 30, 300_000)
