@@ -42,8 +42,10 @@ from aefabmap_ros.io.bags import list_topics, read_messages
 from aefabmap_ros.io.config_files import shipped_config
 from aefabmap_ros.nodes.launch_table import (
     CANDIDATES_TOPIC,
+    CLOSURE_PICTURES_TOPIC,
     CLOSURES_TOPIC,
     POSTERIORS_TOPIC,
+    REFUSED_PICTURES_TOPIC,
     VIEW_TOPICS,
     verifier_store_path,
 )
@@ -54,6 +56,11 @@ COMPANION_TOPICS = ("/depth", "/camera_info", "/odom")
 # The recording: what aefabmap_eval scores and what Foxglove shows (closure pictures, the graph's markers and path;
 # the recorder's subscription is what makes closure_view_node draw them).
 RECORDED_TOPICS = tuple(dict.fromkeys((CLOSURES_TOPIC, CANDIDATES_TOPIC, POSTERIORS_TOPIC, *VIEW_TOPICS)))
+
+
+def recorded_topics(no_pictures: bool) -> tuple[str, ...]:
+    return tuple(t for t in RECORDED_TOPICS if not (no_pictures and t in (CLOSURE_PICTURES_TOPIC,
+                                                                           REFUSED_PICTURES_TOPIC)))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -73,6 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--live", action="store_true",
                         help="replay as a robot publishes: in real time, with the sensor-data QoS, and the shipped "
                         "aefabmap.yaml (the default replays in lockstep with demo.yaml: every frame, none lost)")
+    parser.add_argument("--no-pictures", action="store_true",
+                        help="record no closure pictures (closure_view_node not started): drawing every closure and "
+                        "refused candidate competes with the verifier for the CPU, so a --live latency without "
+                        "the view is measured this way")
     parser.add_argument("--driver-default-dds", action="store_true",
                         help="with --live: the replay (the camera driver) keeps Fast DDS's default transports, which "
                         "lose most best-effort messages over 512 KiB; by default it runs with the shipped "
@@ -182,11 +193,12 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                 (logs / "injected_backend.log").open("w") as injected_log:
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.launch", "--model", str(model), "--params", str(params),
-                 "--map", str(map_file), "--backend", "--pictures", "--depth-topic", "/depth"],
+                 "--map", str(map_file), "--backend", *([] if args.no_pictures else ["--pictures"]),
+                 "--depth-topic", "/depth"],
                 stdout=nodes_log, stderr=subprocess.STDOUT))  # verification: on
             processes.append(subprocess.Popen(
                 [python, "-m", "aefabmap_ros.cli.record", str(recording), "--overwrite", "--topics",
-                 *RECORDED_TOPICS, "--wait-publishers", "120"],
+                 *recorded_topics(args.no_pictures), "--wait-publishers", "120"],
                 stdout=record_log, stderr=subprocess.STDOUT))
             # The second backend: the same odometry, the published closures relayed by the demo plus a wrong one.
             processes.append(subprocess.Popen(
@@ -195,7 +207,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                  "-p", f"trajectory_file:={backend_dir / 'keyframes_injected.tum'}"],
                 stdout=injected_log, stderr=subprocess.STDOUT))
             printer = ClosurePrinter(stamps, gt, read_kitti_poses(test / "poses.txt"))
-            _wait_until_up(logs, processes)
+            _wait_until_up(logs, processes, pictures=not args.no_pictures)
             print(f"    nodes up (logs in {logs}); replaying {len(stamps)} images with "
                   f"{', '.join(COMPANION_TOPICS)}", flush=True)
             _replay(args, test)
@@ -242,13 +254,14 @@ def _print_results(args: argparse.Namespace, printer: ClosurePrinter, test: Path
     print_backend_result(test, backend_dir)
 
 
-def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]]) -> None:
+def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]], pictures: bool) -> None:
     """Until the recorder records and every node hears its inputs (the nodes, the recorder, the injected backend)."""
     _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
     # The verifier must hear every frame's features: a place it never saw cannot be verified; closure_view_node
     # every frame's image: a place without a thumbnail has no picture.
-    for link in ("quantizer_node]: receiving features", "fabmap_node]: receiving words",
-                 "verifier_node]: receiving features", "pose graph (example backend)", "closure pictures on"):
+    links = ["quantizer_node]: receiving features", "fabmap_node]: receiving words",
+             "verifier_node]: receiving features", "pose graph (example backend)"]
+    for link in links + (["closure pictures on"] if pictures else []):
         _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
     _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
 
@@ -260,9 +273,10 @@ def _replay(args: argparse.Namespace, test: Path) -> None:
     companions = [argument for topic in COMPANION_TOPICS
                   for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
     pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
-    # Image subscribers: feature_node, closure_view_node and the printer.
+    # Image subscribers: feature_node, the printer and closure_view_node (unless --no-pictures).
+    subscribers = "2" if args.no_pictures else "3"
     subprocess.run([sys.executable, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                    *companions, *pace, "--wait-subscribers", "3", "--quiet"],
+                    *companions, *pace, "--wait-subscribers", subscribers, "--quiet"],
                    check=True, env=_driver_environment(args))
 
 

@@ -146,3 +146,14 @@ def test_the_wrong_place_is_the_nearest_frame_far_enough_from_the_true_one() -> 
     assert wrong_place_near(poses, 5, 3.0) == 2  # frames 2 and 8 are both 3 frames away: the earlier
     assert wrong_place_near(poses, 1, 3.0) == 4
     assert wrong_place_near(poses, 5, 4.5) == 0
+
+
+def test_without_pictures_the_recording_keeps_every_topic_but_the_pictures() -> None:
+    from aefabmap_ros.cli.demo import RECORDED_TOPICS, recorded_topics
+    from aefabmap_ros.nodes.launch_table import CLOSURE_PICTURES_TOPIC, CLOSURES_TOPIC, REFUSED_PICTURES_TOPIC
+
+    assert recorded_topics(no_pictures=False) == RECORDED_TOPICS
+    without = recorded_topics(no_pictures=True)
+    assert CLOSURE_PICTURES_TOPIC not in without and REFUSED_PICTURES_TOPIC not in without
+    assert set(RECORDED_TOPICS) - set(without) == {CLOSURE_PICTURES_TOPIC, REFUSED_PICTURES_TOPIC}
+    assert CLOSURES_TOPIC in without
