@@ -19,7 +19,6 @@ robot without odometry (or with ``odometry_gate: false``).
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -33,7 +32,7 @@ from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer, Recognition
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.chain import LoopClosureChain
-from aefabmap_ros.verification.closures import Closure, Detection, Posterior, RankedPlace
+from aefabmap_ros.verification.closures import Closure, CountedOutcomes, Detection, Posterior, RankedPlace
 from aefabmap_ros.verification.feature_store import DEFAULT_MAX_STORED_FEATURES
 from aefabmap_ros.verification.frame_depths import FrameDepths
 from aefabmap_ros.verification.frame_store import FrameStore
@@ -88,20 +87,6 @@ class ChainInputs:
     max_stored_features: int = DEFAULT_MAX_STORED_FEATURES
     # Generous: a sequence is replayed in lockstep, so odometry is never late; only one that is missing waits.
     odometry_wait_s: float = 10.0
-
-
-class _Outcomes:
-    """The chain's counters offline: kept, no log."""
-
-    def __init__(self) -> None:
-        self.counts: Counter[str] = Counter()
-
-    def ok(self, what: str = "processed") -> None:
-        self.counts[what] += 1
-
-    def drop(self, reason: str, detail: str, count: int = 1) -> None:
-        del detail
-        self.counts[f"dropped_{reason}"] += count
 
 
 def run_online_chain(
@@ -165,7 +150,7 @@ class _ChainFeed:
         self.inputs = inputs
         self.frame_of = frame_of
         self.published = published
-        self.outcomes = _Outcomes()
+        self.outcomes = CountedOutcomes()
         num_frames = max(len(inputs.features), 1)
         # Every frame fits: the evaluation measures the chain's decisions, not the store's bounds.
         store = FrameStore(num_frames, 2**62, inputs.max_stored_features, keep_depths=inputs.depths is not None)

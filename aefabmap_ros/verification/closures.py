@@ -3,6 +3,7 @@ and the verified closures (verifier_node converts them to and from its messages)
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -63,3 +64,17 @@ class Outcomes(Protocol):
     def ok(self, what: str = "processed") -> None: ...
 
     def drop(self, reason: str, detail: str, count: int = 1) -> None: ...
+
+
+class CountedOutcomes:
+    """Outcomes counted by name with no log: the offline chain's (the node's DropCounter logs them too)."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+
+    def ok(self, what: str = "processed") -> None:
+        self.counts[what] += 1
+
+    def drop(self, reason: str, detail: str, count: int = 1) -> None:
+        del detail
+        self.counts[f"dropped_{reason}"] += count

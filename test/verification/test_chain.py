@@ -14,7 +14,7 @@ from aefabmap_ros.backend.odometry_gate import OdometryGate
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.chain import LoopClosureChain
-from aefabmap_ros.verification.closures import Closure, Detection, Posterior, RankedPlace
+from aefabmap_ros.verification.closures import Closure, CountedOutcomes, Detection, Posterior, RankedPlace
 from aefabmap_ros.verification.frame_store import FrameStore
 from aefabmap_ros.verification.geometric import VerificationConfig
 from aefabmap_ros.verification.relative_pose import CameraModel, PoseStatus, RelativePoseConfig
@@ -29,16 +29,12 @@ TRUE_ROTATION = _rotation_y(0.15).T
 TRUE_TRANSLATION = -_rotation_y(0.15).T @ np.array([0.8, 0.1, 0.3])
 
 
-class Outcomes:
-    def __init__(self) -> None:
-        self.counts: Counter[str] = Counter()
-
-    def ok(self, what: str = "processed") -> None:
-        self.counts[what] += 1
+class Outcomes(CountedOutcomes):
+    """Counted as offline, and every drop must say why (the node logs the detail)."""
 
     def drop(self, reason: str, detail: str, count: int = 1) -> None:
         assert detail
-        self.counts[f"dropped_{reason}"] += count
+        super().drop(reason, detail, count)
 
 
 @dataclass

@@ -2,30 +2,18 @@
 
 from __future__ import annotations
 
-from collections import Counter
-
 import gtsam
 import numpy as np
 
 from aefabmap_ros.backend.odometry_gate import OdometryGate
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
-from aefabmap_ros.verification.closures import Closure, Detection
+from aefabmap_ros.verification.closures import Closure, CountedOutcomes, Detection
 from aefabmap_ros.verification.loop_tracking import LoopTrack
 from aefabmap_ros.verification.odometry_wait import OdometryWait
 from aefabmap_ros.verification.relative_pose import PoseOutcome, PoseStatus, RelativePose
 
 SECOND = 1_000_000_000
 
-
-class Outcomes:
-    def __init__(self) -> None:
-        self.counts: Counter[str] = Counter()
-
-    def ok(self, what: str = "processed") -> None:
-        self.counts[what] += 1
-
-    def drop(self, reason: str, detail: str, count: int = 1) -> None:
-        self.counts[f"dropped_{reason}"] += count
 
 
 def _closure(query_id: int, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray) -> Closure:
@@ -34,7 +22,7 @@ def _closure(query_id: int, rotation: np.ndarray, translation: np.ndarray, covar
 
 
 def test_a_closure_with_a_broken_pose_or_none_is_refused_and_a_sound_one_published() -> None:
-    outcomes, published = Outcomes(), list[Closure]()
+    outcomes, published = CountedOutcomes(), list[Closure]()
     wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTrack(0.0, 0.0),
                         published.append, outcomes)
     for sec in (1, 2, 3):  # standing still
