@@ -13,14 +13,20 @@ frame not processed is announced on ``aefabmap/skipped_frames`` (``std_msgs/Head
 stamp, ``frame_id`` the reason), so a lockstep replay is answered for it and a recording accounts for
 every frame. ``image_qos`` connects to the camera's publisher, best effort or reliable
 (nodes/sensor_inputs.py).
+
+While anyone subscribes to ``aefabmap/frame_views`` (closure_view_node), each frame that got features is also
+published there (``aefabmap_msgs/FrameView``): its features and a small JPEG of it (``thumbnail_width``
+pixels wide), made here where the image is decoded already, so a viewer takes one small message a frame and
+never a camera image. Nobody subscribed, nothing is made.
 """
 
 from __future__ import annotations
 
+import time
 from functools import partial
 from typing import Any
 
-from aefabmap_msgs.msg import Features
+from aefabmap_msgs.msg import Features, FrameView
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Header
@@ -38,10 +44,11 @@ from aefabmap_ros.nodes.common import (
     run_node,
 )
 from aefabmap_ros.nodes.frame_gate import DetectionRate, FrameHandOff
-from aefabmap_ros.nodes.launch_table import compressed_topic
+from aefabmap_ros.nodes.launch_table import FRAME_VIEWS_TOPIC, compressed_topic
 from aefabmap_ros.nodes.messages import features_to_message, header_stamp_problem
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import TransportDeduplicator, stamp_to_ns
+from aefabmap_ros.visualization.match_picture import make_thumbnail
 
 
 class FeatureNode(Node):
@@ -81,10 +88,13 @@ class FeatureNode(Node):
         )
         if self.max_image_pixels < 0:
             raise ConfigError(f"feature_node: parameter max_image_pixels={self.max_image_pixels} must be >= 0")
+        self.thumbnail_width = _declare_thumbnail_width(self)
+        self.frame_views_cpu_s = 0.0  # what the frame views cost this node: the live view's share of it
         parameter_config = declare_config(self, FeatureConfig)
         self.config = load_model(model_dir).feature_config if model_dir else parameter_config
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
+        self.frame_view_publisher = self.create_publisher(FrameView, FRAME_VIEWS_TOPIC, pipeline_qos(depth))
         self.skipped_publisher = self.create_publisher(Header, "aefabmap/skipped_frames", pipeline_qos(max(depth, 100)))
         self.transports = TransportDeduplicator()
         self.detection_rate = DetectionRate(detection_rate_hz)
@@ -143,14 +153,34 @@ class FeatureNode(Node):
             return
         if len(features.descriptors) == 0:
             self.counter.ok("images_without_features")  # still published: the frame keeps its place
-        self.publisher.publish(features_to_message(features, message.header, (gray.shape[1], gray.shape[0])))
+        features_message = features_to_message(features, message.header, (gray.shape[1], gray.shape[0]))
+        self.publisher.publish(features_message)
         self.counter.ok()
+        if self.frame_view_publisher.get_subscription_count() > 0:
+            self._publish_frame_view(features_message, gray)
+
+    def _publish_frame_view(self, features: Features, gray: Any) -> None:
+        started = time.thread_time()
+        thumbnail = make_thumbnail(gray, self.thumbnail_width)
+        self.frame_view_publisher.publish(FrameView(features=features, thumbnail_jpeg=thumbnail.jpeg))
+        self.frame_views_cpu_s += time.thread_time() - started
+        self.counter.ok("frame_views")
 
     def close(self) -> bool:
         self.frames.stop()  # the frame in hand is finished first (one still waiting is not), so counts are final
         inputs = "; ".join(sensor_input.summary() for sensor_input in self.inputs)
-        self.get_logger().info(f"feature_node: {self.counter.summary()}; {inputs}")
+        self.get_logger().info(f"feature_node: {self.counter.summary()}; {inputs}; frame views took "
+                               f"{self.frame_views_cpu_s:.2f} s of CPU")
         return True
+
+
+def _declare_thumbnail_width(node: Node) -> int:
+    width: int = declare_parameter(
+        node, "thumbnail_width", 320,
+        f"Width in pixels of the JPEG thumbnails on {FRAME_VIEWS_TOPIC} (made only while subscribed).")
+    if width <= 0:
+        raise ConfigError(f"feature_node: parameter thumbnail_width={width} must be > 0")
+    return width
 
 
 def main(args: list[str] | None = None) -> int:

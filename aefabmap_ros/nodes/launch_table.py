@@ -26,6 +26,8 @@ CLOSURES_TOPIC = "loop_closures"  # what a SLAM backend subscribes to
 POSTERIORS_TOPIC = "place_posteriors"
 CLOSURE_PICTURES_TOPIC = "closure_view/closures"  # closure_view_node: each closure with its matches drawn
 REFUSED_PICTURES_TOPIC = "closure_view/refused"  # closure_view_node: FAB-MAP's candidates the verifier refused
+# feature_node: each frame that got features with a small JPEG of it, only while subscribed (closure_view_node).
+FRAME_VIEWS_TOPIC = "aefabmap/frame_views"
 GRAPH_MARKERS_TOPIC = "pose_graph/markers"  # pose_graph_node: the graph as visualization_msgs/MarkerArray
 # What the live view (aefabmap_view) serves and a viewable recording holds, with the topics' types.
 VIEW_TOPICS = {
