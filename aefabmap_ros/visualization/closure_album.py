@@ -1,29 +1,45 @@
-"""What a closure viewer keeps of past frames (a thumbnail and the features of each, by image stamp, bounded by
-bytes) and the picture of a (query, place) pair it draws from them on request."""
+"""What a closure viewer keeps of past frames and the picture of a (query, place) pair it draws from them.
+
+Of every frame that got features it keeps, by image stamp and bounded by bytes, the frame as it arrived
+(serialized: its features and a JPEG thumbnail). Nothing is decoded until a picture needs the two frames of
+a pair, so keeping the album costs a viewer nobody watches no more than receiving one message a frame.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.geometric import VerificationConfig
-from aefabmap_ros.visualization.match_picture import Thumbnail, closure_picture, make_thumbnail, pair_matches
+from aefabmap_ros.visualization.match_picture import closure_picture, pair_matches
 from aefabmap_ros.visualization.stores import ByteBoundedStore
 
 
 @dataclass(frozen=True)
+class ViewFrame:
+    """One kept frame, decoded: its features, the width in pixels of the image they were found in, and the
+    JPEG thumbnail of that image."""
+
+    features: Features
+    image_width: int
+    thumbnail_jpeg: bytes
+
+
+FrameLoader = Callable[[bytes], ViewFrame]
+"""A serialized frame -> the frame; raises DataError for one that does not decode."""
+
+
+@dataclass(frozen=True)
 class AlbumConfig:
-    thumbnail_width: int = 320
-    max_thumbnail_bytes: int = 64 << 20  # ~4000 thumbnails of 320 x 240
-    max_feature_bytes: int = 256 << 20  # ~1000 SIFT frames of 500 keypoints as float32
-    max_waiting_image_bytes: int = 32 << 20  # images waiting for their features (most never get any)
+    # ~3,400 frames of 1000 SIFT keypoints (80 KB as received, binary descriptors) with a 320 x 240 thumbnail
+    max_frame_bytes: int = 320 << 20
 
     def __post_init__(self) -> None:
-        for name in ("thumbnail_width", "max_thumbnail_bytes", "max_feature_bytes", "max_waiting_image_bytes"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.max_frame_bytes <= 0:
+            raise ValueError(f"max_frame_bytes must be > 0, got {self.max_frame_bytes}")
 
 
 @dataclass(frozen=True)
@@ -33,46 +49,29 @@ class Picture:
     inliers: int
 
 
-def features_nbytes(features: Features) -> int:
-    return int(features.keypoints.nbytes + features.descriptors.nbytes)
-
-
 class ClosureAlbum:
-    """Thumbnails only of frames that got features (the detector's frames; a 30 Hz camera's others never become
-    places): an image waits, by bytes, for its features, and is shrunk when they arrive."""
-
-    def __init__(self, config: AlbumConfig, verification: VerificationConfig) -> None:
+    def __init__(self, config: AlbumConfig, verification: VerificationConfig, load_frame: FrameLoader) -> None:
         self.config = config
         self.verification = verification
-        self.thumbnails: ByteBoundedStore[Thumbnail] = ByteBoundedStore(config.max_thumbnail_bytes,
-                                                                        lambda t: t.nbytes)
-        self.features: ByteBoundedStore[Features] = ByteBoundedStore(config.max_feature_bytes, features_nbytes)
-        self.waiting_images: ByteBoundedStore[np.ndarray] = ByteBoundedStore(config.max_waiting_image_bytes,
-                                                                             lambda image: int(image.nbytes))
+        self._load_frame = load_frame
+        self.frames: ByteBoundedStore[bytes] = ByteBoundedStore(config.max_frame_bytes, len)
 
-    def add_image(self, stamp_ns: int, image: np.ndarray) -> None:
-        if stamp_ns in self.features:
-            self.thumbnails.add(stamp_ns, make_thumbnail(image, self.config.thumbnail_width))
-        else:
-            self.waiting_images.add(stamp_ns, image)
-
-    def add_features(self, stamp_ns: int, features: Features) -> None:
-        self.features.add(stamp_ns, features)
-        image = self.waiting_images.pop(stamp_ns)
-        if image is not None:
-            self.thumbnails.add(stamp_ns, make_thumbnail(image, self.config.thumbnail_width))
+    def add_frame(self, stamp_ns: int, serialized: bytes) -> None:
+        self.frames.add(stamp_ns, serialized)
 
     def has_pair(self, query_ns: int, place_ns: int) -> bool:
-        return all(stamp in self.thumbnails and stamp in self.features for stamp in (query_ns, place_ns))
+        return query_ns in self.frames and place_ns in self.frames
 
     def picture(self, query_ns: int, place_ns: int, caption: str, refused: bool) -> Picture | None:
-        """The pair with the verifier's matches drawn, ``caption`` followed by the counts; None while a thumbnail
-        or the features of either frame are missing."""
-        query, place = self.thumbnails.get(query_ns), self.thumbnails.get(place_ns)
-        query_features, place_features = self.features.get(query_ns), self.features.get(place_ns)
-        if query is None or place is None or query_features is None or place_features is None:
+        """The pair with the verifier's matches drawn, ``caption`` followed by the counts; None while either
+        frame is missing. A frame that does not decode raises DataError."""
+        query_blob, place_blob = self.frames.get(query_ns), self.frames.get(place_ns)
+        if query_blob is None or place_blob is None:
             return None
-        matches = pair_matches(query_features, place_features, self.verification)
+        query, place = self._load_frame(query_blob), self._load_frame(place_blob)
+        matches = pair_matches(query.features, place.features, self.verification)
         inliers = int(np.count_nonzero(matches.inliers))
         counted = f"{caption}  {inliers} inliers / {len(matches.inliers)} matches"
-        return Picture(closure_picture(query, place, matches, counted, refused), len(matches.inliers), inliers)
+        jpeg = closure_picture((query.thumbnail_jpeg, query.image_width), (place.thumbnail_jpeg, place.image_width),
+                               matches, counted, refused)
+        return Picture(jpeg, len(matches.inliers), inliers)

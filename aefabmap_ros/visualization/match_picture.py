@@ -118,11 +118,20 @@ def draw_matches(query: np.ndarray, place: np.ndarray, matches: PairMatches, que
     return np.vstack([banner, canvas])
 
 
-def closure_picture(query: Thumbnail, place: Thumbnail, matches: PairMatches, caption: str, refused: bool) -> bytes:
-    """The JPEG a viewer shows for one closure (or refused candidate)."""
-    drawn = draw_matches(decode_jpeg(query.jpeg), decode_jpeg(place.jpeg), matches, query.scale, place.scale,
-                         caption, refused)
+def closure_picture(query: tuple[bytes, int], place: tuple[bytes, int], matches: PairMatches, caption: str,
+                    refused: bool) -> bytes:
+    """The JPEG a viewer shows for one closure (or refused candidate): each frame given as its thumbnail's JPEG
+    and the width in pixels of the image its keypoints are in (the thumbnail's scale follows from the two)."""
+    (query_image, query_scale), (place_image, place_scale) = (_decoded_with_scale(*frame) for frame in (query, place))
+    drawn = draw_matches(query_image, place_image, matches, query_scale, place_scale, caption, refused)
     return encode_jpeg(drawn)
+
+
+def _decoded_with_scale(jpeg: bytes, image_width: int) -> tuple[np.ndarray, float]:
+    if image_width <= 0:
+        raise DataError(f"the image's width must be > 0, got {image_width}")
+    image = decode_jpeg(jpeg)
+    return image, image.shape[1] / image_width
 
 
 def _to_bgr(image: np.ndarray) -> np.ndarray:

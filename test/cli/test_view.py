@@ -1,7 +1,7 @@
 """The live view end to end: closure_view_node and aefabmap_view as processes, a Foxglove WebSocket client.
 
 The client connects, sees the advertised channels, subscribes to the closure pictures and receives the picture
-of a closure published meanwhile (images, features and the closure from this test, as the nodes would)."""
+of a closure published meanwhile (the frames and the closure from this test, as the nodes would)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap_ros.nodes.launch_table import CLOSURE_PICTURES_TOPIC, VIEW_TOPICS
+from aefabmap_ros.nodes.launch_table import CLOSURE_PICTURES_TOPIC, FRAME_VIEWS_TOPIC, VIEW_TOPICS
 from test.ros_processes import LoggedProcess
 
 rclpy = pytest.importorskip("rclpy")
@@ -24,21 +24,19 @@ SUBPROTOCOL = "foxglove.sdk.v1"  # what the SDK's server speaks (the v1 protocol
 MESSAGE_DATA_OPCODE = 0x01  # server -> client binary message
 
 
-def _frames(stamp_ns: int, image: np.ndarray, points: np.ndarray, descriptors: np.ndarray) -> tuple:
-    from aefabmap_msgs.msg import Features
-    from sensor_msgs.msg import Image
+def _frame_view(stamp_ns: int, image: np.ndarray, points: np.ndarray, descriptors: np.ndarray) -> object:
+    """What feature_node sends a viewer for one frame: its features and a JPEG of the image."""
+    from aefabmap_msgs.msg import Features, FrameView
 
     from aefabmap_ros.nodes.messages import time_from_ns
+    from aefabmap_ros.visualization.match_picture import make_thumbnail
 
-    image_message = Image(height=image.shape[0], width=image.shape[1], encoding="mono8", step=image.shape[1],
-                          data=image.tobytes())
-    image_message.header.stamp = time_from_ns(stamp_ns)
     features = Features(descriptor_type="sift", image_width=image.shape[1], image_height=image.shape[0],
                         x=points[:, 0].tolist(), y=points[:, 1].tolist(), size=[5.0] * len(points),
                         angle=[0.0] * len(points), response=[1.0] * len(points), descriptor_length=128,
                         float_descriptors=descriptors.ravel().tolist())
-    features.header.stamp = image_message.header.stamp
-    return image_message, features
+    features.header.stamp = time_from_ns(stamp_ns)
+    return FrameView(features=features, thumbnail_jpeg=make_thumbnail(image, image.shape[1]).jpeg)
 
 
 def _advertised(socket: object, wanted: str, timeout_s: float) -> dict[str, int]:
@@ -74,11 +72,9 @@ def test_a_client_gets_the_channels_and_a_closure_picture(tmp_path):
         rclpy.init()
         node = rclpy.create_node("test_view_publisher")
         try:
-            from aefabmap_msgs.msg import Features
-            from sensor_msgs.msg import Image
+            from aefabmap_msgs.msg import FrameView
 
-            images = node.create_publisher(Image, "image", 10)
-            features = node.create_publisher(Features, "aefabmap/features", pipeline_qos(100))
+            frames = node.create_publisher(FrameView, FRAME_VIEWS_TOPIC, pipeline_qos(100))
             closures = node.create_publisher(LoopClosure, "loop_closures", RESULT_QOS)
             with websockets_sync.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as socket:
                 channels = _advertised(socket, f"/{CLOSURE_PICTURES_TOPIC}", timeout_s=30)
@@ -92,9 +88,7 @@ def test_a_client_gets_the_channels_and_a_closure_picture(tmp_path):
                 while picture is None and time.monotonic() < deadline:
                     # Published until the picture comes: discovery between three processes takes its time.
                     for stamp_ns, frame_points in ((1_000_000_000, points), (2_000_000_000, moved)):
-                        image_message, features_message = _frames(stamp_ns, image, frame_points, descriptors)
-                        images.publish(image_message)
-                        features.publish(features_message)
+                        frames.publish(_frame_view(stamp_ns, image, frame_points, descriptors))
                     rclpy.spin_once(node, timeout_sec=0.3)
                     closures.publish(closure)
                     try:
