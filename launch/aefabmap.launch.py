@@ -3,6 +3,8 @@
     ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model image_topic:=/camera/image_raw
     # without geometric verification: FAB-MAP's raw closures on loop_closures (inliers -1)
     ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model verify:=false
+    # with the closure pictures (closure_view_node), for foxglove_bridge or rqt_image_view
+    ros2 launch aefabmap_ros aefabmap.launch.py model_dir:=/path/to/model pictures:=true
 
 The nodes, their parameters and remaps come from ``aefabmap_ros.nodes.launch_table``, the same table
 ``aefabmap_launch`` uses: by default verifier_node runs and ``loop_closures`` carries only
@@ -29,6 +31,7 @@ def _nodes(context: Any) -> list[Node]:
                            image_topic=value("image_topic"), image_qos=value("image_qos"),
                            verify=parse_bool(value("verify"), "verify"),
                            backend=parse_bool(value("backend"), "backend"),
+                           pictures=parse_bool(value("pictures"), "pictures"),
                            camera_info_topic=value("camera_info_topic"), depth_topic=value("depth_topic"),
                            odom_topic=value("odom_topic"), closures_topic=value("closures_topic"),
                            sensor_qos=value("sensor_qos"))
@@ -72,5 +75,8 @@ def generate_launch_description() -> LaunchDescription:
                               "false: FAB-MAP's raw closures on loop_closures (inliers -1)"),
         DeclareLaunchArgument("backend", default_value="false",
                               description="also run pose_graph_node, the example SLAM backend (odometry on odom)"),
+        DeclareLaunchArgument("pictures", default_value="false",
+                              description="also run closure_view_node: each closure as a picture on "
+                              "closure_view/closures (drawn only while subscribed; Foxglove's own bridge serves it)"),
         OpaqueFunction(function=_nodes),
     ])

@@ -1,10 +1,12 @@
 """What the live view costs when nobody watches: images/s and CPU through the nodes with and without it.
 
 Each run replays a bag in lockstep (each image once the last one's posterior came: every frame, none
-lost) into aefabmap_launch --no-verify, alternately without and with --view (closure_view_node and the
+lost) into aefabmap_launch (the suite as it starts by default, verifier_node included; --no-verify: the
+three detection nodes alone), alternately without and with --view (closure_view_node and the
 aefabmap_view server, no client connected). The runs alternate in one invocation so both kinds share the
 machine's load; it prints each run's images/s and the CPU seconds of every process the launcher started,
-then the ratios of the with-view runs to the runs beside them.
+then the ratios of the with-view runs to the runs beside them. The view's CPU is its two processes' and
+the frame views feature_node makes for it (its shutdown summary gives their CPU time).
 
     python -m aefabmap_ros.cli.bench_view --model output/demo/models/autoencoder \\
         --bag bags/generated/test/bag --repeats 2
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import subprocess
 import sys
 import time
@@ -33,6 +36,7 @@ from aefabmap_ros.stamps import stamp_to_ns
 
 VIEW_PROCESSES = ("closure_view_node", "view")
 VIEW_READY = ("closure pictures on", "[view] serving")  # what the two log once they run
+FRAME_VIEWS_CPU = re.compile(r"frame views took ([0-9.]+) s of CPU")  # feature_node's shutdown summary
 
 
 @dataclass(frozen=True)
@@ -41,6 +45,7 @@ class ViewRun:
     images: int
     seconds: float
     usage: list[ProcessUsage]
+    frame_views_cpu_s: float  # feature_node's, for the view: part of cpu_s already (feature_node is in usage)
 
     @property
     def images_per_s(self) -> float:
@@ -52,7 +57,8 @@ class ViewRun:
 
     @property
     def view_cpu_s(self) -> float:
-        return sum(entry.cpu_since_mark_s() for entry in self.usage if entry.name in VIEW_PROCESSES)
+        return self.frame_views_cpu_s + sum(entry.cpu_since_mark_s() for entry in self.usage
+                                          if entry.name in VIEW_PROCESSES)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--picture-delays", type=Path, metavar="RECORDING",
                         help="only print the closure -> picture delays of a recording (aefabmap_demo's)")
     parser.add_argument("--topic", default="/image")
+    parser.add_argument("--no-verify", action="store_true",
+                        help="the detection nodes alone (no verifier_node): the view's share of a smaller suite")
     parser.add_argument("--repeats", type=int, default=2, help="pairs of runs (default 2)")
     parser.add_argument("--work", type=Path, default=Path("/tmp") / f"bench_view-{os.getpid()}")
     return parser
@@ -76,8 +84,8 @@ def one_run(args: argparse.Namespace, view: bool, images: int) -> ViewRun:
     python = sys.executable
     with log_path.open("w") as log:
         launch = subprocess.Popen([python, "-m", "aefabmap_ros.cli.launch", "--model", str(args.model), "--params",
-                                   str(shipped_config("demo.yaml")), "--no-verify", "--image-qos", "reliable",
-                                   *(["--view", "--view-port", "0"] if view else [])],
+                                   str(shipped_config("demo.yaml")), *(["--no-verify"] if args.no_verify else []),
+                                   "--image-qos", "reliable", *(["--view", "--view-port", "0"] if view else [])],
                                   stdout=log, stderr=subprocess.STDOUT)
         sampler = NodeProcessSampler(launch.pid)
         sampler.start()
@@ -88,7 +96,7 @@ def one_run(args: argparse.Namespace, view: bool, images: int) -> ViewRun:
             sampler.mark()
             started = time.monotonic()
             subprocess.run([python, "-m", "aefabmap_ros.cli.replay", str(args.bag), "--topic", args.topic,
-                            "--lockstep", "place_posteriors", "--wait-subscribers", "2" if view else "1",
+                            "--lockstep", "place_posteriors", "--wait-subscribers", "1",
                             "--quiet", "--wait-timeout", "120"], check=True)
             seconds = time.monotonic() - started
             usage = sampler.stop()
@@ -96,7 +104,8 @@ def one_run(args: argparse.Namespace, view: bool, images: int) -> ViewRun:
             sampler.stop()
             launch.send_signal(2)
             launch.wait(timeout=180)
-    return ViewRun(view, images, seconds, usage)
+    frame_views = FRAME_VIEWS_CPU.findall(log_path.read_text())
+    return ViewRun(view, images, seconds, usage, sum(float(value) for value in frame_views))
 
 
 def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s: float = 300.0) -> None:
@@ -110,8 +119,8 @@ def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s:
 def describe(run: ViewRun) -> str:
     processes = ", ".join(f"{entry.name} {entry.cpu_since_mark_s():.1f}" for entry in run.usage)
     label = "with view   " if run.view else "without view"
-    return (f"{label}: {run.images_per_s:6.2f} images/s, CPU {run.cpu_s:6.1f} s (view processes "
-            f"{run.view_cpu_s:.2f} s; {processes})")
+    return (f"{label}: {run.images_per_s:6.2f} images/s, CPU {run.cpu_s:6.1f} s (view {run.view_cpu_s:.2f} s, of "
+            f"which feature_node's frame views {run.frame_views_cpu_s:.2f} s; {processes})")
 
 
 def picture_delays_s(recording: Path) -> tuple[int, np.ndarray]:
@@ -151,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
             print(describe(result), flush=True)
         plain, viewed = pair
         print(f"pair {repeat + 1}: images/s with/without {viewed.images_per_s / plain.images_per_s:.3f}; CPU "
-              f"with/without {viewed.cpu_s / plain.cpu_s:.3f}; view processes' share of the CPU "
+              f"with/without {viewed.cpu_s / plain.cpu_s:.3f}; the view's share of the CPU "
               f"{viewed.view_cpu_s / viewed.cpu_s:.2%}", flush=True)
     return 0
 

@@ -164,6 +164,7 @@ CASES = [  # (ros2 launch arguments, the same choice for aefabmap_launch)
     ({"model_dir": "/m", "verify": "0", "map_file": "/maps/office.npz"},
      ["--model", "/m", "--no-verify", "--map", "/maps/office.npz"]),
     ({"model_dir": "/m", "backend": "true"}, ["--model", "/m", "--backend"]),
+    ({"model_dir": "/m", "pictures": "true"}, ["--model", "/m", "--pictures"]),
     ({"model_dir": "/m", "backend": "true", "image_topic": "/camera/rgb/image_raw",
       "camera_info_topic": "/camera/rgb/info", "depth_topic": "/camera/depth_registered/image_raw",
       "odom_topic": "/odometry/filtered", "closures_topic": "/slam/loops", "sensor_qos": "best_effort"},
@@ -231,7 +232,8 @@ def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file:
     description = launch_file.generate_launch_description()
     (opaque,) = [e for e in description.entities if isinstance(e, _OpaqueFunction)]
     context = _Context({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "", "image_topic": "image",
-                        "image_qos": "", "verify": "true", "backend": "false", **dict.fromkeys(TOPIC_ARGUMENTS, "")})
+                        "image_qos": "", "verify": "true", "backend": "false", "pictures": "false",
+                        **dict.fromkeys(TOPIC_ARGUMENTS, "")})
     nodes = opaque.execute(context)
     share = str(threads_per_process(len(nodes)))
     for node in nodes:
