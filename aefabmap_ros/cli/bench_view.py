@@ -35,7 +35,7 @@ from aefabmap_ros.io.bags import read_messages
 from aefabmap_ros.stamps import stamp_to_ns
 
 VIEW_PROCESSES = ("closure_view_node", "view")
-VIEW_READY = ("closure pictures on", "[view] serving")  # what the two log once they run
+VIEW_READY = ("closure_view_node]: receiving frame views", "[view] serving")  # the two run and hear the suite
 FRAME_VIEWS_CPU = re.compile(r"frame views took ([0-9.]+) s of CPU")  # feature_node's shutdown summary
 
 

@@ -258,10 +258,10 @@ def _wait_until_up(logs: Path, processes: list[subprocess.Popen[bytes]], picture
     """Until the recorder records and every node hears its inputs (the nodes, the recorder, the injected backend)."""
     _wait_for(logs / "record.log", "[record] recording", processes[1], timeout_s=180)
     # The verifier must hear every frame's features: a place it never saw cannot be verified; closure_view_node
-    # every frame's image: a place without a thumbnail has no picture.
+    # every frame's view: a place it never saw has no picture.
     links = ["quantizer_node]: receiving features", "fabmap_node]: receiving words",
              "verifier_node]: receiving features", "pose graph (example backend)"]
-    for link in links + (["closure pictures on"] if pictures else []):
+    for link in links + (["closure_view_node]: receiving frame views"] if pictures else []):
         _wait_for(logs / "nodes.log", link, processes[0], timeout_s=180)
     _wait_for(logs / "injected_backend.log", "pose graph (example backend)", processes[2], timeout_s=180)
 
@@ -273,10 +273,8 @@ def _replay(args: argparse.Namespace, test: Path) -> None:
     companions = [argument for topic in COMPANION_TOPICS
                   for argument in ("--with", f"{topic}=3" if topic == "/odom" else topic)]
     pace = ["--rate", "1", "--qos", "sensor_data"] if args.live else ["--lockstep", "place_posteriors"]
-    # Image subscribers: feature_node, the printer and closure_view_node (unless --no-pictures).
-    subscribers = "2" if args.no_pictures else "3"
     subprocess.run([sys.executable, "-m", "aefabmap_ros.cli.replay", str(test / "bag"), "--topic", "/image",
-                    *companions, *pace, "--wait-subscribers", subscribers, "--quiet"],
+                    *companions, *pace, "--wait-subscribers", "2", "--quiet"],  # feature_node and the printer
                    check=True, env=_driver_environment(args))
 
 

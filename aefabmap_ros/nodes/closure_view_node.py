@@ -29,6 +29,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage
 from std_msgs.msg import Header
 
+from aefabmap_ros.errors import DataError
 from aefabmap_ros.nodes.common import (
     RESULT_QOS,
     DropCounter,
@@ -36,6 +37,7 @@ from aefabmap_ros.nodes.common import (
     declare_parameter,
     node_callback,
     pipeline_qos,
+    report_when_connected,
     run_node,
 )
 from aefabmap_ros.nodes.launch_table import CLOSURE_PICTURES_TOPIC, FRAME_VIEWS_TOPIC, REFUSED_PICTURES_TOPIC
@@ -85,8 +87,9 @@ class ClosureViewNode(Node):
         self.create_subscription(LoopClosure, "loop_closure_candidates", self._on_candidate, RESULT_QOS,
                                  event_callbacks=NO_SUBSCRIPTION_EVENTS)
         # Serialized: a frame is decoded only if a picture ever needs it.
-        self.create_subscription(FrameView, FRAME_VIEWS_TOPIC, self._on_frame, pipeline_qos(100), raw=True,
-                                 event_callbacks=NO_SUBSCRIPTION_EVENTS)
+        frames = self.create_subscription(FrameView, FRAME_VIEWS_TOPIC, self._on_frame, pipeline_qos(100), raw=True,
+                                          event_callbacks=NO_SUBSCRIPTION_EVENTS)
+        report_when_connected(self, frames, "frame views")
         self._waiting: list[tuple[Candidate, bool, float]] = []  # (what, refused, give up at) frames not yet here
         # Both timers run only while there is something to do: every wake-up of the executor costs.
         self.retry_timer = self.create_timer(RETRY_PERIOD_S, self._on_retry)
@@ -150,7 +153,11 @@ class ClosureViewNode(Node):
         what = "REFUSED candidate" if refused else "closure"
         caption = (f"{what}: query {candidate.query_id} -> place {candidate.place_id}  "
                    f"p={candidate.probability:.3f}")
-        picture = self.album.picture(candidate.query_ns, candidate.place_ns, caption, refused)
+        try:
+            picture = self.album.picture(candidate.query_ns, candidate.place_ns, caption, refused)
+        except DataError as exc:  # a frame's features do not validate, or its thumbnail is not a JPEG
+            self.counter.drop("bad_frame", f"no picture of query {candidate.query_id}: {exc}")
+            return
         if picture is None:
             if time.monotonic() < give_up_at:
                 self._waiting.append((candidate, refused, give_up_at))
