@@ -3,15 +3,16 @@
 Keeps every frame that got features as feature_node sends it on ``aefabmap/frame_views`` (its features and a
 JPEG thumbnail, sent only while this node subscribes), serialized, by image stamp, bounded by bytes
 (visualization/closure_album.py): a place seen before a client connected has its picture too, and a viewer
-nobody watches decodes nothing. Publishes ``sensor_msgs/CompressedImage`` pictures
-of the query beside the matched place with the verifier's matches (green lines: inliers of one fundamental
-matrix; red dots: matches that do not fit):
+nobody watches decodes nothing. Publishes ``sensor_msgs/CompressedImage`` pictures of the query beside the
+matched place with the verifier's matches (green lines: inliers of one fundamental matrix; red dots: matches
+that do not fit):
 
 - ``closure_view/closures``: every closure on ``loop_closures``;
 - ``closure_view/refused``: FAB-MAP candidates on ``loop_closure_candidates`` the verifier refused (no closure
   of its query, while one of a later query came, or none at all within ``refused_timeout_s``:
   visualization/candidates.py), under a red banner, at most ``max_refused_pictures_per_s``: they are
-  diagnostics, and drawing one (~70 ms) must not starve the verifier of a core.
+  diagnostics, and drawing them (matching the pair again, RANSAC, a JPEG: ~5 ms each on an idle core, far
+  more when the suite keeps both cores busy) must not take a core from the verifier.
 
 Nothing is matched or drawn for a topic nobody subscribes to (its subscription count is looked at first).
 Bad input (a frame whose features or thumbnail do not decode, any exception) is counted by name and dropped.
