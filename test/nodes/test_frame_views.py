@@ -4,7 +4,6 @@ thumbnail of its image."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import numpy as np
 import pytest
@@ -21,15 +20,10 @@ from aefabmap_ros.nodes.common import pipeline_qos  # noqa: E402
 from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.launch_table import FRAME_VIEWS_TOPIC  # noqa: E402
 from aefabmap_ros.visualization.match_picture import decode_jpeg  # noqa: E402
+from test.nodes.captured import Captured  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
-
-
-class Captured:
-    def __init__(self, publisher: Any) -> None:
-        self.messages: list[Any] = []
-        publisher.publish = self.messages.append
 
 
 def _image(gray: np.ndarray, sec: int) -> Image:

@@ -25,18 +25,11 @@ from aefabmap_ros.nodes.feature_node import FeatureNode  # noqa: E402
 from aefabmap_ros.nodes.quantizer_node import QuantizerNode  # noqa: E402
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
 from aefabmap_ros.stamps import stamp_to_ns  # noqa: E402
+from test.nodes.captured import Captured  # noqa: E402
 from test.reliability import Recorder  # noqa: E402
 from test.revisit_fixture import RevisitData  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
-
-
-class Captured:
-    """Replaces a publisher's publish() to keep what the node sends."""
-
-    def __init__(self, publisher: Any) -> None:
-        self.messages: list[Any] = []
-        publisher.publish = self.messages.append
 
 
 def _dropped(counter: Any) -> int:

@@ -15,7 +15,8 @@ rclpy = pytest.importorskip("rclpy")
 msg = pytest.importorskip("aefabmap_msgs.msg")
 
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
-from test.nodes.test_nodes_inprocess import Captured, _features_message, _image, _params  # noqa: E402
+from test.nodes.captured import Captured  # noqa: E402
+from test.nodes.test_nodes_inprocess import _features_message, _image, _params  # noqa: E402
 from test.nodes.test_verifier_node import (  # noqa: E402
     _camera_info,
     _closure,

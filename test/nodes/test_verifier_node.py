@@ -25,7 +25,8 @@ from aefabmap_ros.errors import ConfigError, ModelError  # noqa: E402
 from aefabmap_ros.features.extraction import Features  # noqa: E402
 from aefabmap_ros.nodes.common import RESULT_QOS, pipeline_qos, result_qos  # noqa: E402
 from aefabmap_ros.nodes.verifier_node import VerifierNode  # noqa: E402
-from test.nodes.test_nodes_inprocess import Captured, _dropped, _features_message, _image, _params  # noqa: E402
+from test.nodes.captured import Captured  # noqa: E402
+from test.nodes.test_nodes_inprocess import _dropped, _features_message, _image, _params  # noqa: E402
 from test.reliability import Recorder  # noqa: E402
 from test.verification.test_geometric import FOCAL, HEIGHT, WIDTH, _rotation_y, _two_views  # noqa: E402
 
