@@ -162,7 +162,7 @@ class FeatureNode(Node):
     def _publish_frame_view(self, features: Features, gray: Any) -> None:
         started = time.thread_time()
         thumbnail = make_thumbnail(gray, self.thumbnail_width)
-        self.frame_view_publisher.publish(FrameView(features=features, thumbnail_jpeg=thumbnail.jpeg))
+        self.frame_view_publisher.publish(FrameView(features=features, thumbnail_jpeg=thumbnail))
         self.frame_views_cpu_s += time.thread_time() - started
         self.counter.ok("frame_views")
 

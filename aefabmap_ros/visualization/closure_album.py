@@ -59,9 +59,6 @@ class ClosureAlbum:
     def add_frame(self, stamp_ns: int, serialized: bytes) -> None:
         self.frames.add(stamp_ns, serialized)
 
-    def has_pair(self, query_ns: int, place_ns: int) -> bool:
-        return query_ns in self.frames and place_ns in self.frames
-
     def picture(self, query_ns: int, place_ns: int, caption: str, refused: bool) -> Picture | None:
         """The pair with the verifier's matches drawn, ``caption`` followed by the counts; None while either
         frame is missing. A frame that does not decode raises DataError."""

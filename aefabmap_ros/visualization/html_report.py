@@ -65,7 +65,7 @@ def missed_revisits(scores: np.ndarray, gt: np.ndarray, min_gap: int, threshold:
 
 def pair_jpeg(query: np.ndarray, place: np.ndarray) -> bytes:
     """The two frames side by side, each shrunk to ``PAIR_WIDTH_PX`` wide."""
-    shrunk = [decode_jpeg(make_thumbnail(image, PAIR_WIDTH_PX).jpeg) for image in (query, place)]
+    shrunk = [decode_jpeg(make_thumbnail(image, PAIR_WIDTH_PX)) for image in (query, place)]
     return encode_jpeg(side_by_side(shrunk[0], shrunk[1])[0])
 
 

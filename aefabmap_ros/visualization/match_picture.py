@@ -29,18 +29,6 @@ JPEG_QUALITY = 85
 
 
 @dataclass(frozen=True)
-class Thumbnail:
-    """A small JPEG of one image and the factor from the image's pixels to the thumbnail's."""
-
-    jpeg: bytes
-    scale: float
-
-    @property
-    def nbytes(self) -> int:
-        return len(self.jpeg)
-
-
-@dataclass(frozen=True)
 class PairMatches:
     """Matched keypoints of a (query, place) pair in image pixels and which fit one fundamental matrix."""
 
@@ -63,15 +51,16 @@ def decode_jpeg(jpeg: bytes) -> np.ndarray:
     return np.asarray(image)
 
 
-def make_thumbnail(image: np.ndarray, max_width: int) -> Thumbnail:
-    """``image`` (gray or BGR) shrunk to at most ``max_width`` pixels wide (never enlarged), as a JPEG."""
+def make_thumbnail(image: np.ndarray, max_width: int) -> bytes:
+    """``image`` (gray or BGR) shrunk to at most ``max_width`` pixels wide (never enlarged), as a JPEG. Where
+    its keypoints fall on it follows from the two widths (``closure_picture``)."""
     if image.ndim not in (2, 3) or image.shape[0] == 0 or image.shape[1] == 0:
         raise DataError(f"a thumbnail needs an (H, W) or (H, W, 3) image, got {image.shape}")
     scale = min(1.0, max_width / image.shape[1])
     if scale < 1.0:
         size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    return Thumbnail(encode_jpeg(image), scale)
+    return encode_jpeg(image)
 
 
 def pair_matches(query: Features, place: Features, config: VerificationConfig) -> PairMatches:

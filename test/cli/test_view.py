@@ -36,7 +36,7 @@ def _frame_view(stamp_ns: int, image: np.ndarray, points: np.ndarray, descriptor
                         angle=[0.0] * len(points), response=[1.0] * len(points), descriptor_length=128,
                         float_descriptors=descriptors.ravel().tolist())
     features.header.stamp = time_from_ns(stamp_ns)
-    return FrameView(features=features, thumbnail_jpeg=make_thumbnail(image, image.shape[1]).jpeg)
+    return FrameView(features=features, thumbnail_jpeg=make_thumbnail(image, image.shape[1]))
 
 
 def _advertised(socket: object, wanted: str, timeout_s: float) -> dict[str, int]:

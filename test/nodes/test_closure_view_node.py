@@ -40,7 +40,7 @@ def _frame(second: int, points: np.ndarray = POINTS, nanosec: int = 0) -> bytes:
                             response=[1.0] * len(points), descriptor_length=128,
                             float_descriptors=DESCRIPTORS.ravel().tolist())
     features.header.stamp = Time(sec=second, nanosec=nanosec)
-    return bytes(serialize_message(msg.FrameView(features=features, thumbnail_jpeg=make_thumbnail(IMAGE, 320).jpeg)))
+    return bytes(serialize_message(msg.FrameView(features=features, thumbnail_jpeg=make_thumbnail(IMAGE, 320))))
 
 
 def _closure(query_second: int, place_second: int) -> Any:
