@@ -144,9 +144,8 @@ def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: flo
 
 
 def uses_pairs(config: VocabularyConfig) -> bool:
-    """Whether training this vocabulary needs self-supervision pairs (the match term, the match projection or
-    the student's pair term)."""
-    return config.kind == "autoencoder" and config.needs_pairs
+    """Whether training this vocabulary needs self-supervision pairs (the match term or the match projection)."""
+    return config.kind == "autoencoder" and (config.ae_match_weight > 0 or config.ae_input == "matches")
 
 
 def training_pairs(sequences: Sequence[Sequence[Features]], max_gap: int) -> np.ndarray:

@@ -107,7 +107,7 @@ def train_autoencoder_quantizer(
         student_info: dict[str, float] = {}
         student = None
         if options.ae_student_hidden > 0:
-            student, student_info = _distill(x_all, z_all, centres, options, pairs,
+            student, student_info = _distill(x_all, z_all, centres, options,
                                              teacher=functools.partial(embed_rows, model))
             z_all = student.embed(x_all)  # the words of the vocabulary are the ones the student gives
             clock.lap("distill_s")
@@ -134,9 +134,8 @@ def _check_inputs(descriptors: np.ndarray, options: VocabularyConfig, pairs: np.
     n = descriptors.shape[0]
     if n < options.size:
         raise DataError(f"autoencoder vocabulary of size={options.size} needs >= {options.size} descriptors, got {n}")
-    if options.needs_pairs and (pairs is None or len(pairs) < 2):
-        raise DataError("ae_match_weight > 0, ae_input 'matches' or ae_student_pair_weight > 0: needs matched "
-                        "descriptor pairs (none given)")
+    if (options.ae_match_weight > 0 or options.ae_input == "matches") and (pairs is None or len(pairs) < 2):
+        raise DataError("ae_match_weight > 0 or ae_input 'matches': needs matched descriptor pairs (none given)")
     if pairs is not None and len(pairs) and (pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0
                                              or pairs.max() >= n):
         raise DataError(f"pairs must be (M, 2) row indices in [0, {n}), got shape {pairs.shape}")
@@ -157,14 +156,11 @@ STUDENT_HELD_OUT_FRACTION = 0.05
 STUDENT_HELD_OUT_MAX = 20_000
 
 
-def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray, options: VocabularyConfig,
-             pairs: np.ndarray | None, *,
+def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray, options: VocabularyConfig, *,
              teacher: Callable[[np.ndarray], np.ndarray]) -> tuple[StudentEncoder, dict[str, float]]:
     """Distil the student from the network's embeddings ``z_all`` (plus ``options.ae_student_noise_rows``
-    noisy copies of the fit rows, at most ``MAX_NOISE_COPIES_PER_ROW`` per row, embedded by ``teacher``;
-    with ``ae_student_pair_weight`` > 0 the ``pairs`` of two fit rows); its word agreement on held-out rows,
-    and with pairs how often the two views of a held-out pair get one word, by the network and by the
-    student."""
+    noisy copies of the fit rows, at most ``MAX_NOISE_COPIES_PER_ROW`` per row, embedded by ``teacher``);
+    its word agreement on held-out rows."""
     n = x_all.shape[0]
     held_count = min(STUDENT_HELD_OUT_MAX, max(1, int(n * STUDENT_HELD_OUT_FRACTION))) if n > 1 else 0
     order = np.random.default_rng([options.seed, 6]).permutation(n)
@@ -177,34 +173,13 @@ def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray, options:
     student = distill_student(x_fit, z_fit, centres, DistillOptions(
         hidden_dim=options.ae_student_hidden, epochs=options.ae_student_epochs, batch_size=options.ae_batch_size,
         learning_rate=options.ae_student_learning_rate, seed=options.seed, word_weight=options.ae_student_word_weight,
-        word_temperature=options.ae_student_word_temperature, pair_weight=options.ae_student_pair_weight),
-        pairs=_pairs_within(pairs, fit, n) if options.ae_student_pair_weight > 0 else None)
+        word_temperature=options.ae_student_word_temperature))
     info = {"student_hidden": float(options.ae_student_hidden), "student_held_out_descriptors": float(held.size)}
     if held.size:
         teacher_words, _ = nearest(centres, z_all[held])
         student_words, _ = nearest(centres, student.embed(x_all[held]))
         info["student_word_agreement"] = float(np.mean(teacher_words == student_words))
-    held_pairs = _pairs_within(pairs, held, n)
-    if len(held_pairs):
-        rows = held[held_pairs]
-        teacher_words = nearest(centres, z_all[rows.ravel()])[0].reshape(-1, 2)
-        student_words = nearest(centres, student.embed(x_all[rows.ravel()]))[0].reshape(-1, 2)
-        info["held_out_pairs"] = float(len(held_pairs))
-        info["network_pair_same_word"] = float(np.mean(teacher_words[:, 0] == teacher_words[:, 1]))
-        info["student_pair_same_word"] = float(np.mean(student_words[:, 0] == student_words[:, 1]))
     return student, info
-
-
-def _pairs_within(pairs: np.ndarray | None, subset: np.ndarray, n: int) -> np.ndarray:
-    """The ``pairs`` (row indices of ``n`` rows) whose two rows are both in the sorted ``subset``, as
-    positions in it."""
-    if pairs is None or not len(pairs):
-        return np.zeros((0, 2), np.int64)
-    position = np.full(n, -1, np.int64)
-    position[subset] = np.arange(subset.size)
-    mapped = position[pairs]
-    kept: np.ndarray = mapped[(mapped >= 0).all(axis=1)]
-    return kept
 
 
 def noisy_copies(x: np.ndarray, rows: int, scale: float, seed: int) -> np.ndarray:

@@ -100,10 +100,6 @@ class AutoencoderOptions:
     ae_student_word_temperature: float = _describe(
         8.0, "Temperature of the word term's soft assignment, exp(-|z - c|^2 / T), in the embedding space "
         "normalised to unit variance per dimension.")
-    ae_student_pair_weight: float = _describe(
-        0.0, "Weight of the distillation's pair term: the two descriptors of a scene point matched between "
-        "neighbouring training frames are both drawn to the soft word of the network's midpoint of the "
-        "two (the word term's temperature); needs matched pairs; 0 = off.")
     ae_student_noise_rows: int = _describe(
         300_000, "Noisy copies of training rows added to the distillation, labelled by the network (0 = none; "
         "at most two per training row): the student also learns the network around the training "
@@ -116,13 +112,6 @@ class AutoencoderOptions:
     gamma: float = _describe(0.1, "Weight of the clustering KL term (IDEC).")
     tol: float = _describe(0.001, "Stop refining when fewer than this fraction of labels change between targets.")
     alpha: float = _describe(1.0, "Student-t degrees of freedom of the soft assignment.")
-
-    @property
-    def needs_pairs(self) -> bool:
-        """Whether these settings train on matched descriptor pairs: the match term, the match projection
-        or the student's pair term."""
-        return (self.ae_match_weight > 0 or self.ae_input == "matches"
-                or (self.ae_student_pair_weight > 0 and self.ae_student_hidden > 0))
 
     def autoencoder_checks(self) -> list[Check]:
         return [
@@ -139,7 +128,6 @@ class AutoencoderOptions:
             ("ae_student_learning_rate", self.ae_student_learning_rate > 0, "> 0"),
             ("ae_student_word_weight", self.ae_student_word_weight >= 0, ">= 0"),
             ("ae_student_word_temperature", self.ae_student_word_temperature > 0, "> 0"),
-            ("ae_student_pair_weight", self.ae_student_pair_weight >= 0, ">= 0"),
             ("ae_student_noise_rows", self.ae_student_noise_rows >= 0, ">= 0"),
             ("ae_student_noise_scale", self.ae_student_noise_scale > 0, "> 0"),
             ("refine_epochs", self.refine_epochs >= 0, ">= 0"),

@@ -140,8 +140,6 @@ class DistillOptions:
     # temperature, in the normalised embedding space (unit variance per dimension, see ``distill_student``).
     word_weight: float = 0.0
     word_temperature: float = 1.0
-    # The pair term (``pair_word_loss``) on matched descriptor pairs: its weight (0 = off; the same temperature).
-    pair_weight: float = 0.0
 
 
 def word_assignment_loss(student_z: torch.Tensor, teacher_z: torch.Tensor, centres: torch.Tensor,
@@ -165,30 +163,13 @@ def word_assignment_loss(student_z: torch.Tensor, teacher_z: torch.Tensor, centr
     return nn.functional.kl_div(torch.log_softmax(logits(student_z), dim=1), target, reduction="batchmean")
 
 
-def pair_word_loss(student_a: torch.Tensor, student_b: torch.Tensor, teacher_a: torch.Tensor,
-                   teacher_b: torch.Tensor, centres: torch.Tensor, temperature: float) -> torch.Tensor:
-    """Both views of one scene point pulled to one word: the mean of ``word_assignment_loss`` of each
-    view's student embedding against the teachers' midpoint, (teacher_a + teacher_b) / 2.
-
-    A point seen in two frames gets two descriptors, and near a word boundary the network gives them two
-    words: the place then shares neither with its revisit. The target is one soft assignment for both
-    views, the midpoint's, so each is drawn toward the word the pair mostly lies in and not across to the
-    other's (a target per view, the other view's word, would pull both onto the boundary). The targets
-    are the teacher's, fixed: the student cannot lower the term by moving every descriptor to one word,
-    which a term between the student's own two views allows.
-    """
-    midpoint = 0.5 * (teacher_a + teacher_b)
-    return 0.5 * (word_assignment_loss(student_a, midpoint, centres, temperature)
-                  + word_assignment_loss(student_b, midpoint, centres, temperature))
-
-
 # Small training sets still get this many optimizer steps (epochs are repeated): a few thousand descriptors
 # in batches of 256 would otherwise give the student a few dozen steps and leave it far from the network.
 MIN_DISTILL_STEPS = 2000
 
 
 def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
-                    options: DistillOptions, pairs: np.ndarray | None = None) -> StudentEncoder:
+                    options: DistillOptions) -> StudentEncoder:
     """Fit a student to the teacher's embeddings ``teacher_z`` (N, E) of PCA vectors ``x`` (N, P).
 
     Mean squared error on the embeddings, centred and divided by one overall scale (so that the
@@ -196,9 +177,7 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
     distance to the centres does); the scaling is folded back into the last layer afterwards. With
     ``options.word_weight`` > 0, plus that weight times ``word_assignment_loss`` against the word
     ``centres`` (K, E), fixed, in the same normalised space (so the temperature does not depend on the
-    embedding's scale either). With ``options.pair_weight`` > 0, plus that weight times ``pair_word_loss``
-    on a batch of ``pairs`` ((M, 2) row indices of ``x``, two views of one scene point) drawn at every
-    step. Adam, the learning rate cosine-annealed to 0. Deterministic given
+    embedding's scale either). Adam, the learning rate cosine-annealed to 0. Deterministic given
     ``options.seed`` (the caller holds torch's deterministic settings).
     """
     if x.shape[0] != teacher_z.shape[0] or x.shape[0] == 0:
@@ -206,9 +185,6 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
     if centres.ndim != 2 or centres.shape[1] != teacher_z.shape[1]:
         raise DataError(f"distillation needs centres in the embedding space ({teacher_z.shape[1]}-d), "
                         f"got {centres.shape}")
-    if pairs is not None and len(pairs) and (pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0
-                                             or pairs.max() >= x.shape[0]):
-        raise DataError(f"distillation pairs must be (M, 2) row indices in [0, {x.shape[0]}), got {pairs.shape}")
     mean = teacher_z.mean(axis=0, dtype=np.float64)
     scale = float(np.sqrt(np.mean((teacher_z - mean) ** 2))) or 1.0
     targets = torch.from_numpy(((teacher_z - mean) / scale).astype(np.float32))
@@ -222,9 +198,6 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
     epochs = max(options.epochs, -(-MIN_DISTILL_STEPS // n_batches))
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs * n_batches)
     mse = nn.MSELoss()
-    use_pairs = options.pair_weight > 0 and pairs is not None and len(pairs) > 0
-    pair_rows = torch.from_numpy(np.asarray(pairs, np.int64)) if use_pairs and pairs is not None else None
-    pair_draw = np.random.default_rng([options.seed, 9])
     network.train()
     for epoch in range(epochs):
         order = torch.from_numpy(np.random.default_rng([options.seed, 7, epoch]).permutation(x.shape[0]))
@@ -235,11 +208,6 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
             if options.word_weight > 0:
                 loss = loss + options.word_weight * word_assignment_loss(
                     prediction, targets[idx], normalised_centres, options.word_temperature)
-            if pair_rows is not None:
-                a, b = pair_rows[torch.from_numpy(pair_draw.integers(0, len(pair_rows), batch))].T
-                loss = loss + options.pair_weight * pair_word_loss(
-                    network(inputs[a]), network(inputs[b]), targets[a], targets[b], normalised_centres,
-                    options.word_temperature)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -258,7 +226,6 @@ __all__ = [
     "DistillOptions",
     "StudentEncoder",
     "distill_student",
-    "pair_word_loss",
     "student_network",
     "word_assignment_loss",
 ]

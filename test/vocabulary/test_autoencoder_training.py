@@ -49,21 +49,3 @@ def test_the_match_projection_needs_pairs() -> None:
     with pytest.raises(DataError, match="needs matched descriptor pairs"):
         train_vocabulary(rows, VocabularyConfig(size=2, pca_dim=4, ae_input="matches", ae_epochs=1,
                                                 ae_student_hidden=0), progress=False)
-
-
-def test_the_student_pair_term_needs_pairs_and_reports_held_out_pairs() -> None:
-    rows, pairs, _ = _two_words_seen_twice(400)
-    config = VocabularyConfig(size=2, pca_dim=4, ae_embedding_dim=4, ae_epochs=1, ae_student_hidden=8,
-                              ae_student_epochs=1, ae_student_noise_rows=0, ae_student_pair_weight=1.0,
-                              num_threads=1, seed=0)
-    assert config.needs_pairs
-    with pytest.raises(DataError, match="needs matched descriptor pairs"):
-        train_vocabulary(rows, config, progress=False)
-    quantizer = train_vocabulary(rows, config, pairs=pairs, progress=False)
-    assert isinstance(quantizer, AutoencoderQuantizer)
-    info = quantizer.training_info
-    # 5 % of the 800 rows are held out (40), so only pairs with both views among them are counted: at most 20.
-    assert 0 < info["held_out_pairs"] <= 20
-    assert 0.0 <= info["student_pair_same_word"] <= 1.0 and 0.0 <= info["network_pair_same_word"] <= 1.0
-    # Without a student the pair term has nothing to train: no pairs needed.
-    assert not VocabularyConfig(ae_student_hidden=0, ae_student_pair_weight=1.0).needs_pairs

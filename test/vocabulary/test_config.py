@@ -30,8 +30,7 @@ def test_every_key_is_declared_by_exactly_one_kind() -> None:
             owners.setdefault(name, []).append(options.__name__)
     assert {name for name, classes in owners.items() if len(classes) > 1} == set()
     assert set(owners) == {f.name for f in fields(VocabularyConfig)}
-    assert len(fields(VocabularyConfig)) == 31  # the 29 flat keys YAML files and model folders already use, ae_input
-    # and ae_student_pair_weight
+    assert len(fields(VocabularyConfig)) == 30  # the 29 flat keys YAML files and model folders already use + ae_input
 
 
 def test_the_config_is_each_kinds_options_with_the_same_values() -> None:

@@ -17,7 +17,6 @@ from aefabmap_ros.vocabulary.distilled import (
     DistillOptions,
     StudentEncoder,
     distill_student,
-    pair_word_loss,
     student_network,
     word_assignment_loss,
 )
@@ -226,84 +225,6 @@ def test_word_term_raises_agreement_where_the_mse_spends_capacity_on_what_does_n
     assert with_word_term > 0.55
 
 
-def test_pair_word_loss_by_hand_on_two_centres() -> None:
-    """Centres -1 and +1 on a line, T = 1; teacher views 0.2 and 0.6, so the target is the midpoint 0.4's
-    assignment: exp(-1.96) : exp(-0.36). Student views at 0 (equal odds) and at 1."""
-    centres = np.array([[-1.0], [1.0]])
-    target = np.exp([-1.96, -0.36]) / np.exp([-1.96, -0.36]).sum()
-
-    def kl_to_target(z: float) -> float:
-        q = np.exp([-(z + 1) ** 2, -(z - 1) ** 2])
-        q /= q.sum()
-        return float(np.sum(target * np.log(target / q)))
-
-    expected = 0.5 * (kl_to_target(0.0) + kl_to_target(1.0))
-    assert kl_to_target(0.0) == pytest.approx(0.5 * np.log(2) * 2 - np.sum(-target * np.log(target)), rel=1e-12)
-
-    def loss(a: float, b: float) -> float:
-        def point(value: float) -> torch.Tensor:
-            return torch.tensor([[value]], dtype=torch.float64)
-
-        return float(pair_word_loss(point(a), point(b), point(0.2), point(0.6), torch.from_numpy(centres), 1.0))
-
-    assert loss(0.0, 1.0) == pytest.approx(expected, rel=1e-9)
-    assert loss(0.4, 0.4) == pytest.approx(0.0, abs=1e-12)  # both views at the midpoint: nothing to pull
-    # Each view where its own teacher put it is not enough: the two views still straddle the midpoint.
-    assert loss(0.2, 0.6) > 0.001
-
-
-def _two_view_scene(points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """``points`` scene points in 8 dimensions, each seen twice: its descriptor in a view is the point plus
-    viewpoint noise of std 0.3 in the first 4 dimensions only, where points spread +-0.3 (+-1 in the
-    others). Rows are (views x points); the known correspondences are (i, i + points)."""
-    rng = np.random.default_rng(seed)
-    scene = rng.uniform(-1, 1, (points, 8)) * np.repeat([0.3, 1.0], 4)
-    noise = np.zeros((2, points, 8))
-    noise[:, :, :4] = rng.normal(0, 0.3, (2, points, 4))
-    rows = np.concatenate([scene + noise[0], scene + noise[1]]).astype(np.float32)
-    return rows, np.stack([np.arange(points), np.arange(points) + points], axis=1)
-
-
-@pytest.mark.usefixtures("one_torch_thread")
-def test_pair_term_gives_both_views_of_unseen_scene_points_one_word() -> None:
-    """The teacher is the identity and its 64 words are spread as the points are, so the viewpoint noise,
-    as large as the points' own spread in 4 dimensions, splits half the points' two views between words.
-    Distilled with the pair term on the known correspondences of one scene, the student gives both views
-    of another scene's points one word far more often, by discounting the noisy dimensions, and keeps
-    most of the teacher's words; without the term it gives the teacher's words, splits included."""
-    fit_rows, fit_pairs = _two_view_scene(3000, seed=1)
-    held_rows, held_pairs = _two_view_scene(2000, seed=2)
-    centres = (np.random.default_rng(3).uniform(-1, 1, (64, 8)) * np.repeat([0.3, 1.0], 4)).astype(np.float32)
-    search = CentreSearch(centres)
-
-    def words(z: np.ndarray) -> np.ndarray:
-        return search.nearest(np.hstack([z, np.ones((z.shape[0], 1), np.float32)]))
-
-    def same_word(z: np.ndarray) -> float:
-        w = words(z)
-        return float(np.mean(w[held_pairs[:, 0]] == w[held_pairs[:, 1]]))
-
-    def student(pair_weight: float) -> StudentEncoder:
-        return distill_student(fit_rows, fit_rows, centres, DistillOptions(
-            hidden_dim=32, epochs=1, batch_size=64, learning_rate=3e-3, seed=0, word_temperature=0.1,
-            pair_weight=pair_weight), pairs=fit_pairs)
-
-    teacher_rate = same_word(held_rows)
-    assert 0.4 < teacher_rate < 0.6
-    without, with_pairs = student(0.0), student(1.0)
-    assert same_word(without.embed(held_rows)) == pytest.approx(teacher_rate, abs=0.03)
-    assert same_word(with_pairs.embed(held_rows)) > teacher_rate + 0.08
-    assert np.mean(words(with_pairs.embed(held_rows)) == words(held_rows)) > 0.7
-
-
-def test_distillation_refuses_pairs_outside_its_rows() -> None:
-    x = np.zeros((10, 4), np.float32)
-    with pytest.raises(DataError, match="pairs must be"):
-        distill_student(x, x, np.zeros((5, 4), np.float32), DistillOptions(
-            hidden_dim=4, epochs=1, batch_size=4, learning_rate=1e-3, seed=0, pair_weight=1.0),
-            pairs=np.array([[0, 10]]))
-
-
 def test_distillation_refuses_centres_of_another_space() -> None:
     x = np.zeros((10, 4), np.float32)
     with pytest.raises(DataError, match="centres in the embedding space"):
@@ -314,7 +235,6 @@ def test_distillation_refuses_centres_of_another_space() -> None:
 @pytest.mark.parametrize(("field", "value"), [("ae_student_hidden", -1), ("ae_student_epochs", 0),
                                               ("ae_student_learning_rate", 0.0), ("ae_student_word_weight", -1.0),
                                               ("ae_student_word_temperature", 0.0), ("ae_student_noise_rows", -1),
-                                              ("ae_student_pair_weight", -0.5),
                                               ("ae_student_noise_scale", 0.0)])
 def test_config_validation(field: str, value: object) -> None:
     with pytest.raises(ConfigError, match=f"{field}={value}"):
@@ -359,7 +279,7 @@ def test_noisy_copies_teach_the_student_the_network_off_the_training_descriptors
     def agreement_around(noise_rows: int) -> float:
         options = VocabularyConfig(size=words, seed=0, ae_student_hidden=16, ae_student_epochs=5, ae_batch_size=256,
                                    ae_student_noise_rows=noise_rows)
-        student, _ = _distill(x, network(x), centres, options, None, teacher=network)
+        student, _ = _distill(x, network(x), centres, options, teacher=network)
         return float(np.mean(_brute_force_words(centres, student.embed(around)) == network_words))
 
     assert agreement_around(0) < 0.55
@@ -382,7 +302,7 @@ def test_noisy_copies_are_at_most_two_per_training_row(monkeypatch: pytest.Monke
     for requested, expected in ((VocabularyConfig().ae_student_noise_rows, 2 * (400 - 20)), (100, 100)):
         options = VocabularyConfig(size=6, seed=0, ae_student_hidden=8, ae_student_epochs=1,
                                    ae_student_noise_rows=requested)
-        _distill(x, z, centres, options, None, teacher=lambda rows: rows[:, :4] * 3.0)
+        _distill(x, z, centres, options, teacher=lambda rows: rows[:, :4] * 3.0)
         assert drawn[-1] == expected  # 400 rows, 5 % (20) held out
 
 
