@@ -38,7 +38,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("test", type=Path)
     parser.add_argument("run", type=Path)
-    parser.add_argument("--model", type=Path, default=Path("/work/main/output/demo/models/autoencoder"))
+    parser.add_argument("--model", type=Path, default=Path("output/demo/models/autoencoder"),
+                        help="model folder (default: the demo's, from the checkout's root)")
     parser.add_argument("--no-odometry", action="store_true", help="the chain without the odometry gate")
     args = parser.parse_args()
     bag = args.test / "bag"
