@@ -77,10 +77,8 @@ def test_a_model_folder_written_with_the_older_keys_still_loads(kind: str, tmp_p
     config = VocabularyConfig(kind=kind, size=4, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, ae_student_hidden=0,
                               num_threads=1)
     quantizer = train_vocabulary(descriptors, config, progress=False)
-    tree = np.vstack([np.arange(4) - 1.0, np.full((3, 4), 0.2)])
-    tree[0, 0] = 0
     folder = tmp_path / kind
-    save_model(folder, Model.create(FeatureConfig(), config, quantizer, tree_matrix=tree))
+    save_model(folder, Model.create(FeatureConfig(), config, quantizer))  # a tree is optional: not what is tested
     metadata = json.loads((folder / "metadata.json").read_text())
     metadata["vocabulary_config"] = {key: metadata["vocabulary_config"][key] for key in OLDER_KEYS}
     (folder / "metadata.json").write_text(json.dumps(metadata))
