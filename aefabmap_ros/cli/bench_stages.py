@@ -51,13 +51,14 @@ def stage_latencies(model: Model, images: list[np.ndarray]) -> dict[str, list[fl
     recognizer = PlaceRecognizer(ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples,
                                  FabMapConfig(), model.vocabulary_id)
     stages: dict[str, list[float]] = {"decode": [], "features": [], "quantize": [], "fabmap": []}
-    # An autoencoder vocabulary quantizing with its distilled encoder: time the paper's network too.
+    # An autoencoder vocabulary with the paper's network and an MLP encoder distilled from it (which
+    # quantizes): time the network too.
     network = None
-    if getattr(model.quantizer, "student", None) is not None:
+    if getattr(model.quantizer, "encoder", None) is not None and getattr(model.quantizer, "network", None) is not None:
         from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer  # torch: only for this kind
 
         assert isinstance(model.quantizer, AutoencoderQuantizer)
-        network = model.quantizer.with_student(None)
+        network = model.quantizer.with_encoder(None)
         stages["quantize (paper's network)"] = []
     for index, image in enumerate(images):
         height, width = image.shape[:2]

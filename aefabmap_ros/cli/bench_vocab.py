@@ -169,8 +169,8 @@ def _load_quantizer(directory: Path, kind: str) -> Quantizer:
 
 
 def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, repeats: int) -> None:
-    """Quantizing 1,000 descriptors: the distilled encoder (when the vocabulary has one), the paper's network
-    (the default quantizer), k-means."""
+    """Quantizing 1,000 descriptors: the vocabulary's MLP encoder and the paper's network (each when the
+    vocabulary has one; the first quantizes), k-means."""
     if not isinstance(ae, AutoencoderQuantizer):
         raise AefabmapError(f"expected an autoencoder vocabulary, got {ae.kind!r}")
     info = ae.training_info
@@ -179,9 +179,12 @@ def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, re
                 f"% of {info['student_held_out_descriptors']:.0f} held-out descriptors get the network's word")
     rows = np.random.default_rng(0).choice(descriptors.shape[0], 1000, replace=descriptors.shape[0] < 1000)
     batch = descriptors[rows]
-    contenders: dict[str, Quantizer] = {"network": ae.with_student(None), "kmeans": km}
-    if ae.student is not None:
-        contenders = {"student": ae, **contenders}
+    contenders: dict[str, Quantizer] = {}
+    if ae.encoder is not None:
+        contenders["encoder"] = ae
+    if ae.network is not None:
+        contenders["network"] = ae.with_encoder(None)
+    contenders["kmeans"] = km
     times: dict[str, list[float]] = {name: [] for name in contenders}
     for quantizer in contenders.values():
         quantizer.quantize(batch)  # warm-up (lazy init, caches)
@@ -193,13 +196,13 @@ def bench_quantization(ae: Quantizer, km: Quantizer, descriptors: np.ndarray, re
             times[name].append(time.perf_counter() - start)
     timed = {name: float(np.median(values) * 1000.0) for name, values in times.items()}
     for name, ms in timed.items():
-        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (autoencoder's distilled encoder, the default)"
-                                                       if name == "student" else ""))
-    for name in ("student", "network"):
+        _report(f"quantize_1000_{name}_ms", ms, "ms" + (" (the autoencoder's MLP encoder, which quantizes)"
+                                                       if name == "encoder" else ""))
+    for name in ("encoder", "network"):
         if name in timed:
             _report(f"quantize_ratio_{name}_over_kmeans", timed[name] / timed["kmeans"], "x")
-    if "student" in timed:
-        _report("quantize_ratio_network_over_student", timed["network"] / timed["student"], "x")
+    if "encoder" in timed and "network" in timed:
+        _report("quantize_ratio_network_over_encoder", timed["network"] / timed["encoder"], "x")
 
 
 if __name__ == "__main__":

@@ -1,17 +1,19 @@
-"""The paper's autoencoder quantizer (DESIGN 4.3): self-supervised vector quantization.
+"""The autoencoder quantizer (DESIGN 4.3): self-supervised vector quantization.
 
 Descriptors -> linear projection -> [0, 1] (``pca.py``: the principal axes, or with ``ae_input: matches``
 the axes that keep one scene point's descriptors together across frames) -> encoder -> embedding -> K
 centres in embedding space. The word is the argmax of the Student-t soft assignment, i.e. the nearest
 centre (the kernel is monotone in distance).
 
-The encoder is the paper's 1-D convolutional network (``ConvAutoencoder``), or by default a
-one-hidden-layer MLP distilled from it (``distilled.py``) that quantizes in numpy. Counted in
-multiply-adds per descriptor (P = E = 64, K = 1000, SIFT D = 128), the network alone is about 5x
-k-means' search on raw SIFT (K * D = 128k); the student costs P * H + H * E + K * E = 97k at H = 256.
-A model directory without ``student.npz`` quantizes with the network. Training is
-``autoencoder_training.py``, the settings ``config.AutoencoderOptions``; measured retrieval and timing
-figures, with the commands that made them, are in docs/vocabulary.md.
+Two autoencoders (``ae_network``):
+- ``MlpAutoencoder`` (the default): P -> H (ReLU) -> E and back. Its encoder quantizes as it was trained,
+  in numpy (``mlp_encoder.MlpEncoder``), so training needs no second step and quantizing no torch.
+- ``ConvAutoencoder``, the paper's 1-D convolutional network (the reference setting). Counted in
+  multiply-adds per descriptor (P = E = 64, K = 1000, SIFT D = 128) it alone costs about 5x k-means'
+  search on raw SIFT (K * D = 128k), so by default (``ae_student_hidden`` > 0) an MLP encoder distilled
+  from it quantizes (``distilled.py``); without one the network quantizes.
+Training is ``autoencoder_training.py``, the settings ``config.AutoencoderOptions``; measured retrieval and
+timing figures, with the commands that made them, are in docs/vocabulary.md.
 """
 
 from __future__ import annotations
@@ -28,8 +30,8 @@ from torch import nn
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.descriptors import kind_of_vocabulary
 from aefabmap_ros.io.npz_files import npz_bytes, read_npz
-from aefabmap_ros.vocabulary.distilled import CentreSearch, StudentEncoder
 from aefabmap_ros.vocabulary.kmeans import check_descriptors
+from aefabmap_ros.vocabulary.mlp_encoder import CentreSearch, MlpEncoder, mlp_network
 from aefabmap_ros.vocabulary.pca import PCA
 
 if TYPE_CHECKING:
@@ -37,8 +39,9 @@ if TYPE_CHECKING:
 
 # The model directory's files of an autoencoder vocabulary, beside vocabulary.npz:
 PCA_FILE = "pca.npz"  # PCA + [0, 1] scaling
-AUTOENCODER = "autoencoder.pt"  # the network's state_dict
-STUDENT_FILE = "student.npz"  # the distilled encoder (``distilled.py``), when there is one
+AUTOENCODER = "autoencoder.pt"  # the convolutional network's state_dict, when it is the autoencoder
+ENCODER_FILE = "encoder.npz"  # the MLP encoder that quantizes (``mlp_encoder.py``), when there is one
+STUDENT_FILE = "student.npz"  # the same arrays under the name model folders of earlier versions give them
 QUANTIZE_BATCH = 8192
 # Batches are padded to a multiple of this many rows. oneDNN (torch's CPU convolutions) caches a
 # compiled primitive per input shape, and images give a different number of features each: unpadded, a
@@ -47,7 +50,56 @@ QUANTIZE_BATCH = 8192
 QUANTIZE_ROWS_STEP = 256
 
 
-class ConvAutoencoder(nn.Module):
+class Autoencoder(nn.Module):
+    """An autoencoder of P-long vectors in [0, 1]: ``encode`` to E dims, ``decode_logits`` back, trained with
+    binary cross-entropy on the logits (paper eq. 1)."""
+
+    input_dim: int
+    embedding_dim: int
+    encoder: nn.Module
+    decoder: nn.Module
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, P) in [0, 1] -> (B, E) embeddings."""
+        result: torch.Tensor = self.encoder(x)
+        return result
+
+    def decode_logits(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, E) -> (B, P) reconstruction logits."""
+        result: torch.Tensor = self.decoder(z)
+        return result
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z = self.encode(x)
+        return z, self.decode_logits(z)
+
+
+def _check_dims(input_dim: int, embedding_dim: int) -> None:
+    if embedding_dim < 1:
+        raise ConfigError(f"ae_embedding_dim={embedding_dim} must be >= 1")
+    if input_dim < 1:
+        raise ConfigError(f"pca_dim={input_dim} must be >= 1")
+
+
+class MlpAutoencoder(Autoencoder):
+    """P -> H (ReLU) -> E, decoder E -> H (ReLU) -> P logits. The encoder is ``mlp_network``, so that
+    ``MlpEncoder.from_torch(model.encoder)`` quantizes with exactly the trained function."""
+
+    def __init__(self, input_dim: int, hidden_dim: int, embedding_dim: int) -> None:
+        super().__init__()
+        _check_dims(input_dim, embedding_dim)
+        if hidden_dim < 1:
+            raise ConfigError(f"ae_mlp_hidden={hidden_dim} must be >= 1")
+        self.input_dim = input_dim
+        self.embedding_dim = embedding_dim
+        self.encoder: nn.Sequential = mlp_network(input_dim, hidden_dim, embedding_dim)
+        self.decoder = mlp_network(embedding_dim, hidden_dim, input_dim)
+
+    def numpy_encoder(self) -> MlpEncoder:
+        return MlpEncoder.from_torch(self.encoder)
+
+
+class ConvAutoencoder(Autoencoder):
     """1-D conv autoencoder over a P-long PCA vector seen as a 1-channel signal (P divisible by 4).
 
     Encoder: conv 32x3 + max-pool /2, conv 64x3 stride 2, conv 128x3, dense -> embedding.
@@ -57,10 +109,9 @@ class ConvAutoencoder(nn.Module):
 
     def __init__(self, input_dim: int, embedding_dim: int) -> None:
         super().__init__()
+        _check_dims(input_dim, embedding_dim)
         if input_dim < 4 or input_dim % 4:
             raise ConfigError(f"pca_dim={input_dim} must be a multiple of 4 (two /2 poolings) and >= 4")
-        if embedding_dim < 1:
-            raise ConfigError(f"ae_embedding_dim={embedding_dim} must be >= 1")
         self.input_dim = input_dim
         self.embedding_dim = embedding_dim
         reduced = input_dim // 4
@@ -79,18 +130,13 @@ class ConvAutoencoder(nn.Module):
         )
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, P) in [0, 1] -> (B, E) embeddings."""
+        """(B, P) in [0, 1] -> (B, E) embeddings (the vector as a 1-channel signal)."""
         result: torch.Tensor = self.encoder(x.unsqueeze(1))
         return result
 
     def decode_logits(self, z: torch.Tensor) -> torch.Tensor:
-        """(B, E) -> (B, P) reconstruction logits."""
         result: torch.Tensor = self.decoder(z).squeeze(1)
         return result
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        z = self.encode(x)
-        return z, self.decode_logits(z)
 
 
 def student_t(z: torch.Tensor, centres: torch.Tensor, alpha: float = 1.0) -> torch.Tensor:
@@ -109,8 +155,9 @@ def target_distribution(q: torch.Tensor) -> torch.Tensor:
 class AutoencoderQuantizer:
     """PCA + encoder + embedding centres; ``quantize`` is one batched forward pass.
 
-    The encoder is the distilled ``student`` when there is one (numpy, no torch), else the paper's
-    network ``model``. ``quantize``, ``embed`` and ``soft_assign`` all use that same encoder.
+    The encoder is the MLP ``encoder`` when there is one (numpy, no torch): the MLP autoencoder's own
+    encoder, or a student distilled from the convolutional ``network``. Without one, the ``network``
+    quantizes. ``quantize``, ``embed`` and ``soft_assign`` all use that same encoder.
     """
 
     kind = "autoencoder"
@@ -118,39 +165,38 @@ class AutoencoderQuantizer:
     def __init__(
         self,
         pca: PCA,
-        model: ConvAutoencoder,
+        network: ConvAutoencoder | None,
         embedding_centres: np.ndarray,  # (K, E) float32
         descriptor_centroids: np.ndarray,  # (K, D) float32 (packed majority bits for binary)
         binary: bool,
         descriptor_dim: int,
         alpha: float = 1.0,
-        student: StudentEncoder | None = None,
+        encoder: MlpEncoder | None = None,
     ) -> None:
+        if network is None and encoder is None:
+            raise DataError("an autoencoder vocabulary needs an encoder: the MLP encoder, the network or both")
         k = embedding_centres.shape[0] if embedding_centres.ndim == 2 else -1
-        if embedding_centres.ndim != 2 or embedding_centres.shape[1] != model.embedding_dim or k < 1:
-            raise DataError(
-                f"embedding centres must be (K, {model.embedding_dim}), got {embedding_centres.shape}"
-            )
+        embedding_dim = embedding_centres.shape[1] if k >= 1 else -1
+        if k < 1:
+            raise DataError(f"embedding centres must be (K, E) with K >= 1, got {embedding_centres.shape}")
         if descriptor_centroids.shape != (k, descriptor_dim):
             raise DataError(
                 f"descriptor centroids must be ({k}, {descriptor_dim}), got {descriptor_centroids.shape}"
             )
-        if pca.dim != model.input_dim or pca.input_dim != (descriptor_dim * 8 if binary else descriptor_dim):
-            raise DataError(
-                f"PCA maps {pca.input_dim} -> {pca.dim} but the autoencoder takes {model.input_dim} and "
-                f"descriptors have {descriptor_dim} {'bytes' if binary else 'dims'}"
-            )
-        if student is not None and (student.input_dim, student.embedding_dim) != (pca.dim, model.embedding_dim):
-            raise DataError(
-                f"the student encoder maps {student.input_dim} -> {student.embedding_dim} but the PCA gives "
-                f"{pca.dim} and the embedding has {model.embedding_dim} dims"
-            )
+        if pca.input_dim != (descriptor_dim * 8 if binary else descriptor_dim):
+            raise DataError(f"PCA maps {pca.input_dim} -> {pca.dim} but descriptors have {descriptor_dim} "
+                            f"{'bytes' if binary else 'dims'}")
+        for name, dims in (("network", network and (network.input_dim, network.embedding_dim)),
+                           ("MLP encoder", encoder and (encoder.input_dim, encoder.embedding_dim))):
+            if dims and dims != (pca.dim, embedding_dim):
+                raise DataError(f"the {name} maps {dims[0]} -> {dims[1]} but the PCA gives {pca.dim} and the "
+                                f"embedding centres have {embedding_dim} dims")
         for name, array in (("embedding centres", embedding_centres), ("centroids", descriptor_centroids)):
             if not np.all(np.isfinite(array)):
                 raise DataError(f"autoencoder {name} contain NaN or infinity")
         self.pca = pca
-        self.model = model.eval()
-        self.student = student
+        self.network = network.eval() if network is not None else None
+        self.encoder = encoder
         self.embedding_centres = np.ascontiguousarray(embedding_centres, np.float32)
         self._centres_t = torch.from_numpy(self.embedding_centres)
         self._centroids = np.ascontiguousarray(descriptor_centroids, np.float32)
@@ -171,13 +217,17 @@ class AutoencoderQuantizer:
 
     @functools.cached_property
     def _centre_search(self) -> CentreSearch:
-        """The student path's nearest-centre matmul, built on its first use (the network path has its own)."""
+        """The MLP encoder's nearest-centre matmul, built on its first use (the network path has its own)."""
         return CentreSearch(self.embedding_centres)
 
-    def with_student(self, student: StudentEncoder | None) -> AutoencoderQuantizer:
-        """The same vocabulary quantized by ``student`` (None: by the paper's network)."""
-        return AutoencoderQuantizer(self.pca, self.model, self.embedding_centres, self._centroids, self.binary,
-                                    self.descriptor_dim, self.alpha, student)
+    @property
+    def embedding_dim(self) -> int:
+        return int(self.embedding_centres.shape[1])
+
+    def with_encoder(self, encoder: MlpEncoder | None) -> AutoencoderQuantizer:
+        """The same vocabulary quantized by ``encoder`` (None: by the convolutional network)."""
+        return AutoencoderQuantizer(self.pca, self.network, self.embedding_centres, self._centroids, self.binary,
+                                    self.descriptor_dim, self.alpha, encoder)
 
     def embed(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) raw descriptors -> (N, E) float32 embeddings, by the encoder ``quantize`` uses."""
@@ -185,9 +235,10 @@ class AutoencoderQuantizer:
         return self._encode(self.pca.transform_scaled(kind_of_vocabulary(self.binary).vectors(descriptors)))
 
     def _encode(self, x: np.ndarray) -> np.ndarray:
-        if self.student is not None:
-            return self.student.embed(x)
-        return embed_rows(self.model, x)
+        if self.encoder is not None:
+            return self.encoder.embed(x)
+        assert self.network is not None  # one of the two, checked on construction
+        return embed_rows(self.network, x)
 
     def quantize(self, descriptors: np.ndarray) -> np.ndarray:
         """(N, D) raw descriptors -> (N,) int64 word ids (argmax of the Student-t assignment)."""
@@ -195,15 +246,16 @@ class AutoencoderQuantizer:
         if descriptors.shape[0] == 0:
             return np.zeros(0, np.int64)
         x = self.pca.transform_scaled(kind_of_vocabulary(self.binary).vectors(descriptors))
-        if self.student is not None:
-            return self._centre_search.nearest(self.student.embed_with_one(x))
+        if self.encoder is not None:
+            return self._centre_search.nearest(self.encoder.embed_with_one(x))
+        assert self.network is not None
         out = np.empty(x.shape[0], np.int64)
         centres_sq = (self._centres_t * self._centres_t).sum(dim=1)
         with torch.inference_mode():
             for start in range(0, x.shape[0], QUANTIZE_BATCH):
                 batch = x[start:start + QUANTIZE_BATCH]
                 rows = batch.shape[0]
-                z = self.model.encode(torch.from_numpy(_pad_rows(batch, QUANTIZE_ROWS_STEP)))[:rows]
+                z = self.network.encode(torch.from_numpy(_pad_rows(batch, QUANTIZE_ROWS_STEP)))[:rows]
                 # argmax of the Student-t kernel = argmin squared distance; |z|^2 is constant per row.
                 scores = z @ self._centres_t.T * -2.0 + centres_sq
                 out[start:start + rows] = scores.argmin(dim=1).numpy()
@@ -221,29 +273,32 @@ class AutoencoderQuantizer:
             "centroids": self._centroids,
             "binary": np.array(self.binary),
             "descriptor_dim": np.array(self.descriptor_dim),
-            "embedding_dim": np.array(self.model.embedding_dim),
+            "embedding_dim": np.array(self.embedding_dim),
             "alpha": np.array(self.alpha),
         }
 
     def identity_arrays(self) -> dict[str, np.ndarray]:
         arrays = {"pca." + name: array for name, array in sorted(self.pca.to_arrays().items())}
-        for name, tensor in sorted(self.model.state_dict().items()):
-            arrays["ae." + name] = tensor.detach().cpu().numpy()
-        if self.student is not None:  # it decides the words: a vocabulary with another student is another one
-            arrays.update({"student." + name: array for name, array in self.student.to_arrays().items()})
+        if self.network is not None:
+            for name, tensor in sorted(self.network.state_dict().items()):
+                arrays["ae." + name] = tensor.detach().cpu().numpy()
+        if self.encoder is not None:  # it decides the words: a vocabulary with another encoder is another one
+            # (keyed "student." whichever way the encoder was trained: the key is part of saved models' ids)
+            arrays.update({"student." + name: array for name, array in self.encoder.to_arrays().items()})
         return arrays
 
     def other_files(self) -> dict[str, bytes]:
-        weights = io.BytesIO()
-        torch.save(self.model.state_dict(), weights)
-        files = {PCA_FILE: npz_bytes(self.pca.to_arrays()), AUTOENCODER: weights.getvalue()}
-        if self.student is not None:
-            files[STUDENT_FILE] = npz_bytes(self.student.to_arrays())
+        files = {PCA_FILE: npz_bytes(self.pca.to_arrays())}
+        if self.network is not None:
+            weights = io.BytesIO()
+            torch.save(self.network.state_dict(), weights)
+            files[AUTOENCODER] = weights.getvalue()
+        if self.encoder is not None:
+            files[ENCODER_FILE] = npz_bytes(self.encoder.to_arrays())
         return files
 
     def metadata(self) -> dict[str, Any]:
-        return {"pca": {"input_dim": self.pca.input_dim, "dim": self.pca.dim},
-                "embedding_dim": self.model.embedding_dim}
+        return {"pca": {"input_dim": self.pca.input_dim, "dim": self.pca.dim}, "embedding_dim": self.embedding_dim}
 
 
 def _pad_rows(x: np.ndarray, step: int) -> np.ndarray:
@@ -254,7 +309,7 @@ def _pad_rows(x: np.ndarray, step: int) -> np.ndarray:
     return np.concatenate([x, np.zeros((missing, x.shape[1]), x.dtype)])
 
 
-def embed_rows(model: ConvAutoencoder, x: np.ndarray) -> np.ndarray:
+def embed_rows(model: Autoencoder, x: np.ndarray) -> np.ndarray:
     out = np.empty((x.shape[0], model.embedding_dim), np.float32)
     with torch.inference_mode():
         for start in range(0, x.shape[0], QUANTIZE_BATCH):
@@ -278,28 +333,34 @@ def train_quantizer(descriptors: np.ndarray, config: VocabularyConfig, *, pairs:
 
 
 def load_quantizer(stored: StoredVocabulary) -> AutoencoderQuantizer:
-    """The kind's loader for the model directory: vocabulary.npz, ``PCA_FILE`` and ``AUTOENCODER``."""
-    pca_path, weights_path = stored.file(PCA_FILE), stored.file(AUTOENCODER)
-    pca = PCA.from_arrays(read_npz(pca_path))
+    """The kind's loader for the model directory: vocabulary.npz, ``PCA_FILE``, and ``ENCODER_FILE`` (or
+    ``STUDENT_FILE``), ``AUTOENCODER`` or both."""
+    pca = PCA.from_arrays(read_npz(stored.file(PCA_FILE)))
     stored_pca = stored.metadata.get("pca") or {}
     if stored_pca.get("dim") != pca.dim:
         raise ModelError(f"dimension mismatch: metadata says PCA dim {stored_pca.get('dim')}, {PCA_FILE} has {pca.dim}")
     arrays = stored.arrays
-    network = ConvAutoencoder(pca.dim, int(arrays["embedding_dim"]))
-    _load_weights(weights_path, network)
-    # A model directory trained before the student (or with ae_student_hidden 0) quantizes with the network.
-    student = _load_student(stored.file(STUDENT_FILE)) if STUDENT_FILE in stored.metadata["files"] else None
+    listed = stored.metadata["files"]
+    network = None
+    if AUTOENCODER in listed:
+        network = ConvAutoencoder(pca.dim, int(arrays["embedding_dim"]))
+        _load_weights(stored.file(AUTOENCODER), network)
+    encoder_file = next((name for name in (ENCODER_FILE, STUDENT_FILE) if name in listed), None)
+    encoder = _load_encoder(stored.file(encoder_file)) if encoder_file else None
+    if network is None and encoder is None:
+        raise ModelError(f"autoencoder vocabulary without an encoder: the model lists none of {AUTOENCODER}, "
+                         f"{ENCODER_FILE}, {STUDENT_FILE}")
     return AutoencoderQuantizer(
         pca, network, arrays["embedding_centres"], arrays["centroids"], bool(arrays["binary"]),
-        int(arrays["descriptor_dim"]), float(arrays["alpha"]), student,
+        int(arrays["descriptor_dim"]), float(arrays["alpha"]), encoder,
     )
 
 
-def _load_student(path: Path) -> StudentEncoder:
+def _load_encoder(path: Path) -> MlpEncoder:
     try:
-        return StudentEncoder.from_arrays(read_npz(path))
+        return MlpEncoder.from_arrays(read_npz(path))
     except DataError as error:
-        raise ModelError(f"student encoder {path}: {error}") from error
+        raise ModelError(f"MLP encoder {path}: {error}") from error
 
 
 def _load_weights(path: Path, network: ConvAutoencoder) -> None:

@@ -1,15 +1,17 @@
 """Training of the autoencoder vocabulary (``autoencoder.py`` holds the network and the quantizer).
 
 1. PCA of the descriptors, scaled to [0, 1] (``pca.py``).
-2. Pre-training of the paper's network with binary cross-entropy (paper eq. 1) on at most
-   ``ae_max_train_descriptors`` rows; with ``ae_match_weight`` > 0 plus a match term on descriptor
+2. Pre-training of the autoencoder (``ae_network``: the MLP, or the paper's convolutional network) with
+   binary cross-entropy (paper eq. 1) on at most ``ae_max_train_descriptors`` rows, the MLP's learning
+   rate cosine-annealed to 0; with ``ae_match_weight`` > 0 plus a match term on descriptor
    pairs of the same scene point in neighbouring frames: symmetric InfoNCE over the batch with
    ``-|z(a_i) - z(b_j)|^2 / T`` logits, the geometry k-means and the Student-t kernel use.
 3. k-means (k-means++ seeded) of all embeddings: the K word centres; empty words re-seeded.
 4. Optional DEC/IDEC refinement (``refine``): reconstruction + gamma * KL(P || Q), the sharpened target
    P recomputed every ``refine_update_interval`` batches, stopped when fewer than ``refine_tol`` of the
    labels change; empty words re-seeded at every target update.
-5. Distillation (``ae_student_hidden`` > 0): the MLP student of ``distilled.py`` fitted to the network's
+5. The MLP encoder that quantizes: the MLP autoencoder's own encoder; for the convolutional network
+   (``ae_student_hidden`` > 0) a student distilled as in ``distilled.py``, fitted to the network's
    embeddings of all but a held-out 5 % of the rows (plus ``ae_student_noise_rows`` noisy copies
    labelled by the network); ``training_info`` records its word agreement on the held-out rows.
 6. Descriptor-space centroids: the mean of each word's descriptors (paper eq. 3), words as the
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -36,15 +39,18 @@ from tqdm import tqdm
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.vocabulary.autoencoder import (
+    Autoencoder,
     AutoencoderQuantizer,
     ConvAutoencoder,
+    MlpAutoencoder,
     embed_rows,
     student_t,
     target_distribution,
 )
 from aefabmap_ros.vocabulary.config import VocabularyConfig
-from aefabmap_ros.vocabulary.distilled import DistillOptions, StudentEncoder, distill_student
+from aefabmap_ros.vocabulary.distilled import DistillOptions, distill_student
 from aefabmap_ros.vocabulary.kmeans import cluster_means, kmeans, nearest, reseed_empty
+from aefabmap_ros.vocabulary.mlp_encoder import MlpEncoder
 from aefabmap_ros.vocabulary.pca import PCA, fit_match_projection, fit_pca
 from aefabmap_ros.vocabulary.training_checkpoint import Checkpoint, fingerprint
 
@@ -88,7 +94,7 @@ def train_autoencoder_quantizer(
         clock.lap("pca_s")
         checkpoint = Checkpoint(work_dir, fingerprint(options, descriptors, pairs))
         torch.manual_seed(options.seed)
-        model = ConvAutoencoder(options.pca_dim, options.ae_embedding_dim)
+        model = new_autoencoder(options)
         train_idx = np.sort(np.random.default_rng([options.seed, 1]).permutation(n)[
             : min(n, options.ae_max_train_descriptors)])
         _pretrain(model, x_all, train_idx, pairs, options, checkpoint, progress)
@@ -105,22 +111,34 @@ def train_autoencoder_quantizer(
             clock.lap("refine_s")
         model.eval()
         student_info: dict[str, float] = {}
-        student = None
-        if options.ae_student_hidden > 0:
-            student, student_info = _distill(x_all, z_all, centres, options,
-                                             teacher=functools.partial(embed_rows, model))
-            z_all = student.embed(x_all)  # the words of the vocabulary are the ones the student gives
-            clock.lap("distill_s")
+        encoder: MlpEncoder | None = None
+        network: ConvAutoencoder | None = None
+        if isinstance(model, MlpAutoencoder):
+            encoder = model.numpy_encoder()
+        elif isinstance(model, ConvAutoencoder):
+            network = model
+            if options.ae_student_hidden > 0:
+                encoder, student_info = _distill(x_all, z_all, centres, options,
+                                                 teacher=functools.partial(embed_rows, model))
+                z_all = encoder.embed(x_all)  # the words of the vocabulary are the ones the student gives
+                clock.lap("distill_s")
         labels, _ = nearest(centres, z_all)
-        fallback = _nearest_rows(rows, z_all, centres)
+        fallback = _centroids_of_empty_words(rows, z_all, centres, labels)
         centroids = kind.centres(cluster_means(rows, labels, options.size, fallback))
         clock.lap("centroids_s")
         checkpoint.finish()
-    quantizer = AutoencoderQuantizer(pca, model, centres, centroids, kind.binary, descriptors.shape[1],
-                                     options.alpha, student)
+    quantizer = AutoencoderQuantizer(pca, network, centres, centroids, kind.binary, descriptors.shape[1],
+                                     options.alpha, encoder)
     quantizer.training_info = {**clock.seconds, **_word_usage_info(labels, options.size, train_idx.size),
                                **student_info}
     return quantizer
+
+
+def new_autoencoder(options: VocabularyConfig) -> Autoencoder:
+    """The untrained autoencoder ``options.ae_network`` names (initialised from torch's generator)."""
+    if options.ae_network == "mlp":
+        return MlpAutoencoder(options.pca_dim, options.ae_mlp_hidden, options.ae_embedding_dim)
+    return ConvAutoencoder(options.pca_dim, options.ae_embedding_dim)
 
 
 def _word_usage_info(labels: np.ndarray, size: int, pretrained_rows: int) -> dict[str, float]:
@@ -157,7 +175,7 @@ STUDENT_HELD_OUT_MAX = 20_000
 
 
 def _distill(x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray, options: VocabularyConfig, *,
-             teacher: Callable[[np.ndarray], np.ndarray]) -> tuple[StudentEncoder, dict[str, float]]:
+             teacher: Callable[[np.ndarray], np.ndarray]) -> tuple[MlpEncoder, dict[str, float]]:
     """Distil the student from the network's embeddings ``z_all`` (plus ``options.ae_student_noise_rows``
     noisy copies of the fit rows, at most ``MAX_NOISE_COPIES_PER_ROW`` per row, embedded by ``teacher``);
     its word agreement on held-out rows."""
@@ -208,11 +226,17 @@ class _StageClock:
         self._last = now
 
 
-def _nearest_rows(rows: np.ndarray, z: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """For each centre, the descriptor whose embedding is nearest (centroid of a word with no member)."""
-    index_rows, _ = nearest(z, centres)
-    result: np.ndarray = rows[index_rows]
-    return result
+def _centroids_of_empty_words(rows: np.ndarray, z: np.ndarray, centres: np.ndarray,
+                              labels: np.ndarray) -> np.ndarray:
+    """(K, D): for each word no descriptor falls in, the descriptor whose embedding is nearest its centre
+    (its centroid); zeros for the others, whose centroid is their members' mean. Searched for the empty
+    words alone: all K centres against every row cost seconds for nothing when no word is empty."""
+    fallback = np.zeros((centres.shape[0], rows.shape[1]), rows.dtype)
+    empty = np.flatnonzero(np.bincount(labels, minlength=centres.shape[0]) == 0)
+    if empty.size:
+        index_rows, _ = nearest(z, centres[empty])
+        fallback[empty] = rows[index_rows]
+    return fallback
 
 
 def _subsample(x: np.ndarray, limit: int, seed: int) -> np.ndarray:
@@ -223,7 +247,7 @@ def _subsample(x: np.ndarray, limit: int, seed: int) -> np.ndarray:
 
 
 def _pretrain(
-    model: ConvAutoencoder,
+    model: Autoencoder,
     x_all: np.ndarray,
     train_idx: np.ndarray,
     pairs: np.ndarray | None,
@@ -238,14 +262,20 @@ def _pretrain(
     use_pairs = options.ae_match_weight > 0 and pairs is not None
     bar = tqdm(range(start_epoch, options.ae_epochs), desc="autoencoder", unit="epoch", disable=not progress,
                initial=start_epoch, total=options.ae_epochs)
+    n_batches = max(1, train_idx.size // batch)
+    # The MLP makes a few passes over many rows: annealing its rate to 0 settles it where the last passes
+    # lead. The convolutional network keeps the paper's constant rate (the reference setting).
+    anneal = isinstance(model, MlpAutoencoder)
     for epoch in bar:
         model.train()
         rng = np.random.default_rng([options.seed, 2, epoch])
         order = train_idx[rng.permutation(train_idx.size)]
         pair_order = rng.permutation(len(pairs)) if use_pairs and pairs is not None else None
-        n_batches = max(1, order.size // batch)
         total = 0.0
         for b in range(n_batches):
+            if anneal:
+                _set_learning_rate(optimizer, cosine_rate(options.ae_learning_rate, epoch * n_batches + b,
+                                                          options.ae_epochs * n_batches))
             xb = torch.from_numpy(x_all[order[b * batch:(b + 1) * batch]])
             _, logits = model(xb)
             loss = bce(logits, xb)
@@ -260,7 +290,18 @@ def _pretrain(
         checkpoint.save("pretrain", epoch, model, optimizer)
 
 
-def _match_loss(model: ConvAutoencoder, x_all: np.ndarray, chosen: np.ndarray, temperature: float) -> torch.Tensor:
+def cosine_rate(base: float, step: int, total_steps: int) -> float:
+    """base * (1 + cos(pi * step / total_steps)) / 2: from ``base`` at step 0 towards 0 at ``total_steps``
+    (a function of the step alone, so a run resumed from a checkpoint continues the same schedule)."""
+    return base * 0.5 * (1.0 + math.cos(math.pi * step / max(1, total_steps)))
+
+
+def _set_learning_rate(optimizer: torch.optim.Optimizer, rate: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = rate
+
+
+def _match_loss(model: Autoencoder, x_all: np.ndarray, chosen: np.ndarray, temperature: float) -> torch.Tensor:
     """Symmetric InfoNCE with -|z_a - z_b|^2 / T logits over the batch of matched pairs."""
     za = model.encode(torch.from_numpy(x_all[chosen[:, 0]]))
     zb = model.encode(torch.from_numpy(x_all[chosen[:, 1]]))
@@ -273,7 +314,7 @@ def _match_loss(model: ConvAutoencoder, x_all: np.ndarray, chosen: np.ndarray, t
 
 
 def _refine(
-    model: ConvAutoencoder,
+    model: Autoencoder,
     centres_np: np.ndarray,
     x_all: np.ndarray,
     train_idx: np.ndarray,
@@ -323,7 +364,7 @@ def _refine(
     return centres.detach().numpy().copy()
 
 
-def _full_target(model: ConvAutoencoder, x: np.ndarray, centres: torch.Tensor,
+def _full_target(model: Autoencoder, x: np.ndarray, centres: torch.Tensor,
                  alpha: float) -> tuple[torch.Tensor, np.ndarray]:
     model.eval()
     with torch.no_grad():
@@ -332,7 +373,7 @@ def _full_target(model: ConvAutoencoder, x: np.ndarray, centres: torch.Tensor,
         return target_distribution(q), q.argmax(dim=1).numpy()
 
 
-def _reseed_in_place(model: ConvAutoencoder, x: np.ndarray, centres: nn.Parameter, labels: np.ndarray,
+def _reseed_in_place(model: Autoencoder, x: np.ndarray, centres: nn.Parameter, labels: np.ndarray,
                      rng: np.random.Generator) -> None:
     """Guard against words the KL term empties: move them onto members of the largest words."""
     counts = np.bincount(labels, minlength=centres.shape[0])

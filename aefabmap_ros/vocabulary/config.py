@@ -16,6 +16,7 @@ from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
 AE_INPUTS = ("pca", "matches")  # the autoencoder's input projections (``AutoencoderOptions.ae_input``)
+AE_NETWORKS = ("mlp", "conv")  # the autoencoders (``AutoencoderOptions.ae_network``)
 Check = tuple[str, bool, str]  # field name, whether its value is valid, the rule it breaks otherwise
 
 
@@ -68,19 +69,27 @@ class KMeansOptions:
 
 @dataclass(frozen=True)
 class AutoencoderOptions:
-    """The autoencoder's settings: the paper's network, its distilled encoder, the optional refinement."""
+    """The autoencoder's settings: the MLP autoencoder or the paper's network and its distilled encoder, the
+    optional refinement."""
 
+    ae_network: str = _describe(
+        "mlp", "The autoencoder: 'mlp' (PCA -> ae_mlp_hidden (ReLU) -> embedding and back; its encoder quantizes, "
+        "in numpy) or 'conv' (the paper's 1-D convolutional network, the reference setting: an MLP student "
+        "distilled from it quantizes, see ae_student_hidden). docs/vocabulary.md compares the two.")
+    ae_mlp_hidden: int = _describe(256, "Hidden units of the MLP autoencoder (ae_network 'mlp').")
     ae_input: str = _describe(
         "pca", "The linear projection before the network: 'pca' (principal axes, the paper's) or 'matches' "
         "(discriminant axes of descriptors matched between neighbouring training frames, which aefabmap_train "
         "finds: directions where different scene points differ most relative to one point's frame-to-frame "
         "change).")
     ae_embedding_dim: int = _describe(64, "Autoencoder embedding size (the space the words live in).")
-    ae_epochs: int = _describe(8, "Autoencoder pre-training epochs.")
+    ae_epochs: int = _describe(
+        10, "Autoencoder pre-training epochs (with ae_network 'mlp' the learning rate is cosine-annealed to 0 "
+        "over them).")
     ae_batch_size: int = _describe(256, "Autoencoder mini-batch size.")
     ae_learning_rate: float = _describe(1e-3, "Adam learning rate, pre-training.")
     ae_max_train_descriptors: int = _describe(
-        100_000, "Pre-train the autoencoder on at most this many descriptors (random subsample); all "
+        250_000, "Pre-train the autoencoder on at most this many descriptors (random subsample); all "
         "descriptors are embedded for the word centres.")
     ae_match_weight: float = _describe(
         0.0, "Weight of the self-supervised match term (same point in neighbouring frames embeds close); "
@@ -88,9 +97,9 @@ class AutoencoderOptions:
     ae_match_temperature: float = _describe(
         0.5, "Temperature of the match term's InfoNCE (relative to the batch's mean squared distance).")
     ae_student_hidden: int = _describe(
-        256, "Hidden units of a small encoder distilled from the autoencoder that then quantizes (PCA -> "
-        "hidden -> embedding, numpy) instead of the paper's convolutional network; 0 = the paper's network "
-        "quantizes (the reference setting; docs/vocabulary.md).")
+        256, "ae_network 'conv': hidden units of a small encoder distilled from the network that then quantizes "
+        "(PCA -> hidden -> embedding, numpy) instead of the network; 0 = the paper's network quantizes "
+        "(docs/vocabulary.md).")
     ae_student_epochs: int = _describe(30, "Epochs distilling the student from the network's embeddings.")
     ae_student_learning_rate: float = _describe(
         3e-3, "Adam learning rate of the distillation (cosine-annealed to 0).")
@@ -116,6 +125,8 @@ class AutoencoderOptions:
     def autoencoder_checks(self) -> list[Check]:
         return [
             ("ae_input", self.ae_input in AE_INPUTS, f"one of {', '.join(AE_INPUTS)}"),
+            ("ae_network", self.ae_network in AE_NETWORKS, f"one of {', '.join(AE_NETWORKS)}"),
+            ("ae_mlp_hidden", self.ae_mlp_hidden >= 1, ">= 1"),
             ("ae_embedding_dim", self.ae_embedding_dim >= 1, ">= 1"),
             ("ae_epochs", self.ae_epochs >= 0, ">= 0"),
             ("ae_batch_size", self.ae_batch_size >= 2, ">= 2"),
@@ -141,7 +152,7 @@ class AutoencoderOptions:
 
 # Settings saved before these fields existed (a model's vocabulary_config) were trained without them: say so
 # when reading one back, not today's defaults (the quantizer itself comes from the model's files either way).
-SAVED_BEFORE = {"ae_student_hidden": 0, "ae_student_epochs": 10, "ae_student_noise_rows": 0}
+SAVED_BEFORE = {"ae_student_hidden": 0, "ae_student_epochs": 10, "ae_student_noise_rows": 0, "ae_network": "conv"}
 
 
 @dataclass(frozen=True)
@@ -167,6 +178,7 @@ class VocabularyConfig(AutoencoderOptions, KMeansOptions, CommonVocabularyOption
 
 __all__ = [
     "AE_INPUTS",
+    "AE_NETWORKS",
     "SAVED_BEFORE",
     "AutoencoderOptions",
     "CommonVocabularyOptions",

@@ -1,4 +1,4 @@
-"""A small encoder distilled from the paper's convolutional autoencoder, run in numpy.
+"""Distillation of the paper's convolutional autoencoder into an MLP encoder that quantizes in numpy.
 
 The paper's encoder (conv 32/64/128 + dense, ``autoencoder.py``) costs about five times k-means'
 nearest-centre search per descriptor in multiply-adds, so no leaner forward pass of it can quantize
@@ -7,16 +7,11 @@ as cheaply as k-means. The student is a one-hidden-layer MLP, PCA vector (P) -> 
 same PCA-scaled training vectors, plus (``word_weight`` > 0) a word term: the teacher's soft assignment
 to the fixed centres, matched by the student's (``word_assignment_loss``). The words stay the
 teacher's: the same K centres in the same embedding space, nearest centre = word. Per descriptor it
-costs P*H + H*E + K*E multiply-adds against k-means' K*D (P = E = 64, H = 128, K = 1000, D = 128: 80k
-against 128k; H = 256: 97k), in float32 numpy: two matmuls and the centre search as one matmul
-(``CentreSearch``).
-
-Only training needs torch (``distill_student``); ``StudentEncoder`` is numpy alone.
+quantizes as ``mlp_encoder.MlpEncoder`` (numpy): two matmuls and the centre search as one matmul.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,109 +19,7 @@ import torch
 from torch import nn
 
 from aefabmap_ros.errors import DataError
-
-# The arrays of a student as the model directory stores them (student.npz), in this order.
-STUDENT_ARRAYS = ("w1", "b1", "w2", "b2")
-
-
-@dataclass(frozen=True)
-class StudentEncoder:
-    """relu(x @ w1 + b1) @ w2 + b2: (N, P) PCA-scaled vectors -> (N, E) embeddings, float32."""
-
-    w1: np.ndarray  # (P, H)
-    b1: np.ndarray  # (H,)
-    w2: np.ndarray  # (H, E)
-    b2: np.ndarray  # (E,)
-
-    def __post_init__(self) -> None:
-        arrays = {name: np.ascontiguousarray(getattr(self, name), np.float32) for name in STUDENT_ARRAYS}
-        w1, b1, w2, b2 = (arrays[name] for name in STUDENT_ARRAYS)
-        if w1.ndim != 2 or w2.ndim != 2 or b1.shape != (w1.shape[1],) or w2.shape[0] != w1.shape[1] \
-                or b2.shape != (w2.shape[1],):
-            raise DataError(f"student encoder arrays do not chain: w1 {w1.shape}, b1 {b1.shape}, "
-                            f"w2 {w2.shape}, b2 {b2.shape} (expected (P, H), (H,), (H, E), (E,))")
-        for name, array in arrays.items():
-            if not np.all(np.isfinite(array)):
-                raise DataError(f"student encoder {name} contains NaN or infinity")
-            object.__setattr__(self, name, array)
-
-    @property
-    def input_dim(self) -> int:
-        return int(self.w1.shape[0])
-
-    @property
-    def hidden_dim(self) -> int:
-        return int(self.w1.shape[1])
-
-    @property
-    def embedding_dim(self) -> int:
-        return int(self.w2.shape[1])
-
-    def embed(self, x: np.ndarray) -> np.ndarray:
-        """(N, P) float32 -> (N, E) float32."""
-        result: np.ndarray = self._hidden(x) @ self.w2 + self.b2
-        return result
-
-    def embed_with_one(self, x: np.ndarray) -> np.ndarray:
-        """(N, P) -> (N, E + 1): the embedding with a column of ones appended, made by the same matmul
-        (a zero column in w2, a 1 in b2), for ``CentreSearch.nearest``."""
-        w2, b2 = self._with_one
-        z = self._hidden(x) @ w2
-        z += b2
-        result: np.ndarray = z
-        return result
-
-    def _hidden(self, x: np.ndarray) -> np.ndarray:
-        hidden = x @ self.w1
-        hidden += self.b1
-        np.maximum(hidden, 0.0, out=hidden)
-        result: np.ndarray = hidden
-        return result
-
-    @functools.cached_property
-    def _with_one(self) -> tuple[np.ndarray, np.ndarray]:
-        w2 = np.concatenate([self.w2, np.zeros((self.w2.shape[0], 1), np.float32)], axis=1)
-        return np.ascontiguousarray(w2), np.append(self.b2, np.float32(1.0))
-
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in STUDENT_ARRAYS}
-
-    @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> StudentEncoder:
-        missing = [name for name in STUDENT_ARRAYS if name not in arrays]
-        if missing:
-            raise DataError(f"student encoder lacks the array(s) {missing}")
-        return cls(*(arrays[name] for name in STUDENT_ARRAYS))
-
-    @classmethod
-    def from_torch(cls, network: nn.Sequential) -> StudentEncoder:
-        """From ``student_network``'s layers (torch stores Linear weights as (out, in))."""
-        first, second = network[0], network[2]
-        if not isinstance(first, nn.Linear) or not isinstance(second, nn.Linear):
-            raise DataError("a student network is Linear, ReLU, Linear (see student_network)")
-        return cls(first.weight.detach().numpy().T, first.bias.detach().numpy(),
-                   second.weight.detach().numpy().T, second.bias.detach().numpy())
-
-
-def student_network(input_dim: int, hidden_dim: int, embedding_dim: int) -> nn.Sequential:
-    """The torch form of ``StudentEncoder`` (for training)."""
-    return nn.Sequential(nn.Linear(input_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, embedding_dim))
-
-
-class CentreSearch:
-    """Nearest centre as one matmul: argmin_k |z - c_k|^2 = argmin_k (|c_k|^2 - 2 z.c_k), |z|^2 being the
-    same for every centre of a row; with a 1 appended to z the bias |c_k|^2 is a row of the matrix too,
-    so the (N, K) scores are written once and read once by argmin (no passes to scale and shift them)."""
-
-    def __init__(self, centres: np.ndarray) -> None:
-        centres = np.asarray(centres, np.float32)
-        squared_norms = np.einsum("ke,ke->k", centres, centres)
-        self.matrix = np.ascontiguousarray(np.vstack([-2.0 * centres.T, squared_norms[None, :]]), np.float32)
-
-    def nearest(self, z_with_one: np.ndarray) -> np.ndarray:
-        """(N, E + 1) embeddings with a trailing column of ones -> (N,) int64 nearest centre."""
-        result: np.ndarray = np.argmin(z_with_one @ self.matrix, axis=1).astype(np.int64)
-        return result
+from aefabmap_ros.vocabulary.mlp_encoder import MlpEncoder, mlp_network
 
 
 @dataclass(frozen=True)
@@ -169,7 +62,7 @@ MIN_DISTILL_STEPS = 2000
 
 
 def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
-                    options: DistillOptions) -> StudentEncoder:
+                    options: DistillOptions) -> MlpEncoder:
     """Fit a student to the teacher's embeddings ``teacher_z`` (N, E) of PCA vectors ``x`` (N, P).
 
     Mean squared error on the embeddings, centred and divided by one overall scale (so that the
@@ -191,7 +84,7 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
     normalised_centres = torch.from_numpy(((centres - mean) / scale).astype(np.float32))
     inputs = torch.from_numpy(np.ascontiguousarray(x, np.float32))
     torch.manual_seed(options.seed)
-    network = student_network(x.shape[1], options.hidden_dim, teacher_z.shape[1])
+    network = mlp_network(x.shape[1], options.hidden_dim, teacher_z.shape[1])
     optimizer = torch.optim.Adam(network.parameters(), lr=options.learning_rate)
     batch = min(options.batch_size, x.shape[0])
     n_batches = x.shape[0] // batch
@@ -213,19 +106,10 @@ def distill_student(x: np.ndarray, teacher_z: np.ndarray, centres: np.ndarray,
             optimizer.step()
             schedule.step()
     network.eval()
-    student = StudentEncoder.from_torch(network)
+    student = MlpEncoder.from_torch(network)
     # z = scale * (normalised prediction) + mean: exact, folded into the second layer.
-    return StudentEncoder(student.w1, student.b1, student.w2 * np.float32(scale),
-                          (student.b2 * scale + mean).astype(np.float32))
+    return MlpEncoder(student.w1, student.b1, student.w2 * np.float32(scale),
+                      (student.b2 * scale + mean).astype(np.float32))
 
 
-__all__ = [
-    "MIN_DISTILL_STEPS",
-    "STUDENT_ARRAYS",
-    "CentreSearch",
-    "DistillOptions",
-    "StudentEncoder",
-    "distill_student",
-    "student_network",
-    "word_assignment_loss",
-]
+__all__ = ["MIN_DISTILL_STEPS", "DistillOptions", "distill_student", "word_assignment_loss"]

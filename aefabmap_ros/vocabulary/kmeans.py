@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import faiss
 import numpy as np
+import scipy.sparse
 from sklearn.cluster import kmeans_plusplus
 
 from aefabmap_ros.errors import ConfigError, DataError
@@ -115,8 +116,10 @@ def _lloyd_steps(x: np.ndarray, centres: np.ndarray, steps: int) -> np.ndarray:
 def cluster_means(x: np.ndarray, labels: np.ndarray, k: int, fallback: np.ndarray) -> np.ndarray:
     """Mean of the rows of each label (paper eq. 3); ``fallback`` rows for labels with no member."""
     counts = np.bincount(labels, minlength=k).astype(np.float64)
-    sums = np.zeros((k, x.shape[1]), np.float64)
-    np.add.at(sums, labels, x.astype(np.float64))
+    # The sums as one sparse (K, N) membership matrix times x: np.add.at takes 5x as long on 200k rows.
+    membership = scipy.sparse.csr_matrix((np.ones(labels.size), (labels, np.arange(labels.size))),
+                                         shape=(k, labels.size))
+    sums = np.asarray(membership @ x.astype(np.float64))
     means = np.asarray(fallback, np.float64).copy()
     filled = counts > 0
     means[filled] = sums[filled] / counts[filled, None]

@@ -74,13 +74,13 @@ def test_pipeline_times_the_papers_network_beside_the_distilled_encoder() -> Non
     images = _synthetic_images(2, (240, 320))
     descriptors = np.concatenate([extract_features(image, FeatureConfig()).descriptors for image in images])
     config = VocabularyConfig(size=6, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1,
-                              ae_student_hidden=8, ae_student_epochs=1)
+                              ae_network="conv", ae_student_hidden=8, ae_student_epochs=1)
     quantizer = train_vocabulary(descriptors, config, progress=False)
-    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.student is not None
+    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.encoder is not None
     tree = np.vstack([np.arange(6) - 1.0, np.full((3, 6), 0.2)])
     tree[0, 0] = 0
     samples = scipy.sparse.csr_matrix(np.eye(2, 6))
-    for used, expected in ((quantizer, True), (quantizer.with_student(None), False)):
+    for used, expected in ((quantizer, True), (quantizer.with_encoder(None), False)):
         model = Model.create(FeatureConfig(), config, used, tree_matrix=tree, new_place_samples=samples)
         stages = stage_latencies(model, images)
         assert ("quantize (paper's network)" in stages) is expected

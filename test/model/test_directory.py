@@ -20,9 +20,15 @@ from aefabmap_ros.model.directory import (
     load_model,
     save_model,
 )
-from aefabmap_ros.vocabulary.autoencoder import AUTOENCODER, PCA_FILE, STUDENT_FILE, AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder import (
+    AUTOENCODER,
+    ENCODER_FILE,
+    PCA_FILE,
+    STUDENT_FILE,
+    AutoencoderQuantizer,
+)
 from aefabmap_ros.vocabulary.base import Quantizer, VocabularyConfig, train_vocabulary
-from aefabmap_ros.vocabulary.distilled import StudentEncoder
+from aefabmap_ros.vocabulary.mlp_encoder import MlpEncoder
 
 V = 6
 
@@ -35,8 +41,8 @@ def _descriptors(seed: int = 0) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def ae_quantizer() -> Quantizer:
-    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1,
-                             ae_student_hidden=8)  # a model with a distilled encoder (not the default)
+    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1, ae_network="conv",
+                             ae_student_hidden=8)  # the paper's network and an encoder distilled from it
     return train_vocabulary(_descriptors(), config, progress=False)
 
 
@@ -94,50 +100,84 @@ def test_vocabulary_id_depends_on_vocabulary_only(ae_quantizer: Quantizer, km_qu
 
 
 def test_student_is_stored_and_part_of_the_vocabulary_id(ae_quantizer: Quantizer, tmp_path: Path) -> None:
-    assert isinstance(ae_quantizer, AutoencoderQuantizer) and ae_quantizer.student is not None
-    network_only = ae_quantizer.with_student(None)
+    assert isinstance(ae_quantizer, AutoencoderQuantizer) and ae_quantizer.encoder is not None
+    network_only = ae_quantizer.with_encoder(None)
     assert compute_vocabulary_id(network_only) != compute_vocabulary_id(ae_quantizer)
-    arrays = ae_quantizer.student.to_arrays()
-    nudged = StudentEncoder(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"] + np.float32(1e-3))
-    assert compute_vocabulary_id(ae_quantizer.with_student(nudged)) != compute_vocabulary_id(ae_quantizer)
+    arrays = ae_quantizer.encoder.to_arrays()
+    nudged = MlpEncoder(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"] + np.float32(1e-3))
+    assert compute_vocabulary_id(ae_quantizer.with_encoder(nudged)) != compute_vocabulary_id(ae_quantizer)
     save_model(tmp_path / "m", _model(ae_quantizer))
-    assert (tmp_path / "m" / STUDENT_FILE).is_file()
+    assert (tmp_path / "m" / ENCODER_FILE).is_file() and (tmp_path / "m" / AUTOENCODER).is_file()
     loaded = load_model(tmp_path / "m").quantizer
-    assert isinstance(loaded, AutoencoderQuantizer) and loaded.student is not None
+    assert isinstance(loaded, AutoencoderQuantizer) and loaded.encoder is not None
     for name, array in arrays.items():
-        np.testing.assert_array_equal(loaded.student.to_arrays()[name], array)
+        np.testing.assert_array_equal(loaded.encoder.to_arrays()[name], array)
 
 
 def test_model_without_student_loads_and_quantizes_with_the_network(ae_quantizer: Quantizer,
                                                                     tmp_path: Path) -> None:
     """A model directory written before the distilled encoder existed: no student file, no ae_student_* keys."""
     assert isinstance(ae_quantizer, AutoencoderQuantizer)
-    network_only = ae_quantizer.with_student(None)
+    network_only = ae_quantizer.with_encoder(None)
     save_model(tmp_path / "old", _model(network_only))
-    assert not (tmp_path / "old" / STUDENT_FILE).exists()
+    assert not (tmp_path / "old" / ENCODER_FILE).exists()
     metadata = json.loads((tmp_path / "old" / METADATA).read_text())
     for key in [key for key in metadata["vocabulary_config"] if key.startswith("ae_student_")]:
         del metadata["vocabulary_config"][key]
     (tmp_path / "old" / METADATA).write_text(json.dumps(metadata))
     loaded = load_model(tmp_path / "old")
-    assert isinstance(loaded.quantizer, AutoencoderQuantizer) and loaded.quantizer.student is None
+    assert isinstance(loaded.quantizer, AutoencoderQuantizer) and loaded.quantizer.encoder is None
     x = _descriptors(2)
     np.testing.assert_array_equal(loaded.quantizer.quantize(x), network_only.quantize(x))
     np.testing.assert_allclose(loaded.quantizer.embed(x), network_only.embed(x), rtol=1e-6)
 
 
+def test_student_file_of_earlier_folders_loads_as_the_encoder(ae_quantizer: Quantizer, saved_ae: Path) -> None:
+    """Model folders of earlier versions keep the distilled encoder in student.npz: the same arrays."""
+    (saved_ae / ENCODER_FILE).rename(saved_ae / STUDENT_FILE)
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    metadata["files"][STUDENT_FILE] = metadata["files"].pop(ENCODER_FILE)
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    loaded = load_model(saved_ae).quantizer
+    assert isinstance(loaded, AutoencoderQuantizer) and loaded.encoder is not None
+    x = _descriptors(3)
+    np.testing.assert_array_equal(loaded.quantize(x), ae_quantizer.quantize(x))
+
+
+def test_mlp_autoencoder_folder_has_no_network_and_quantizes_as_trained(tmp_path: Path) -> None:
+    config = VocabularyConfig(size=V, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1, ae_mlp_hidden=16)
+    assert config.ae_network == "mlp"  # the default
+    trained = train_vocabulary(_descriptors(), config, progress=False)
+    assert isinstance(trained, AutoencoderQuantizer) and trained.network is None and trained.encoder is not None
+    save_model(tmp_path / "mlp", _model(trained))
+    assert (tmp_path / "mlp" / ENCODER_FILE).is_file() and not (tmp_path / "mlp" / AUTOENCODER).exists()
+    loaded = load_model(tmp_path / "mlp")
+    assert loaded.vocabulary_id == compute_vocabulary_id(trained)
+    x = _descriptors(4)
+    np.testing.assert_array_equal(loaded.quantizer.quantize(x), trained.quantize(x))
+
+
+def test_autoencoder_folder_without_any_encoder_is_refused(saved_ae: Path) -> None:
+    metadata = json.loads((saved_ae / METADATA).read_text())
+    for name in (ENCODER_FILE, AUTOENCODER):
+        del metadata["files"][name]
+    (saved_ae / METADATA).write_text(json.dumps(metadata))
+    with pytest.raises(ModelError, match="autoencoder vocabulary without an encoder"):
+        load_model(saved_ae)
+
+
 def test_student_of_other_dimensions(saved_ae: Path) -> None:
-    arrays = dict(np.load(saved_ae / STUDENT_FILE))
+    arrays = dict(np.load(saved_ae / ENCODER_FILE))
     hidden = arrays["w1"].shape[1]
     arrays["w1"] = np.zeros((arrays["w1"].shape[0] + 4, hidden), np.float32)  # a PCA of 12 dims, not 8
-    np.savez(saved_ae / STUDENT_FILE, **arrays)
-    _refresh_checksum(saved_ae, STUDENT_FILE)
-    with pytest.raises(ModelError, match=r"dimension mismatch .* student encoder maps 12 -> 4 but the PCA gives 8"):
+    np.savez(saved_ae / ENCODER_FILE, **arrays)
+    _refresh_checksum(saved_ae, ENCODER_FILE)
+    with pytest.raises(ModelError, match=r"dimension mismatch .* MLP encoder maps 12 -> 4 but the PCA gives 8"):
         load_model(saved_ae)
     del arrays["b2"]
-    np.savez(saved_ae / STUDENT_FILE, **arrays)
-    _refresh_checksum(saved_ae, STUDENT_FILE)
-    with pytest.raises(ModelError, match=r"student encoder .*student.npz: .*lacks the array\(s\) \['b2'\]"):
+    np.savez(saved_ae / ENCODER_FILE, **arrays)
+    _refresh_checksum(saved_ae, ENCODER_FILE)
+    with pytest.raises(ModelError, match=r"MLP encoder .*encoder.npz: .*lacks the array\(s\) \['b2'\]"):
         load_model(saved_ae)
 
 
@@ -254,11 +294,12 @@ def test_non_finite_weights(saved_ae: Path) -> None:
 
 
 def test_weights_of_other_dimensions(saved_ae: Path) -> None:
-    other = train_vocabulary(_descriptors(), VocabularyConfig(size=V, pca_dim=12, ae_embedding_dim=4, ae_epochs=1),
-                             progress=False)
+    other = train_vocabulary(_descriptors(), VocabularyConfig(size=V, pca_dim=12, ae_embedding_dim=4, ae_epochs=1,
+                                                              ae_network="conv"), progress=False)
     assert isinstance(other, AutoencoderQuantizer)
     buffer = io.BytesIO()
-    torch.save(other.model.state_dict(), buffer)
+    assert other.network is not None
+    torch.save(other.network.state_dict(), buffer)
     (saved_ae / AUTOENCODER).write_bytes(buffer.getvalue())
     _refresh_checksum(saved_ae, AUTOENCODER)
     with pytest.raises(ModelError, match="dimension mismatch: autoencoder weights"):

@@ -31,7 +31,7 @@ def _frames(count: int, seed: int = 0) -> list[Features]:
 
 def test_the_distilled_encoders_agreement_is_kept_in_the_model_directory(tmp_path: Path) -> None:
     config = VocabularyConfig(size=WORDS, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, num_threads=1,
-                              ae_student_hidden=8, ae_match_weight=0.0)
+                              ae_network="conv", ae_student_hidden=8, ae_match_weight=0.0)
     model, _ = train_model([_frames(20)], FeatureConfig(), config, TrainingConfig(), {"sources": []}, progress=False)
     save_model(tmp_path / "model", model)
     kept = load_model(tmp_path / "model").provenance["vocabulary_training"]

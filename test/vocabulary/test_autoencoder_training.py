@@ -5,7 +5,9 @@ import pytest
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder_training import _centroids_of_empty_words
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
+from aefabmap_ros.vocabulary.kmeans import cluster_means
 
 
 def _two_words_seen_twice(points: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -49,3 +51,19 @@ def test_the_match_projection_needs_pairs() -> None:
     with pytest.raises(DataError, match="needs matched descriptor pairs"):
         train_vocabulary(rows, VocabularyConfig(size=2, pca_dim=4, ae_input="matches", ae_epochs=1,
                                                 ae_student_hidden=0), progress=False)
+
+
+def test_centroids_are_member_means_and_an_empty_words_nearest_descriptor() -> None:
+    rng = np.random.default_rng(5)
+    rows = rng.uniform(0, 100, (300, 16)).astype(np.float32)
+    z = rng.normal(size=(300, 3)).astype(np.float32)
+    centres = np.vstack([rng.normal(size=(3, 3)), [[40.0, 40.0, 40.0]]]).astype(np.float32)  # word 3: far off
+    labels = np.argmin(((z[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+    assert np.all(labels != 3)
+    fallback = _centroids_of_empty_words(rows, z, centres, labels)
+    nearest_row = np.argmin(((z - centres[3]) ** 2).sum(axis=1))  # brute force
+    np.testing.assert_array_equal(fallback[3], rows[nearest_row])
+    means = cluster_means(rows, labels, 4, fallback)
+    for word in range(3):
+        np.testing.assert_allclose(means[word], rows[labels == word].mean(axis=0), rtol=1e-5)
+    np.testing.assert_array_equal(means[3], rows[nearest_row])

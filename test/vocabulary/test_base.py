@@ -14,9 +14,11 @@ from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.vocabulary.autoencoder import (
     AutoencoderQuantizer,
     ConvAutoencoder,
+    MlpAutoencoder,
     student_t,
     target_distribution,
 )
+from aefabmap_ros.vocabulary.autoencoder_training import cosine_rate
 from aefabmap_ros.vocabulary.base import (
     Quantizer,
     VocabularyConfig,
@@ -71,9 +73,17 @@ def test_kmeans_recovers_known_clusters(blobs: tuple[np.ndarray, np.ndarray, np.
     assert quantizer.centroids.shape == (K_TRUE, 128) and quantizer.centroids.dtype == np.float32
 
 
-def test_autoencoder_recovers_known_clusters(blobs: tuple[np.ndarray, np.ndarray, np.ndarray],
-                                             ae_quantizer: Quantizer) -> None:
+@pytest.fixture(scope="module")
+def conv_quantizer(blobs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Quantizer:
+    """The paper's convolutional network and a student distilled from it."""
+    return train_vocabulary(blobs[0], _small_ae(ae_network="conv", ae_student_hidden=32), progress=False)
+
+
+@pytest.mark.parametrize("network", ["mlp", "conv"])
+def test_autoencoder_recovers_known_clusters(blobs: tuple[np.ndarray, np.ndarray, np.ndarray], network: str,
+                                             request: pytest.FixtureRequest) -> None:
     x, labels, centres = blobs
+    ae_quantizer = request.getfixturevalue("ae_quantizer" if network == "mlp" else "conv_quantizer")
     assert isinstance(ae_quantizer, AutoencoderQuantizer) and ae_quantizer.kind == "autoencoder"
     words = ae_quantizer.quantize(x)
     assert words.dtype == np.int64 and words.shape == (x.shape[0],)
@@ -103,25 +113,25 @@ def test_soft_assignment_rows_are_distributions(ae_quantizer: Quantizer,
     np.testing.assert_array_equal(q.argmax(axis=1), ae_quantizer.quantize(blobs[0][:50]))
 
 
-def test_autoencoder_encodes_padded_batches_of_few_shapes(ae_quantizer: Quantizer,
-                                                          blobs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
-    """Each image brings a different number of features; the paper's encoder (the setting without the distilled
-    one) must see few distinct batch shapes (oneDNN keeps a compiled primitive per shape: unbounded memory
-    otherwise), with the words unchanged."""
-    assert isinstance(ae_quantizer, AutoencoderQuantizer)
-    network = ae_quantizer.with_student(None)
+def test_autoencoder_encodes_padded_batches_of_few_shapes(blobs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Each image brings a different number of features; the paper's convolutional encoder (the setting without
+    an MLP encoder) must see few distinct batch shapes (oneDNN keeps a compiled primitive per shape: unbounded
+    memory otherwise), with the words unchanged."""
+    network = train_vocabulary(blobs[0], _small_ae(ae_network="conv", ae_student_hidden=0, ae_epochs=1),
+                               progress=False)
+    assert isinstance(network, AutoencoderQuantizer) and network.network is not None and network.encoder is None
     seen: list[int] = []
-    encode = network.model.encode
+    encode = network.network.encode
 
     def counting_encode(x: torch.Tensor) -> torch.Tensor:
         seen.append(x.shape[0])
         return encode(x)
 
-    network.model.encode = counting_encode  # type: ignore[method-assign]
+    network.network.encode = counting_encode  # type: ignore[method-assign]
     try:
         words = {n: network.quantize(blobs[0][:n]) for n in (1, 255, 257, 600)}
     finally:
-        del network.model.encode
+        del network.network.encode
     assert seen == [256, 256, 512, 768]
     for n, ids in words.items():  # the unpadded soft assignment agrees row for row
         np.testing.assert_array_equal(ids, network.soft_assign(blobs[0][:n]).argmax(axis=1))
@@ -261,11 +271,37 @@ def test_autoencoder_shapes_and_finite_output() -> None:
         ConvAutoencoder(16, 0)
 
 
+def test_mlp_autoencoder_quantizes_with_exactly_its_trained_encoder() -> None:
+    torch.manual_seed(0)
+    net = MlpAutoencoder(16, 32, 8).eval()
+    x = torch.rand(50, 16)
+    z, logits = net(x)
+    assert z.shape == (50, 8) and logits.shape == (50, 16)
+    # The numpy encoder that quantizes is the same function: relu(x W1 + b1) W2 + b2, computed by hand.
+    p = {name: value.detach().numpy() for name, value in net.encoder.named_parameters()}
+    by_hand = np.maximum(x.numpy() @ p["0.weight"].T + p["0.bias"], 0) @ p["2.weight"].T + p["2.bias"]
+    np.testing.assert_allclose(net.numpy_encoder().embed(x.numpy()), by_hand, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(z.detach().numpy(), by_hand, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ConfigError, match="ae_mlp_hidden=0"):
+        MlpAutoencoder(16, 0, 8)
+    with pytest.raises(ConfigError, match="ae_embedding_dim=0"):
+        MlpAutoencoder(16, 8, 0)
+
+
+def test_cosine_rate_falls_from_the_base_rate_to_zero() -> None:
+    assert cosine_rate(1e-3, 0, 100) == pytest.approx(1e-3)
+    assert cosine_rate(1e-3, 25, 100) == pytest.approx(1e-3 * (1 + np.sqrt(0.5)) / 2)
+    assert cosine_rate(1e-3, 50, 100) == pytest.approx(5e-4)
+    assert cosine_rate(1e-3, 100, 100) == pytest.approx(0.0, abs=1e-18)
+
+
 @pytest.mark.parametrize(("field", "value", "match"), [
     ("kind", "vlad", "kind='vlad' is not one of autoencoder, kmeans"),
     ("size", 1, "size=1 must be >= 2"),
     ("pca_dim", 30, "pca_dim=30 must be a multiple of 4"),
     ("ae_learning_rate", 0.0, "ae_learning_rate=0.0"),
+    ("ae_network", "transformer", "ae_network='transformer' must be one of mlp, conv"),
+    ("ae_mlp_hidden", 0, "ae_mlp_hidden=0 must be >= 1"),
     ("tol", 1.0, r"tol=1.0 must be in \[0, 1\)"),
 ])
 def test_config_validation_names_field(field: str, value: object, match: str) -> None:

@@ -30,7 +30,7 @@ def test_every_key_is_declared_by_exactly_one_kind() -> None:
             owners.setdefault(name, []).append(options.__name__)
     assert {name for name, classes in owners.items() if len(classes) > 1} == set()
     assert set(owners) == {f.name for f in fields(VocabularyConfig)}
-    assert len(fields(VocabularyConfig)) == 30  # the 29 flat keys YAML files and model folders already use + ae_input
+    assert len(fields(VocabularyConfig)) == 32  # the flat keys YAML files and model folders use
 
 
 def test_the_config_is_each_kinds_options_with_the_same_values() -> None:
@@ -63,10 +63,12 @@ def test_settings_saved_before_the_student_read_back_as_trained() -> None:
     saved = {k: v for k, v in VocabularyConfig().to_dict().items() if k not in SAVED_BEFORE}
     restored = VocabularyConfig.from_dict(saved)
     assert (restored.ae_student_hidden, restored.ae_student_epochs, restored.ae_student_noise_rows) == (0, 10, 0)
+    assert restored.ae_network == "conv"  # saved before the MLP autoencoder: the paper's network
 
 
-# The keys model folders were written with before the input projection and the distilled encoder existed.
-OLDER_KEYS = sorted({f.name for f in fields(VocabularyConfig)} - {"ae_input"} - set(SAVED_BEFORE))
+# The keys model folders were written with before the input projection, the distilled encoder and the MLP
+# autoencoder existed.
+OLDER_KEYS = sorted({f.name for f in fields(VocabularyConfig)} - {"ae_input", "ae_mlp_hidden"} - set(SAVED_BEFORE))
 
 
 @pytest.mark.parametrize("kind", ["autoencoder", "kmeans"])
@@ -74,8 +76,8 @@ def test_a_model_folder_written_with_the_older_keys_still_loads(kind: str, tmp_p
     """A folder whose metadata names only the older keys loads as what it was trained as (principal axes,
     the network quantizing) and quantizes as the folder's own files say."""
     descriptors = np.random.default_rng(0).uniform(0, 100, (400, 128)).astype(np.float32)
-    config = VocabularyConfig(kind=kind, size=4, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, ae_student_hidden=0,
-                              num_threads=1)
+    config = VocabularyConfig(kind=kind, size=4, pca_dim=8, ae_embedding_dim=4, ae_epochs=1, ae_network="conv",
+                              ae_student_hidden=0, num_threads=1)
     quantizer = train_vocabulary(descriptors, config, progress=False)
     folder = tmp_path / kind
     save_model(folder, Model.create(FeatureConfig(), config, quantizer))  # a tree is optional: not what is tested

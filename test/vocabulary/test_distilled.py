@@ -9,17 +9,11 @@ import torch
 
 import aefabmap_ros.vocabulary.autoencoder_training as training_module
 from aefabmap_ros.errors import ConfigError, DataError
-from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder import ENCODER_FILE, AutoencoderQuantizer
 from aefabmap_ros.vocabulary.autoencoder_training import _distill, noisy_copies
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
-from aefabmap_ros.vocabulary.distilled import (
-    CentreSearch,
-    DistillOptions,
-    StudentEncoder,
-    distill_student,
-    student_network,
-    word_assignment_loss,
-)
+from aefabmap_ros.vocabulary.distilled import DistillOptions, distill_student, word_assignment_loss
+from aefabmap_ros.vocabulary.mlp_encoder import CentreSearch, MlpEncoder, mlp_network
 
 K = 8
 DIM = 128
@@ -35,8 +29,9 @@ def _clustered(n_per: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _config(**overrides: object) -> VocabularyConfig:
-    values: dict[str, object] = dict(size=K, pca_dim=16, ae_embedding_dim=8, ae_epochs=6, ae_batch_size=64,
-                                     num_threads=1, seed=0, ae_student_hidden=32, ae_student_epochs=20)
+    values: dict[str, object] = dict(ae_network="conv", size=K, pca_dim=16, ae_embedding_dim=8, ae_epochs=6,
+                                     ae_batch_size=64, num_threads=1, seed=0, ae_student_hidden=32,
+                                     ae_student_epochs=20)
     values.update(overrides)
     return VocabularyConfig(**values)  # type: ignore[arg-type]
 
@@ -50,8 +45,8 @@ def trained() -> AutoencoderQuantizer:
 
 def test_numpy_forward_pass_equals_torch() -> None:
     torch.manual_seed(3)
-    network = student_network(16, 24, 8).eval()
-    student = StudentEncoder.from_torch(network)
+    network = mlp_network(16, 24, 8).eval()
+    student = MlpEncoder.from_torch(network)
     x = np.random.default_rng(0).random((300, 16), dtype=np.float32)
     with torch.no_grad():
         expected = network(torch.from_numpy(x)).numpy()
@@ -75,22 +70,22 @@ def test_centre_search_is_brute_force_nearest() -> None:
 
 
 def test_quantize_is_nearest_centre_of_the_student_embedding(trained: AutoencoderQuantizer) -> None:
-    assert trained.student is not None and trained.student.hidden_dim == 32
+    assert trained.encoder is not None and trained.encoder.hidden_dim == 32
     x, _ = _clustered(50, seed=7)
-    z = trained.student.embed(trained.pca.transform_scaled(x)).astype(np.float64)
+    z = trained.encoder.embed(trained.pca.transform_scaled(x)).astype(np.float64)
     brute = ((z[:, None, :] - trained.embedding_centres[None].astype(np.float64)) ** 2).sum(axis=2).argmin(axis=1)
     np.testing.assert_array_equal(trained.quantize(x), brute)
     # embed and soft_assign use the same encoder as quantize.
     np.testing.assert_allclose(trained.embed(x), z, rtol=1e-5, atol=1e-5)
     np.testing.assert_array_equal(trained.soft_assign(x).argmax(axis=1), brute)
     # ... which is not the network's: its embeddings differ (the student only approximates them).
-    assert not np.allclose(trained.with_student(None).embed(x), z, atol=1e-3)
+    assert not np.allclose(trained.with_encoder(None).embed(x), z, atol=1e-3)
 
 
 def test_student_agrees_with_the_network_on_held_out_descriptors(trained: AutoencoderQuantizer) -> None:
     x, _ = _clustered(250, seed=11)  # not seen in training
     student_words = trained.quantize(x)
-    network_words = trained.with_student(None).quantize(x)
+    network_words = trained.with_encoder(None).quantize(x)
     assert np.mean(student_words == network_words) >= 0.98
     assert trained.training_info["student_word_agreement"] >= 0.98
     assert trained.training_info["student_held_out_descriptors"] == 100  # 5 % of 2,000
@@ -102,29 +97,29 @@ def test_student_agrees_with_the_network_on_held_out_descriptors(trained: Autoen
 def test_untrained_student_disagrees(trained: AutoencoderQuantizer) -> None:
     """The agreement above is learnt: a student with random weights of the same shape gets few words right."""
     torch.manual_seed(0)
-    random_student = StudentEncoder.from_torch(student_network(16, 32, 8))
+    random_student = MlpEncoder.from_torch(mlp_network(16, 32, 8))
     x, _ = _clustered(100, seed=12)
-    agreement = np.mean(trained.with_student(random_student).quantize(x) == trained.with_student(None).quantize(x))
+    agreement = np.mean(trained.with_encoder(random_student).quantize(x) == trained.with_encoder(None).quantize(x))
     assert agreement < 0.6
 
 
 def test_network_setting_trains_no_student() -> None:
     quantizer = train_vocabulary(_clustered(100, seed=0)[0], _config(ae_student_hidden=0, ae_epochs=1),
                                  progress=False)
-    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.student is None
+    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.encoder is None
     assert "student_word_agreement" not in quantizer.training_info
-    assert "student.npz" not in quantizer.other_files()
+    assert ENCODER_FILE not in quantizer.other_files()
 
 
-def test_the_default_vocabulary_quantizes_with_a_256_unit_student() -> None:
-    # The distilled encoder is the default; saved settings from before it report no student.
+def test_the_convolutional_network_is_distilled_into_a_256_unit_student_by_default() -> None:
+    # Saved settings from before the student report none.
     defaults = VocabularyConfig()
     student_defaults = (defaults.ae_student_hidden, defaults.ae_student_epochs, defaults.ae_student_noise_rows)
     assert student_defaults == (256, 30, 300_000)
     config = _config(ae_epochs=1, ae_student_hidden=defaults.ae_student_hidden, ae_student_epochs=1)
     quantizer = train_vocabulary(_clustered(60, seed=0)[0], config, progress=False)
-    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.student is not None
-    assert quantizer.student.hidden_dim == 256 and "student.npz" in quantizer.other_files()
+    assert isinstance(quantizer, AutoencoderQuantizer) and quantizer.encoder is not None
+    assert quantizer.encoder.hidden_dim == 256 and ENCODER_FILE in quantizer.other_files()
     before = {k: v for k, v in defaults.to_dict().items() if not k.startswith("ae_student_")}
     assert VocabularyConfig.from_dict(before).ae_student_hidden == 0
     assert VocabularyConfig.from_dict(before).ae_student_noise_rows == 0
@@ -135,21 +130,21 @@ def test_distillation_is_deterministic_given_seed() -> None:
     x = _clustered(80, seed=0)[0]
     a, b = (train_vocabulary(x, _config(ae_epochs=1, ae_student_epochs=2), progress=False) for _ in range(2))
     assert isinstance(a, AutoencoderQuantizer) and isinstance(b, AutoencoderQuantizer)
-    assert a.student is not None and b.student is not None
-    for name, array in a.student.to_arrays().items():
-        np.testing.assert_array_equal(array, b.student.to_arrays()[name])
+    assert a.encoder is not None and b.encoder is not None
+    for name, array in a.encoder.to_arrays().items():
+        np.testing.assert_array_equal(array, b.encoder.to_arrays()[name])
 
 
 def test_student_that_does_not_fit_is_refused(trained: AutoencoderQuantizer) -> None:
     torch.manual_seed(0)
-    with pytest.raises(DataError, match="student encoder maps 12 -> 8 but the PCA gives 16"):
-        trained.with_student(StudentEncoder.from_torch(student_network(12, 32, 8)))
-    with pytest.raises(DataError, match=r"maps 16 -> 5 .* embedding has 8"):
-        trained.with_student(StudentEncoder.from_torch(student_network(16, 32, 5)))
+    with pytest.raises(DataError, match="MLP encoder maps 12 -> 8 but the PCA gives 16"):
+        trained.with_encoder(MlpEncoder.from_torch(mlp_network(12, 32, 8)))
+    with pytest.raises(DataError, match=r"maps 16 -> 5 .* embedding centres have 8"):
+        trained.with_encoder(MlpEncoder.from_torch(mlp_network(16, 32, 5)))
     with pytest.raises(DataError, match="do not chain"):
-        StudentEncoder(np.zeros((16, 4)), np.zeros(4), np.zeros((5, 8)), np.zeros(8))
+        MlpEncoder(np.zeros((16, 4)), np.zeros(4), np.zeros((5, 8)), np.zeros(8))
     with pytest.raises(DataError, match="b2 contains NaN"):
-        StudentEncoder(np.zeros((16, 4)), np.zeros(4), np.zeros((4, 8)), np.full(8, np.nan))
+        MlpEncoder(np.zeros((16, 4)), np.zeros(4), np.zeros((4, 8)), np.full(8, np.nan))
 
 
 def _word_loss(student: np.ndarray, teacher: np.ndarray, centres: np.ndarray, temperature: float) -> float:
