@@ -110,18 +110,11 @@ def train_autoencoder_quantizer(
             centres = reseed_empty(z_all, centres, np.random.default_rng([options.seed, 3]))
             clock.lap("refine_s")
         model.eval()
-        student_info: dict[str, float] = {}
-        encoder: MlpEncoder | None = None
-        network: ConvAutoencoder | None = None
-        if isinstance(model, MlpAutoencoder):
-            encoder = model.numpy_encoder()
-        elif isinstance(model, ConvAutoencoder):
-            network = model
-            if options.ae_student_hidden > 0:
-                encoder, student_info = _distill(x_all, z_all, centres, options,
-                                                 teacher=functools.partial(embed_rows, model))
-                z_all = encoder.embed(x_all)  # the words of the vocabulary are the ones the student gives
-                clock.lap("distill_s")
+        network, encoder, student_info = _quantizing_encoders(model, x_all, z_all, centres, options)
+        if encoder is not None:
+            z_all = encoder.embed(x_all)  # the words of the vocabulary are the ones the MLP encoder gives
+        if student_info:
+            clock.lap("distill_s")
         labels, _ = nearest(centres, z_all)
         fallback = _centroids_of_empty_words(rows, z_all, centres, labels)
         centroids = kind.centres(cluster_means(rows, labels, options.size, fallback))
@@ -132,6 +125,21 @@ def train_autoencoder_quantizer(
     quantizer.training_info = {**clock.seconds, **_word_usage_info(labels, options.size, train_idx.size),
                                **student_info}
     return quantizer
+
+
+def _quantizing_encoders(model: Autoencoder, x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray,
+                         options: VocabularyConfig) -> tuple[ConvAutoencoder | None, MlpEncoder | None,
+                                                             dict[str, float]]:
+    """What the vocabulary keeps to quantize with: the convolutional network (None for the MLP, whose
+    decoder is not needed), the MLP encoder (the MLP's own, or a student distilled from the network),
+    and the distillation's record (empty without one)."""
+    if isinstance(model, MlpAutoencoder):
+        return None, model.numpy_encoder(), {}
+    assert isinstance(model, ConvAutoencoder)
+    if options.ae_student_hidden == 0:
+        return model, None, {}
+    student, info = _distill(x_all, z_all, centres, options, teacher=functools.partial(embed_rows, model))
+    return model, student, info
 
 
 def new_autoencoder(options: VocabularyConfig) -> Autoencoder:
