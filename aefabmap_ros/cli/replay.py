@@ -98,6 +98,11 @@ LAP_GAP_NS = 100_000_000
 
 # How long the end of a reliable replay waits for every subscriber to acknowledge the last images.
 ACK_TIMEOUT_S = 5.0
+# A publisher counts a subscriber as matched once it has discovered it; the subscriber may discover the publisher
+# a few hundred milliseconds later, and until then drops best-effort messages from it without counting them lost
+# (it never knew they were sent): a live test lost its first 6 frames of 30 Hz that way. The replay waits this
+# long after the match before its first message.
+SUBSCRIBER_DISCOVERY_S = 0.5
 
 
 class StopRequest:
@@ -210,6 +215,7 @@ class Replayer:
             self._spin_until(lambda: self.answer_subscription.get_publisher_count() > 0, self.args.wait_timeout)
             if self.args.lockstep_skipped:
                 self._spin_until(lambda: self.skipped_subscription.get_publisher_count() > 0, 5.0)
+        self._spin_until(lambda: False, SUBSCRIBER_DISCOVERY_S)  # returns at once on a stop request
 
     def _why_no_subscriber(self) -> str:
         """Name subscribers of another message type on our topic (they never match us), else the usual cause."""
