@@ -104,12 +104,7 @@ def reseed_empty(x: np.ndarray, centres: np.ndarray, rng: np.random.Generator,
 def _lloyd_steps(x: np.ndarray, centres: np.ndarray, steps: int) -> np.ndarray:
     for _ in range(steps):
         labels, _ = nearest(centres, x)
-        counts = np.bincount(labels, minlength=len(centres)).astype(np.float64)
-        sums = np.zeros(centres.shape, np.float64)
-        np.add.at(sums, labels, x)
-        filled = counts > 0
-        centres = centres.copy()
-        centres[filled] = (sums[filled] / counts[filled, None]).astype(np.float32)
+        centres = cluster_means(x, labels, len(centres), centres)  # a centre with no member stays where it is
     return centres
 
 
