@@ -59,7 +59,8 @@ class VerifierNode(Node):
             self.store, p.config, p.pose_config, self._publish, self.counter,
             gate=OdometryGate(p.drift_model, p.base_to_camera) if p.odometry_gate else None,
             max_pending=p.max_pending, odometry_wait_s=p.odometry_wait_s,
-            max_awaiting_odometry=p.max_awaiting_odometry, behind=self.clock.behind, log=self._log)
+            max_awaiting_odometry=p.max_awaiting_odometry, depth_wait_s=p.depth_wait_s, behind=self.clock.behind,
+            log=self._log)
         self.chain.pairs.camera = p.camera
         self.camera_fixed = self.chain.pairs.camera is not None
         depth = p.queue_depth

@@ -56,6 +56,7 @@ class VerifierParameters:
     pose_config: RelativePoseConfig
     camera: CameraModel | None  # camera_matrix; None: from camera_info
     depth_topic: str
+    depth_wait_s: float
     odometry_gate: bool
     odometry_wait_s: float
     max_awaiting_odometry: int
@@ -95,6 +96,9 @@ def declare_verifier_parameters(node: Node) -> VerifierParameters:
             "Intrinsics fx, fy, cx, cy for the relative pose (all 0 = take them from camera_info).")),
         depth_topic=declare_parameter(node, "depth_topic", "", "Aligned depth image topic (16UC1 mm or 32FC1 m) "
                                       "for metric relative poses ('' = monocular)."),
+        depth_wait_s=number("depth_wait_s", 2.0, "With depth_topic, a query waits for its own depth image until "
+                            "it comes, a later one comes, or the newest frame is this much newer (stamp time); "
+                            "then it is verified without it (query_depth_missing)."),
         odometry_gate=declare_parameter(node, "odometry_gate", True, "Refuse verified closures that odometry on "
                                         "'odom' contradicts beyond its drift (active once odometry arrives; see "
                                         "backend/odometry_gate.py)."),
@@ -121,10 +125,11 @@ def _check(parameters: VerifierParameters) -> None:
     bounds = {"max_stored_frames": parameters.max_frames, "max_pending": parameters.max_pending,
               "max_awaiting_odometry": parameters.max_awaiting_odometry, "max_store_mb": parameters.max_store_bytes}
     too_small = [f"{name} ({value})" for name, value in bounds.items() if value < 1]
-    if too_small or parameters.max_features < 0 or not parameters.odometry_wait_s >= 0:
+    if too_small or parameters.max_features < 0 or not parameters.odometry_wait_s >= 0 \
+            or not parameters.depth_wait_s >= 0:
         raise ConfigError(f"verifier_node: {', '.join(too_small) or 'the bounds'} must be >= 1 (max_store_mb > 0), "
-                          f"max_stored_features ({parameters.max_features}) and odometry_wait_s "
-                          f"({parameters.odometry_wait_s}) >= 0")
+                          f"max_stored_features ({parameters.max_features}), odometry_wait_s "
+                          f"({parameters.odometry_wait_s}) and depth_wait_s ({parameters.depth_wait_s}) >= 0")
 
 
 def _camera_from_parameter(values: list[float]) -> CameraModel | None:

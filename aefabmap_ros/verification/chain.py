@@ -16,7 +16,8 @@ feeds it a recorded sequence. Both therefore publish the same closures for the s
   nearest that place (at least ``track_min_age_seconds`` older than the query). Such a closure carries
   that place's posterior, 0 when the query's candidates do not include it (log-likelihood NaN).
 - **Waiting for inputs**: a detection can come before its query's features or posterior (separate
-  topics); it waits, ``max_pending`` detections at most.
+  topics); it waits, ``max_pending`` detections at most. With depth, a query also waits for its own
+  depth image until it comes or will not (verification/depth_wait.py).
 - **Odometry gate** (verification/odometry_wait.py): a verified closure is published when odometry
   agrees with its relative pose, or waits for odometry to reach its stamps.
 - **Behind the camera** (``behind``, verifier_node's ``max_lag_s``): a query the chain takes too late is
@@ -35,6 +36,7 @@ import numpy as np
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.closures import Closure, Detection, Outcomes, Posterior
+from aefabmap_ros.verification.depth_wait import DepthWait
 from aefabmap_ros.verification.frame_store import FrameStore
 from aefabmap_ros.verification.gate import ClosureGate
 from aefabmap_ros.verification.geometric import Verification, VerificationConfig
@@ -79,7 +81,7 @@ class LoopClosureChain:
     def __init__(self, store: FrameStore, config: VerificationConfig, pose_config: RelativePoseConfig,
                  publish: Callable[[Closure], None], outcomes: Outcomes, *, gate: ClosureGate | None = None,
                  max_pending: int = 100, odometry_wait_s: float = 10.0, max_awaiting_odometry: int = 1000,
-                 behind: Callable[[int], bool] = _never_behind,
+                 depth_wait_s: float = 2.0, behind: Callable[[int], bool] = _never_behind,
                  log: Callable[[str, bool], None] = _no_log) -> None:
         self.store = store
         self.pairs = PairCheck(store, config, pose_config, outcomes)
@@ -89,6 +91,7 @@ class LoopClosureChain:
         self.log = log
         self.track = LoopTrack(config.track_seconds, config.track_island_seconds)
         self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.track, publish, outcomes)
+        self.depth_wait = DepthWait(depth_wait_s)
         self.pending: OrderedDict[int, Detection] = OrderedDict()  # query stamp -> detection, oldest first
         self.posteriors: OrderedDict[int, Posterior] = OrderedDict()  # query stamp -> posterior
 
@@ -110,6 +113,7 @@ class LoopClosureChain:
             self.outcomes.drop("bad_features", str(exc))
             return False
         self.odometry.frame_seen(stamp_ns)
+        self.depth_wait.frame_came(stamp_ns)
         if image_size is not None:  # one camera: its images' size, for the metric test
             self.pairs.image_size = image_size
         if self.store.depths is not None:
@@ -119,13 +123,19 @@ class LoopClosureChain:
                 self.outcomes.drop("depth_size_mismatch", f"frame at stamp {stamp_ns}: {exc}")
             self.store.depths_changed(stamp_ns)
         self._verify_if_ready(stamp_ns)
+        self._verify_waiting_for_depth()
         return True
 
     def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
         """A frame's depth image in metres (AefabmapError when it cannot be kept)."""
-        if self.store.depths is not None:
+        if self.store.depths is None:
+            return
+        self.depth_wait.depth_came(stamp_ns)  # before keeping it: an image that cannot be kept is still a later one
+        try:
             self.store.depths.add_depth(stamp_ns, depth_m)
             self.store.depths_changed(stamp_ns)
+        finally:
+            self._verify_waiting_for_depth()
 
     def add_posterior(self, posterior: Posterior) -> None:
         if posterior.query_id >= 0 and posterior.current_place_id >= 0:
@@ -164,13 +174,33 @@ class LoopClosureChain:
             return
         posterior = self.posteriors.get(query_ns)
         if query_ns in self.pending:
-            if self.config.candidates > 1 and posterior is None:
+            if (self.config.candidates > 1 and posterior is None) or not self._depth_ready(query_ns):
                 return
             self.posteriors.pop(query_ns, None)  # this frame is done
             self._verify(self.pending.pop(query_ns), posterior)
         elif posterior is not None and not posterior.loop_closure_candidate:
+            if not self._depth_ready(query_ns):
+                return
             del self.posteriors[query_ns]  # this frame is done: no detection will come for it
             self._track(posterior)
+
+    def _depth_ready(self, query_ns: int) -> bool:
+        """The query's depth image is in, or will not come (counted as ``query_depth_missing``)."""
+        depths = self.store.depths
+        has_depth = depths is None or query_ns in depths
+        if not self.depth_wait.ready(query_ns, has_depth):
+            return False
+        if not has_depth and self.depth_wait.newest_depth_ns is not None:
+            self.outcomes.ok("query_depth_missing")
+        return True
+
+    def _verify_waiting_for_depth(self) -> None:
+        """The queries waiting for their depth image whose wait a new input may have ended, oldest first."""
+        for query_ns in list(self.depth_wait.waiting):
+            if query_ns in self.pending or query_ns in self.posteriors:
+                self._verify_if_ready(query_ns)
+            else:  # dropped meanwhile (max_pending, the posterior history)
+                self.depth_wait.forget(query_ns)
 
     def _ranked_places(self, posterior: Posterior) -> list[tuple[int, PlaceToVerify]]:
         """The posterior's candidates (rank, place) whose features are stored, best first."""

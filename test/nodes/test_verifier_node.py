@@ -118,6 +118,8 @@ def test_verifier_node_publishes_verified_closures_sent_over_ros() -> None:
         posteriors.publish(_posterior(3, [2, 1]))
         candidates.publish(_closure(4, 1, query_id=11))  # the true place
         posteriors.publish(_posterior(4, [1, 2]))
+        assert not _spin_until(executor, lambda: bool(received), timeout_s=1.0)  # the queries wait for their depth
+        depth.publish(_place_depth_image(5))  # a later frame's: theirs will not come, they go on without it
         assert _spin_until(executor, lambda: len(received) == 1 and node.counter.counts["rejected"] == 1)
         (closure,) = received
         assert (closure.query_id, closure.matched_place_id, closure.matched_stamp.sec) == (11, 1, 1)
@@ -135,7 +137,7 @@ def test_verifier_node_refuses_bad_parameters() -> None:
     with pytest.raises(ConfigError, match="min_inliers"):
         VerifierNode(parameter_overrides=_params(min_inliers=3))
     for name, value in (("max_stored_frames", 0), ("max_store_mb", 0.0), ("max_awaiting_odometry", 0),
-                        ("odometry_wait_s", -1.0)):
+                        ("odometry_wait_s", -1.0), ("depth_wait_s", -1.0)):
         with pytest.raises(ConfigError, match=name):
             VerifierNode(parameter_overrides=_params(**{name: value}))
 

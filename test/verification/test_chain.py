@@ -58,7 +58,7 @@ class Rig:
 
 def rig(*, gate: bool = False, depths: bool = False, camera: CameraModel | None = None, max_pending: int = 100,
         odometry_wait_s: float = 5.0, max_awaiting_odometry: int = 1000, behind: bool = False,
-        **config: object) -> Rig:
+        depth_wait_s: float = 2.0, **config: object) -> Rig:
     outcomes = Outcomes()
     published: list[Closure] = []
     store = FrameStore(20_000, 2**40, 500, keep_depths=depths)
@@ -66,7 +66,8 @@ def rig(*, gate: bool = False, depths: bool = False, camera: CameraModel | None 
                              published.append, outcomes,
                              gate=OdometryGate(PoseGraphConfig(), gtsam.Pose3()) if gate else None,
                              max_pending=max_pending, odometry_wait_s=odometry_wait_s,
-                             max_awaiting_odometry=max_awaiting_odometry, behind=lambda _query_ns: behind)
+                             max_awaiting_odometry=max_awaiting_odometry, depth_wait_s=depth_wait_s,
+                             behind=lambda _query_ns: behind)
     chain.pairs.camera = camera
     return Rig(chain, outcomes, published)
 
@@ -106,9 +107,18 @@ def test_true_closures_pass_and_the_rest_is_held_back() -> None:
 
 def _place_depth(seed: int = 21) -> np.ndarray:
     """Metric depth of _two_views(seed)'s place camera at its shared points (3x3 pixels each), NaN elsewhere."""
+    return _view_depth(seed, _rotation_y(0.15), np.array([0.8, 0.1, 0.3]))
+
+
+def _query_depth(seed: int = 21) -> np.ndarray:
+    """The same for _two_views(seed)'s query camera (the scene's own frame)."""
+    return _view_depth(seed, np.eye(3), np.zeros(3))
+
+
+def _view_depth(seed: int, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     rng = np.random.default_rng(seed)  # the same draws as _two_views makes first
     points = np.column_stack([rng.uniform(-4, 4, 120), rng.uniform(-3, 3, 120), rng.uniform(5, 15, 120)])
-    camera = points @ _rotation_y(0.15).T + np.array([0.8, 0.1, 0.3])
+    camera = points @ rotation.T + translation
     columns = np.rint(FOCAL * camera[:, 0] / camera[:, 2] + WIDTH / 2).astype(int)
     rows = np.rint(FOCAL * camera[:, 1] / camera[:, 2] + HEIGHT / 2).astype(int)
     depth = np.full((HEIGHT, WIDTH), np.nan, dtype=np.float32)
@@ -116,6 +126,9 @@ def _place_depth(seed: int = 21) -> np.ndarray:
     for row, column, z in zip(rows[inside], columns[inside], camera[inside, 2], strict=True):
         depth[row - 1:row + 2, column - 1:column + 2] = z
     return depth
+
+
+NO_DEPTH = np.full((HEIGHT, WIDTH), np.nan, dtype=np.float32)
 
 
 def _angle_deg(rotation: np.ndarray) -> float:
@@ -132,8 +145,9 @@ def test_a_closure_carries_the_known_relative_pose(with_depth: bool) -> None:
     run.features(3, query)
     run.chain.add_detection(detection(3, 1, query_id=10))
     run.chain.pairs.camera = CAMERA
-    if with_depth:
+    if with_depth:  # the place's depth only: a later frame's depth image says the query's will not come
         run.chain.add_depth(SECOND, _place_depth())
+        run.chain.add_depth(4 * SECOND, NO_DEPTH)
     run.chain.add_detection(detection(3, 1, query_id=11))
     first, second = run.published
     assert first.pose.pose is None and first.pose.status is PoseStatus.NO_CAMERA_INFO
@@ -146,6 +160,62 @@ def test_a_closure_carries_the_known_relative_pose(with_depth: bool) -> None:
     if with_depth:
         assert np.linalg.norm(pose.translation - TRUE_TRANSLATION) <= 0.05
     assert run.counts["pose_no_camera_info"] == 1 and run.counts["pose_ok"] == 1
+
+
+def test_a_query_waits_for_its_own_depth_image_until_it_comes_or_will_not() -> None:
+    """A verifier under load takes depth images after the features: a query waits for its own, is verified with
+    it when it comes late, and without it only once a later depth image has come (its own was lost) or the
+    newest frame is depth_wait_s newer (the depth stream stopped)."""
+    query, place, _ = _two_views(seed=21)
+    # The metric test off: its covisibility needs dense depth images, these have depth at the scene points only.
+    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0, depth_wait_s=2.0, metric_min_inliers=0)
+    run.chain.add_depth(SECOND, _place_depth())
+    run.features(1, place)
+    run.features(3, query)
+    run.chain.add_detection(detection(3, 1, query_id=10))
+    assert not run.published and list(run.chain.depth_wait.waiting) == [3 * SECOND]
+    run.chain.add_depth(3 * SECOND, _query_depth())  # late, but it comes: verified with it
+    assert run.ids() == [(10, 1)] and run.counts.get("query_depth_missing", 0) == 0
+    assert np.linalg.norm(run.published[0].pose.pose.translation - TRUE_TRANSLATION) <= 0.05  # type: ignore[union-attr]
+
+    run.features(4, query)
+    run.chain.add_detection(detection(4, 1, query_id=11))
+    assert run.ids() == [(10, 1)]
+    run.chain.add_depth(5 * SECOND, NO_DEPTH)  # a later one: query 11's was lost on the way
+    assert run.ids() == [(10, 1), (11, 1)] and run.counts["query_depth_missing"] == 1
+
+    run.features(6, query)  # the depth stream stops
+    run.chain.add_detection(detection(6, 1, query_id=12))
+    run.features(8, place)  # 2 s newer: still waiting
+    assert len(run.published) == 2
+    run.features(8.5, place)
+    assert run.ids()[-1] == (12, 1) and run.counts["query_depth_missing"] == 2
+    assert not run.chain.depth_wait.waiting and not run.chain.pending
+
+
+def test_nothing_waits_for_a_depth_stream_that_never_started() -> None:
+    """A depth topic named but silent: closures go out at once, without the metric pose, none counted missing."""
+    query, place, _ = _two_views(seed=21)
+    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0)
+    run.features(1, place)
+    run.features(3, query)
+    run.chain.add_detection(detection(3, 1, query_id=10))
+    assert run.ids() == [(10, 1)] and not run.chain.depth_wait.waiting
+    assert run.counts.get("query_depth_missing", 0) == 0
+
+
+def test_a_waiting_query_pushed_out_of_the_pending_detections_waits_no_longer() -> None:
+    query, place, _ = _two_views(seed=21)
+    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0, max_pending=1, metric_min_inliers=0)
+    run.chain.add_depth(SECOND, _place_depth())
+    run.features(1, place)
+    run.features(3, query)
+    run.chain.add_detection(detection(3, 1, query_id=10))
+    run.features(4, query)
+    run.chain.add_detection(detection(4, 1, query_id=11))  # pushes query 10 out of max_pending 1
+    run.chain.add_depth(4 * SECOND, _query_depth())
+    assert run.ids() == [(11, 1)] and not run.chain.depth_wait.waiting
+    assert run.counts["dropped_query_posterior_never_came"] == 1
 
 
 def _weaker_view(features: Features, shared: int, keep: int) -> Features:

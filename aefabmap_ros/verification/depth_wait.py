@@ -1,0 +1,64 @@
+"""Queries held until their own depth image has come (verification/chain.py).
+
+A frame's depth image comes on its own topic, and a verifier under load takes it after the frame's
+features, posterior and detection: the executor serves a 30 Hz depth stream and a 10 Hz features stream
+in turn, so during a revisit, when verification takes the time, the depth images fall behind. Verified
+before its depth image, a query gets no metric test, and its pose is PnP's on the place's depth alone:
+for a facade seen again from far back, one of two solutions that reproject almost equally well
+(relative_pose.py). On the dense synthetic video replayed in lockstep, every closure more than 10 m
+from its place that was published with a pose over 0.2 m off had been verified so.
+
+So a query waits for its depth image, and goes on without it only when that will not come:
+
+- a depth image stamped after it has come (a stream in stamp order has lost the query's: best effort,
+  or a depth image the verifier could not keep);
+- the newest frame is ``wait_s`` newer than the query (stamp time, as the odometry wait: the depth
+  stream has stopped, or trails further than the verifier should wait).
+
+Before the first depth image nothing waits: a depth topic that is named but silent must not hold every
+closure for ``wait_s``.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+from aefabmap_ros.errors import ConfigError
+
+
+class DepthWait:
+    """Which queries may be verified now, as far as their depth image is concerned, and which wait."""
+
+    def __init__(self, wait_s: float) -> None:
+        if not wait_s >= 0:
+            raise ConfigError(f"depth_wait_s ({wait_s}) must be >= 0")
+        self.wait_ns = round(wait_s * 1e9)
+        self.newest_depth_ns: int | None = None  # of any depth image, kept or not
+        self.newest_frame_ns: int | None = None
+        self.waiting: OrderedDict[int, None] = OrderedDict()  # query stamps, oldest first (an ordered set)
+
+    def depth_came(self, stamp_ns: int) -> None:
+        if self.newest_depth_ns is None or stamp_ns > self.newest_depth_ns:
+            self.newest_depth_ns = stamp_ns
+
+    def frame_came(self, stamp_ns: int) -> None:
+        if self.newest_frame_ns is None or stamp_ns > self.newest_frame_ns:
+            self.newest_frame_ns = stamp_ns
+
+    def ready(self, query_ns: int, has_depth: bool) -> bool:
+        """True: verify the query now (its depth is in, or will not come); False: it waits (``waiting``)."""
+        if has_depth or self.will_not_come(query_ns):
+            self.waiting.pop(query_ns, None)
+            return True
+        self.waiting[query_ns] = None
+        return False
+
+    def will_not_come(self, query_ns: int) -> bool:
+        """Nothing to wait for: no depth stream yet, a later depth image came, or the wait is over."""
+        if self.newest_depth_ns is None or self.newest_depth_ns > query_ns:
+            return True
+        return self.newest_frame_ns is not None and self.newest_frame_ns - query_ns > self.wait_ns
+
+    def forget(self, query_ns: int) -> None:
+        """The query is decided or dropped by the chain for another reason: it waits no longer."""
+        self.waiting.pop(query_ns, None)

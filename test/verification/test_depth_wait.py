@@ -1,0 +1,47 @@
+"""When a query stops waiting for its depth image: the three ways it ends, by stamps alone."""
+
+from __future__ import annotations
+
+import pytest
+
+from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.verification.depth_wait import DepthWait
+
+SECOND = 1_000_000_000
+
+
+def test_a_query_waits_only_while_its_depth_image_can_still_come() -> None:
+    wait = DepthWait(2.0)
+    assert wait.ready(5 * SECOND, has_depth=False)  # no depth stream yet: nothing to wait for
+    wait.depth_came(4 * SECOND)
+    wait.frame_came(5 * SECOND)
+    assert not wait.ready(5 * SECOND, has_depth=False) and list(wait.waiting) == [5 * SECOND]
+    assert wait.ready(5 * SECOND, has_depth=True) and not wait.waiting  # it came
+    assert not wait.ready(6 * SECOND, has_depth=False)
+    wait.depth_came(6 * SECOND + 1)  # a later one came first: the query's was lost
+    assert wait.ready(6 * SECOND, has_depth=False)
+    assert not wait.ready(7 * SECOND, has_depth=False)
+    wait.frame_came(9 * SECOND)  # exactly depth_wait_s newer: still waiting
+    assert not wait.ready(7 * SECOND, has_depth=False)
+    wait.frame_came(9 * SECOND + 1)
+    assert wait.ready(7 * SECOND, has_depth=False) and not wait.waiting
+
+
+def test_stamps_older_than_the_newest_do_not_move_it_back() -> None:
+    wait = DepthWait(1.0)
+    wait.depth_came(10 * SECOND)
+    wait.depth_came(3 * SECOND)
+    wait.frame_came(10 * SECOND)
+    wait.frame_came(3 * SECOND)
+    assert wait.newest_depth_ns == 10 * SECOND and wait.newest_frame_ns == 10 * SECOND
+    assert wait.ready(9 * SECOND, has_depth=False)
+
+
+def test_forget_ends_a_wait_and_a_negative_wait_is_refused() -> None:
+    wait = DepthWait(1.0)
+    wait.depth_came(0)
+    assert not wait.ready(SECOND, has_depth=False)
+    wait.forget(SECOND)
+    assert not wait.waiting
+    with pytest.raises(ConfigError, match="depth_wait_s"):
+        DepthWait(-0.5)
