@@ -152,26 +152,35 @@ class FrameDepths:
 # Skipped frames remembered, for a depth image that arrives after its frame's skip was announced: at 30 Hz about
 # ten seconds.
 SKIPPED_REMEMBERED = 300
+# Depth images waiting for their frame's features, bytes at most (float16; see FrameDepthStore).
+WAITING_DEPTH_BYTES = 128 * 2**20
+# Frames whose features wait for their depth image, at most (their keypoints only: a few KiB each).
+WAITING_KEYPOINT_FRAMES = 1000
 
 
 class FrameDepthStore:
     """The FrameDepths of recent frames, by image stamp.
 
     Bounded like the feature store it complements (``max_frames``, oldest first; ~12 KiB per frame).
-    Depth images and features arrive on separate topics: the last ``max_images`` depth images wait for
-    their frame's features, and features whose depth image has not come yet are sampled when it comes
-    (``add_features`` / ``add_depth`` in any order). A verifier busy with a revisit takes its inputs late, so
-    the images wait for three seconds of a 30 Hz camera, as float16 (the precision the grid keeps; 55 MB at
-    most for 640x480).
+    Depth images and features arrive on separate topics: depth images wait for their frame's features, and
+    features whose depth image has not come yet are sampled when it comes (``add_features`` / ``add_depth``
+    in any order). Features reach the verifier through feature_node and the depth images straight from the
+    camera, and a verifier busy with a revisit takes its features seconds late (lockstep replay: up to 6 s
+    on the dense synthetic video), so the images wait as float16 (the precision the grid keeps) up to
+    ``max_waiting_bytes`` (``WAITING_DEPTH_BYTES``: 128 MiB, 28 s of a 30 Hz 320x240 camera, 7 s of a
+    640x480 one); an image pushed out before its features came leaves that frame without depth, and the
+    query verified without it (verification/depth_wait.py).
     """
 
-    def __init__(self, max_frames: int, max_images: int = 90) -> None:
-        if max_frames < 1 or max_images < 1:
-            raise ConfigError(f"FrameDepthStore needs max_frames ({max_frames}) and max_images ({max_images}) >= 1")
+    def __init__(self, max_frames: int, max_waiting_bytes: int = WAITING_DEPTH_BYTES) -> None:
+        if max_frames < 1 or max_waiting_bytes < 1:
+            raise ConfigError(f"FrameDepthStore needs max_frames ({max_frames}) and max_waiting_bytes "
+                              f"({max_waiting_bytes}) >= 1")
         self.max_frames = max_frames
-        self.max_images = max_images
+        self.max_waiting_bytes = max_waiting_bytes
         self._depths: dict[int, FrameDepths] = {}
         self._images: dict[int, np.ndarray] = {}
+        self._images_nbytes = 0
         self._waiting_keypoints: dict[int, np.ndarray] = {}
         self._unsaved: dict[int, None] = {}  # stamps sampled since the last save, in order (an ordered set)
         self._skipped: dict[int, None] = {}  # recent frames announced as skipped (an ordered set)
@@ -191,7 +200,7 @@ class FrameDepthStore:
         if dropped is not None:
             self._nbytes -= _frame_nbytes(dropped)
         self._unsaved.pop(stamp_ns, None)
-        self._images.pop(stamp_ns, None)
+        self._pop_image(stamp_ns)
         self._waiting_keypoints.pop(stamp_ns, None)
 
     def __contains__(self, stamp_ns: object) -> bool:
@@ -221,7 +230,7 @@ class FrameDepthStore:
     def skip_frame(self, stamp_ns: int) -> None:
         """A frame the detector will not process (feature_node's detection rate): its depth image, come or to
         come, is not kept, so the images waiting are those of frames whose features are on their way."""
-        self._images.pop(stamp_ns, None)
+        self._pop_image(stamp_ns)
         self._skipped[stamp_ns] = None
         _trim(self._skipped, SKIPPED_REMEMBERED)
 
@@ -233,15 +242,18 @@ class FrameDepthStore:
         if keypoints is not None:
             self.keep(stamp_ns, FrameDepths.sample(depth_m.astype(np.float32), keypoints))
             return
+        self._pop_image(stamp_ns)  # the same stamp twice: the newer image waits, counted once
         self._images[stamp_ns] = depth_m
-        _trim(self._images, self.max_images)
+        self._images_nbytes += depth_m.nbytes
+        while self._images_nbytes > self.max_waiting_bytes:
+            self._pop_image(next(iter(self._images)))
 
     def add_features(self, stamp_ns: int, keypoints: np.ndarray, image_size: tuple[int, int] | None = None) -> None:
         """The keypoints as stored for this frame (the feature store's, so the depths align with them).
 
         ``image_size`` (width, height) is the frame's image: a depth image of another size waiting for these
         keypoints is discarded and DataError names both sizes; the keypoints then wait for a depth image that fits."""
-        image = self._images.pop(stamp_ns, None)
+        image = self._pop_image(stamp_ns)
         problem = None
         if image is not None:
             problem = None if image_size is None else depth_size_problem((image.shape[1], image.shape[0]), image_size)
@@ -249,9 +261,15 @@ class FrameDepthStore:
                 self.keep(stamp_ns, FrameDepths.sample(image.astype(np.float32), keypoints))
                 return
         self._waiting_keypoints[stamp_ns] = keypoints
-        _trim(self._waiting_keypoints, self.max_images)
+        _trim(self._waiting_keypoints, WAITING_KEYPOINT_FRAMES)
         if problem is not None:
             raise DataError(problem)
+
+    def _pop_image(self, stamp_ns: int) -> np.ndarray | None:
+        image = self._images.pop(stamp_ns, None)
+        if image is not None:
+            self._images_nbytes -= image.nbytes
+        return image
 
     def keep(self, stamp_ns: int, depths: FrameDepths) -> None:
         """Keep a frame's depths as sampled (the nodes sample them here; the offline chain brings its own)."""

@@ -15,7 +15,7 @@ creates a place when its ``current_place_id`` is newer than every place seen bef
 in the order they are made (fabmap_node), which a reloaded timeline replays the same way.
 
 Not counted in the budget: the depth images waiting for their frame's features (``FrameDepthStore``'s
-``max_images``, bounded on their own) and the timeline's 16 bytes a frame.
+``max_waiting_bytes``, bounded on their own) and the timeline's 16 bytes a frame.
 """
 
 from __future__ import annotations

@@ -68,7 +68,7 @@ def test_the_depth_of_a_skipped_frame_is_not_kept_whether_it_came_before_or_afte
     """A 30 Hz depth stream beside a 10 Hz detector: the images waiting must be those of frames to come."""
     depth = np.ones((3, 4), dtype=np.float32)
     keypoints = np.array([[1.0, 1.0]], dtype=np.float32)
-    store = FrameDepthStore(max_frames=10, max_images=2)
+    store = FrameDepthStore(max_frames=10, max_waiting_bytes=2 * depth.astype(np.float16).nbytes)  # two images
     store.add_depth(30, depth)  # a frame to be processed, its features late
     store.add_depth(10, depth)
     store.skip_frame(10)  # announced after its depth came: dropped, so it pushes nothing out
@@ -78,7 +78,7 @@ def test_the_depth_of_a_skipped_frame_is_not_kept_whether_it_came_before_or_afte
     store.add_depth(50, depth)
     store.add_depth(40, depth)
     store.add_features(30, keypoints)
-    assert 30 in store  # without the skips, 10, 20, 50 and 40 would have pushed it out of the 2 waiting
+    assert 30 in store  # without the skips, 10, 20, 50 and 40 would have pushed it out of the two waiting
     for stamp in (10, 20, 50):
         store.add_features(stamp, keypoints)
         assert stamp not in store
@@ -174,3 +174,22 @@ def test_a_grid_pixel_in_a_dropout_takes_its_neighbours_median_and_a_large_hole_
     assert float(grid.values[0, 1]) == pytest.approx(4.0)  # median of (3, 3, 3, 4, 4, 4, 4, 4)
     assert np.isnan(grid.values[2, 3])
     assert np.count_nonzero(np.isnan(grid.values)) == 1
+
+
+def test_depth_images_wait_for_late_features_up_to_their_byte_bound() -> None:
+    """A verifier seconds behind on features: 300 depth images of a 320x240 camera (10 s at 30 Hz) come before
+    the first one's features and it is still there; a bound of three images keeps only the newest three."""
+    depth = np.full((240, 320), 2.0, dtype=np.float32)
+    keypoints = np.array([[5.0, 7.0]], dtype=np.float32)
+    store = FrameDepthStore(max_frames=10)
+    for stamp in range(300):
+        store.add_depth(stamp, depth)
+    store.add_features(0, keypoints)
+    first = store.get(0)
+    assert first is not None and first.keypoints.tolist() == [2.0]
+    small = FrameDepthStore(max_frames=10, max_waiting_bytes=3 * depth.astype(np.float16).nbytes)
+    for stamp in range(5):
+        small.add_depth(stamp, depth)
+    for stamp in range(5):
+        small.add_features(stamp, keypoints)
+    assert [stamp for stamp in range(5) if stamp in small] == [2, 3, 4]
