@@ -15,6 +15,7 @@ from aefabmap_ros.verification.frame_depths import (
     DepthGrid,
     FrameDepthFolder,
     FrameDepthStore,
+    depth_at_pixels,
     depth_size_problem,
     grid_step_for,
     sample_depth_grid,
@@ -43,7 +44,8 @@ def test_the_grid_samples_every_step_th_pixel_half_a_step_in() -> None:
 
 
 def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
-    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
+    depth = (10.0 + 0.01 * np.arange(12)).reshape(3, 4).astype(np.float32)  # 1 cm more each pixel: flat
+    depth[0, 0] = 0.0  # a dropout
     keypoints = np.array([[1.0, 2.0], [3.2, 0.4], [9.0, 9.0]], dtype=np.float32)
     store = FrameDepthStore(max_frames=2)
     store.add_depth(10, depth)
@@ -53,15 +55,41 @@ def test_frame_depths_arrive_in_either_order_and_stay_bounded() -> None:
     store.add_depth(20, depth + 100)
     first, second = store.get(10), store.get(20)
     assert first is not None and second is not None
-    np.testing.assert_allclose(first.keypoints, [9.0, 3.0, np.nan])  # (row 2, col 1), (row 0, col 3), outside
-    np.testing.assert_allclose(second.keypoints, [109.0, 103.0, np.nan])
+    # (row 2, column 1); between rows 0 and 1 of column 3 (x 3.2 is still that pixel's), 1/z interpolated; outside.
+    # Of the images as kept, in float16.
+    for kept, image in ((first, depth), (second, depth + 100)):
+        as_kept = image.astype(np.float16).astype(np.float64)
+        between = 1 / (0.6 / as_kept[0, 3] + 0.4 / as_kept[1, 3])
+        np.testing.assert_allclose(kept.keypoints, [as_kept[2, 1], between, np.nan], rtol=1e-6)
     # A 4-pixel-wide image: step 1 (~80 columns at most), the whole image; its one dropout (0 at the corner)
-    # takes the median of its three neighbours 1, 4 and 5.
+    # takes the median of its three neighbours 10.01, 10.04 and 10.05.
     assert first.grid is not None and first.grid.step == 1
-    np.testing.assert_allclose(first.grid.values.astype(np.float32), np.where(depth > 0, depth, 4.0))
+    np.testing.assert_allclose(first.grid.values.astype(np.float32), np.where(depth > 0, depth, 10.04), rtol=1e-3)
     store.add_depth(30, depth)
     store.add_features(30, keypoints)
     assert len(store) == 2 and store.get(10) is None
+
+
+def test_a_keypoint_depth_is_exact_on_a_plane_and_none_across_an_edge_or_a_grazing_surface() -> None:
+    """Against closed forms: a plane's depth at sub-pixel points (1/z affine in the pixel coordinates), NaN where
+    the four pixels hold two surfaces, where the surface is seen so obliquely that they spread over 3 %, where one
+    has no depth, and outside the image."""
+    rows, columns = np.mgrid[0:30, 0:40].astype(np.float64)
+    inverse = 0.1 + 0.0004 * columns - 0.0002 * rows  # a plane: 1/z affine in (x, y); 5.9-11.4 m, < 1 % a pixel
+    plane = (1 / inverse).astype(np.float32)
+    points = np.array([[3.25, 7.5], [20.9, 0.1], [39.4, 29.4], [-0.2, 5.0], [-0.6, 5.0], [12.0, 30.6]])
+    expected = 1 / (0.1 + 0.0004 * np.clip(points[:, 0], 0, 39) - 0.0002 * np.clip(points[:, 1], 0, 29))
+    expected[4:] = np.nan  # outside
+    np.testing.assert_allclose(depth_at_pixels(plane, points), expected, rtol=1e-5)
+    edge = plane.copy()
+    edge[:, 20:] += 3.0  # a step of 3 m between columns 19 and 20
+    steep = (5.0 + 0.2 * columns).astype(np.float32)  # 20 cm a pixel at 5-13 m: a grazing surface
+    holed = plane.copy()
+    holed[8, 4] = np.nan
+    assert np.isnan(depth_at_pixels(edge, np.array([[19.5, 3.0]])))[0]
+    assert depth_at_pixels(edge, np.array([[18.5, 3.0]]))[0] == pytest.approx(plane[3, 18:20].mean(), rel=1e-3)
+    assert np.isnan(depth_at_pixels(steep, np.array([[3.5, 3.0]])))[0]
+    assert np.isnan(depth_at_pixels(holed, np.array([[3.25, 7.5]])))[0]
 
 
 def test_the_depth_of_a_skipped_frame_is_not_kept_whether_it_came_before_or_after_the_skip() -> None:
@@ -106,7 +134,7 @@ def test_a_depth_image_of_another_size_than_its_image_is_not_sampled() -> None:
 def test_frame_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> None:
     store = FrameDepthStore(max_frames=2)
     folder = FrameDepthFolder(tmp_path)
-    depth_image = np.arange(1, 101, dtype=np.float32).reshape(10, 10)
+    depth_image = (50.0 + 0.01 * np.arange(100)).reshape(10, 10).astype(np.float32)  # flat: 1 cm a pixel
     store.add_features(1, np.array([[1.0, 2.0], [3.0, 4.0]], np.float32))
     store.add_depth(1, depth_image)
     folder.save(store)
@@ -120,7 +148,8 @@ def test_frame_depths_survive_a_restart_through_the_folder(tmp_path: Path) -> No
     FrameDepthFolder(tmp_path).load_into(reloaded)
     first, second = reloaded.get(1), reloaded.get(2)
     assert first is not None and second is not None
-    assert first.keypoints.tolist() == [22.0, 44.0] and second.keypoints.tolist() == [112.0]
+    as_kept = [float(np.float16(value)) for value in (depth_image[2, 1], depth_image[4, 3], 2 * depth_image[5, 5])]
+    assert first.keypoints.tolist() == as_kept[:2] and second.keypoints.tolist() == as_kept[2:]
     for kept, image in ((first, depth_image), (second, depth_image * 2)):
         assert kept.grid is not None and kept.grid.step == 1
         np.testing.assert_array_equal(kept.grid.values, image.astype(np.float16))
