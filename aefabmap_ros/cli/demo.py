@@ -36,6 +36,7 @@ import numpy as np
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, ate_figures, ate_summary
 from aefabmap_ros.cli.demo_printer import ClosurePrinter
+from aefabmap_ros.cli.launch import STOP_WRITING_CAP_S
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
 from aefabmap_ros.io.bags import list_topics, read_messages
@@ -214,7 +215,8 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
             printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
             for process in reversed(processes):
                 process.send_signal(signal.SIGINT)
-                process.wait(timeout=60)
+                # The launcher ends a node that does not stop (it kills it past its stop timeout): wait for that.
+                process.wait(timeout=STOP_WRITING_CAP_S + 60)
     except subprocess.CalledProcessError as exc:
         raise AefabmapError(f"replay failed (exit {exc.returncode})") from exc
     finally:
