@@ -60,7 +60,8 @@ def shutdown_summary(chain: LoopClosureChain, saved: bool, counters: str, delays
     return (f"verifier_node: {len(store)} frames stored ({store.nbytes / 2**20:.1f} MiB"
             f"{'' if saved else ', NOT all saved'} of {store.max_bytes / 2**20:g} MiB; evicted {evicted}), "
             f"{len(chain.pending)} closures still waiting, {len(chain.odometry.waiting)} waiting for odometry; "
-            f"{counters}; {delay_summary(delays_s)}; {chain.odometry.lateness_summary()}; "
+            f"{counters}; {delay_summary(delays_s)}; {chain.depth_wait.summary()}; "
+            f"{chain.odometry.lateness_summary()}; "
             + ("; ".join(sensor_input.summary() for sensor_input in inputs) or "no sensor inputs"))
 
 

@@ -5,6 +5,7 @@ frame store bounded by bytes, and the relative pose of a closure (chain.py ties 
 __all__ = [
     "chain",
     "closures",
+    "depth_wait",
     "feature_store",
     "frame_depths",
     "frame_store",

@@ -91,7 +91,7 @@ class LoopClosureChain:
         self.log = log
         self.track = LoopTrack(config.track_seconds, config.track_island_seconds)
         self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.track, publish, outcomes)
-        self.depth_wait = DepthWait(depth_wait_s)
+        self.depth_wait = DepthWait(depth_wait_s, outcomes)
         self.pending: OrderedDict[int, Detection] = OrderedDict()  # query stamp -> detection, oldest first
         self.posteriors: OrderedDict[int, Posterior] = OrderedDict()  # query stamp -> posterior
 
@@ -185,22 +185,13 @@ class LoopClosureChain:
             self._track(posterior)
 
     def _depth_ready(self, query_ns: int) -> bool:
-        """The query's depth image is in, or will not come (counted as ``query_depth_missing``)."""
-        depths = self.store.depths
-        has_depth = depths is None or query_ns in depths
-        if not self.depth_wait.ready(query_ns, has_depth):
-            return False
-        if not has_depth and self.depth_wait.newest_depth_ns is not None:
-            self.outcomes.ok("query_depth_missing")
-        return True
+        """The query's depth image is in, or will not come (verification/depth_wait.py)."""
+        return self.depth_wait.ready(query_ns, self.store.depths is None or query_ns in self.store.depths)
 
     def _verify_waiting_for_depth(self) -> None:
         """The queries waiting for their depth image whose wait a new input may have ended, oldest first."""
-        for query_ns in list(self.depth_wait.waiting):
-            if query_ns in self.pending or query_ns in self.posteriors:
-                self._verify_if_ready(query_ns)
-            else:  # dropped meanwhile (max_pending, the posterior history)
-                self.depth_wait.forget(query_ns)
+        for query_ns in self.depth_wait.waiting_among(lambda stamp: stamp in self.pending or stamp in self.posteriors):
+            self._verify_if_ready(query_ns)
 
     def _ranked_places(self, posterior: Posterior) -> list[tuple[int, PlaceToVerify]]:
         """The posterior's candidates (rank, place) whose features are stored, best first."""

@@ -16,26 +16,37 @@ So a query waits for its depth image, and goes on without it only when that will
   stream has stopped, or trails further than the verifier should wait).
 
 Before the first depth image nothing waits: a depth topic that is named but silent must not hold every
-closure for ``wait_s``.
+closure for ``wait_s``. How long the queries that waited were held (wall time) is summarised on shutdown
+(``summary``), so the cost of the wait in latency is measured where it is paid.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+
+import numpy as np
 
 from aefabmap_ros.errors import ConfigError
+from aefabmap_ros.verification.closures import Outcomes
+
+WAITS_KEPT = 10_000  # the newest waits the summary describes
 
 
 class DepthWait:
     """Which queries may be verified now, as far as their depth image is concerned, and which wait."""
 
-    def __init__(self, wait_s: float) -> None:
+    def __init__(self, wait_s: float, outcomes: Outcomes | None = None) -> None:
         if not wait_s >= 0:
             raise ConfigError(f"depth_wait_s ({wait_s}) must be >= 0")
         self.wait_ns = round(wait_s * 1e9)
+        self.outcomes = outcomes  # counts query_depth_missing
         self.newest_depth_ns: int | None = None  # of any depth image, kept or not
         self.newest_frame_ns: int | None = None
-        self.waiting: OrderedDict[int, None] = OrderedDict()  # query stamps, oldest first (an ordered set)
+        # query stamp -> when its wait began (time.monotonic()), oldest first
+        self.waiting: OrderedDict[int, float] = OrderedDict()
+        self.waits_s: deque[float] = deque(maxlen=WAITS_KEPT)  # how long each query that waited was held
 
     def depth_came(self, stamp_ns: int) -> None:
         if self.newest_depth_ns is None or stamp_ns > self.newest_depth_ns:
@@ -46,11 +57,16 @@ class DepthWait:
             self.newest_frame_ns = stamp_ns
 
     def ready(self, query_ns: int, has_depth: bool) -> bool:
-        """True: verify the query now (its depth is in, or will not come); False: it waits (``waiting``)."""
+        """True: verify the query now (its depth is in, or will not come: counted as ``query_depth_missing`` once
+        a depth stream exists); False: it waits (``waiting``)."""
         if has_depth or self.will_not_come(query_ns):
-            self.waiting.pop(query_ns, None)
+            began = self.waiting.pop(query_ns, None)
+            if began is not None:
+                self.waits_s.append(time.monotonic() - began)
+            if not has_depth and self.newest_depth_ns is not None and self.outcomes is not None:
+                self.outcomes.ok("query_depth_missing")
             return True
-        self.waiting[query_ns] = None
+        self.waiting.setdefault(query_ns, time.monotonic())
         return False
 
     def will_not_come(self, query_ns: int) -> bool:
@@ -59,6 +75,17 @@ class DepthWait:
             return True
         return self.newest_frame_ns is not None and self.newest_frame_ns - query_ns > self.wait_ns
 
-    def forget(self, query_ns: int) -> None:
-        """The query is decided or dropped by the chain for another reason: it waits no longer."""
-        self.waiting.pop(query_ns, None)
+    def waiting_among(self, alive: Callable[[int], bool]) -> list[int]:
+        """The waiting queries ``alive`` still holds, oldest first; the others (dropped meanwhile by the chain's
+        bounds) wait no longer."""
+        for query_ns in [query_ns for query_ns in self.waiting if not alive(query_ns)]:
+            del self.waiting[query_ns]
+        return list(self.waiting)
+
+    def summary(self) -> str:
+        """How many queries waited for their depth image, and how long (wall time)."""
+        if not self.waits_s:
+            return "no query waited for its depth image"
+        p50, p95 = np.percentile(self.waits_s, [50, 95])
+        return (f"{len(self.waits_s)} queries waited for their depth image: median {p50:.3f} s, p95 {p95:.3f} s, "
+                f"max {max(self.waits_s):.3f} s")

@@ -58,6 +58,7 @@ def test_a_depth_image_of_another_size_is_dropped_in_either_order() -> None:
         assert SECOND in node.store.depths
         node._on_features(_features_message(query, 3))
         node._on_loop_closure(_closure(3, 1, query_id=10))
+        node._on_depth(_place_depth_image(4))  # a later frame's: the query's will not come, it goes on without it
         (closure,) = verified.messages
         assert closure.pose_available and closure.translation_metric
         assert _only_drops(node.counter.counts, "depth_size_mismatch")
@@ -86,6 +87,7 @@ def test_a_camera_info_without_usable_intrinsics_keeps_the_previous_ones(k: list
         node._on_features(_features_message(place, 1))
         node._on_features(_features_message(query, 3))
         node._on_loop_closure(_closure(3, 1, query_id=10))
+        node._on_depth(_place_depth_image(4))  # a later frame's: the query's will not come, it goes on without it
         (closure,) = verified.messages
         assert closure.pose_available and node.counter.counts["pose_ok"] == 1
         assert _only_drops(node.counter.counts, "bad_camera_info")

@@ -25,6 +25,9 @@ def test_a_query_waits_only_while_its_depth_image_can_still_come() -> None:
     assert not wait.ready(7 * SECOND, has_depth=False)
     wait.frame_came(9 * SECOND + 1)
     assert wait.ready(7 * SECOND, has_depth=False) and not wait.waiting
+    assert len(wait.waits_s) == 3 and all(held >= 0 for held in wait.waits_s)  # 5 s, 6 s and 7 s waited
+    assert wait.summary().startswith("3 queries waited for their depth image: median")
+    assert DepthWait(1.0).summary() == "no query waited for its depth image"
 
 
 def test_stamps_older_than_the_newest_do_not_move_it_back() -> None:
@@ -37,11 +40,11 @@ def test_stamps_older_than_the_newest_do_not_move_it_back() -> None:
     assert wait.ready(9 * SECOND, has_depth=False)
 
 
-def test_forget_ends_a_wait_and_a_negative_wait_is_refused() -> None:
+def test_a_query_the_chain_dropped_waits_no_longer_and_a_negative_wait_is_refused() -> None:
     wait = DepthWait(1.0)
     wait.depth_came(0)
-    assert not wait.ready(SECOND, has_depth=False)
-    wait.forget(SECOND)
-    assert not wait.waiting
+    assert not wait.ready(SECOND, has_depth=False) and not wait.ready(2 * SECOND, has_depth=False)
+    assert wait.waiting_among(lambda stamp: stamp == 2 * SECOND) == [2 * SECOND]
+    assert list(wait.waiting) == [2 * SECOND]
     with pytest.raises(ConfigError, match="depth_wait_s"):
         DepthWait(-0.5)
