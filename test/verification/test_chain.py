@@ -162,17 +162,24 @@ def test_a_closure_carries_the_known_relative_pose(with_depth: bool) -> None:
     assert run.counts["pose_no_camera_info"] == 1 and run.counts["pose_ok"] == 1
 
 
-def test_a_query_waits_for_its_own_depth_image_until_it_comes_or_will_not() -> None:
-    """A verifier under load takes depth images after the features: a query waits for its own, is verified with
-    it when it comes late, and without it only once a later depth image has come (its own was lost) or the
-    newest frame is depth_wait_s newer (the depth stream stopped)."""
+def _query_waiting_for_depth(**settings: object) -> tuple[Rig, Features, Features]:
+    """A place at 1 s with its depth, and query 10 at 3 s detected against it before its own depth image came."""
     query, place, _ = _two_views(seed=21)
     # The metric test off: its covisibility needs dense depth images, these have depth at the scene points only.
-    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0, depth_wait_s=2.0, metric_min_inliers=0)
+    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0, metric_min_inliers=0,
+              **settings)  # type: ignore[arg-type]
     run.chain.add_depth(SECOND, _place_depth())
     run.features(1, place)
     run.features(3, query)
     run.chain.add_detection(detection(3, 1, query_id=10))
+    return run, query, place
+
+
+def test_a_query_waits_for_its_own_depth_image_until_it_comes_or_will_not() -> None:
+    """A verifier under load takes depth images after the features: a query waits for its own, is verified with
+    it when it comes late, and without it only once a later depth image has come (its own was lost) or the
+    newest frame is depth_wait_s newer (the depth stream stopped)."""
+    run, query, place = _query_waiting_for_depth(depth_wait_s=2.0)
     assert not run.published and list(run.chain.depth_wait.waiting) == [3 * SECOND]
     run.chain.add_depth(3 * SECOND, _query_depth())  # late, but it comes: verified with it
     assert run.ids() == [(10, 1)] and run.counts.get("query_depth_missing", 0) == 0
@@ -205,12 +212,7 @@ def test_nothing_waits_for_a_depth_stream_that_never_started() -> None:
 
 
 def test_a_waiting_query_pushed_out_of_the_pending_detections_waits_no_longer() -> None:
-    query, place, _ = _two_views(seed=21)
-    run = rig(depths=True, camera=CAMERA, candidates=1, track_seconds=0.0, max_pending=1, metric_min_inliers=0)
-    run.chain.add_depth(SECOND, _place_depth())
-    run.features(1, place)
-    run.features(3, query)
-    run.chain.add_detection(detection(3, 1, query_id=10))
+    run, query, _ = _query_waiting_for_depth(max_pending=1)
     run.features(4, query)
     run.chain.add_detection(detection(4, 1, query_id=11))  # pushes query 10 out of max_pending 1
     run.chain.add_depth(4 * SECOND, _query_depth())
