@@ -1,12 +1,12 @@
 """Queries held until their own depth image has come (verification/chain.py).
 
-A frame's depth image comes on its own topic, and a verifier under load takes it after the frame's
-features, posterior and detection: the executor serves a 30 Hz depth stream and a 10 Hz features stream
-in turn, so during a revisit, when verification takes the time, the depth images fall behind. Verified
-before its depth image, a query gets no metric test, and its pose is PnP's on the place's depth alone:
-for a facade seen again from far back, one of two solutions that reproject almost equally well
-(relative_pose.py). On the dense synthetic video replayed in lockstep, every closure more than 10 m
-from its place that was published with a pose over 0.2 m off had been verified so.
+A frame's depth image comes on its own topic, straight from the camera, while its features, posterior and
+detection come through the detector's nodes; a verifier busy with a revisit takes its callbacks in turn, so
+a query can be ready before its depth image has been taken. Verified then, a query gets no metric test, and
+its pose is PnP's on the place's depth alone: for a facade seen again from far back, one of two solutions
+that reproject almost equally well (relative_pose.py). On the dense synthetic video replayed in lockstep,
+19 of the 21 closures published with a pose over 0.2 m off (all of them 15-28 m from their place) had been
+verified so.
 
 So a query waits for its depth image, and goes on without it only when that will not come:
 
