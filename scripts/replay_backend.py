@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from aefabmap_ros.backend.odometry import closure_in_base_frame
 from aefabmap_ros.backend.pose_graph import Closure, PoseGraph, PoseGraphConfig
 from aefabmap_ros.cli.demo_backend import ate_figures
 from aefabmap_ros.cli.evaluate_recording import read_recording
@@ -64,7 +65,7 @@ def replay(odometry: list[tuple[int, gtsam.Pose3]], closures: list[Any], pose_of
         graph.add_odometry(stamp, pose)
         while next_closure < len(arriving) and arriving[next_closure][0] <= stamp:
             message = closures[arriving[next_closure][1]]
-            relative, covariance = pose_of(message)
+            relative, covariance = closure_in_base_frame(*pose_of(message), gtsam.Pose3())  # as pose_graph_node
             graph.add_closure(Closure(stamp_ns(message.header.stamp), stamp_ns(message.matched_stamp), relative,
                                       covariance))
             next_closure += 1

@@ -68,10 +68,23 @@ def ros_to_gtsam_covariance(covariance: np.ndarray) -> np.ndarray:
     return covariance[np.ix_(order, order)]
 
 
+def pose_covariance_to_tangent(pose: gtsam.Pose3, covariance: np.ndarray) -> np.ndarray:
+    """A PoseWithCovariance's covariance (ROS order x y z rot; errors in the axes of the frame the pose is
+    given in: t + dt, Exp(dtheta) R) as gtsam's (rot, trans) covariance of a right perturbation
+    pose.compose(Exp(xi)).
+
+    To first order pose.compose(Exp((w, v))) is (R Exp(w), t + R v) = (Exp(R w) R, t + R v), so w = R^T dtheta
+    and v = R^T dt."""
+    to_pose_axes = np.kron(np.eye(2), pose.rotation().matrix().T)
+    tangent = to_pose_axes @ ros_to_gtsam_covariance(np.asarray(covariance, dtype=np.float64)) @ to_pose_axes.T
+    return np.asarray((tangent + tangent.T) / 2)
+
+
 def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, base_to_camera: gtsam.Pose3
                           ) -> tuple[gtsam.Pose3, np.ndarray]:
-    """A camera-frame closure (the place camera in the query camera's frame, covariance in ROS order
-    x y z rot) as the same closure between the two base (odometry child) frames.
+    """A camera-frame closure (the place camera in the query camera's frame, covariance as LoopClosure's:
+    ROS order x y z rot, errors in the query camera's axes) as the same closure between the two base
+    (odometry child) frames, its covariance over gtsam's right perturbation in ROS order.
 
     ``base_to_camera`` is T_base_camera (the camera's pose on the robot). The pose is conjugated,
     T_qbase_pbase = T_bc T_qc_pc T_bc^-1; a right perturbation Exp(xi) of the camera pose is Exp(Ad(T_bc) xi)
@@ -79,7 +92,7 @@ def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, b
     """
     pose = base_to_camera.compose(query_to_place).compose(base_to_camera.inverse())
     adjoint = base_to_camera.AdjointMap()  # gtsam order (rot, trans)
-    moved = adjoint @ ros_to_gtsam_covariance(np.asarray(covariance, dtype=np.float64)) @ adjoint.T
+    moved = adjoint @ pose_covariance_to_tangent(query_to_place, covariance) @ adjoint.T
     moved = (moved + moved.T) / 2  # exactly symmetric again (the graph checks it)
     back = [3, 4, 5, 0, 1, 2]  # gtsam (rot, trans) -> ROS (trans, rot): the same swap both ways
     return pose, moved[np.ix_(back, back)]
