@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from aefabmap_ros.verification.pose_error import PoseError, relative_pose_error
+from aefabmap_ros.verification.pose_error import OUTSIDE_COVARIANCE_CHI2, PoseError, relative_pose_error
 from aefabmap_ros.verification.relative_pose import pose_message_to_matrix
 
 INJECTED_TOPIC = "demo/loop_closures_injected"
@@ -60,6 +60,8 @@ class PoseErrors:
                     f"{direction:.3f} deg (target <= 3)")
             if label == "metric":
                 text += f", translation {100 * np.median([e.translation_m for e in errors]):.2f} cm (target <= 5)"
+                outside = sum(1 for e in errors if e.mahalanobis2 > OUTSIDE_COVARIANCE_CHI2)
+                text += f"; {outside} outside their covariance's 99.9 % region"
             lines.append(text)
         return "\n".join(lines)
 
@@ -86,7 +88,9 @@ class BackendCheck:
             self.errors.without_pose += 1
             return
 
-        error = relative_pose_error(self._poses[query], self._poses[place], pose_message_to_matrix(message.pose))
+        covariance = np.asarray(message.pose_covariance, dtype=np.float64) if message.translation_metric else None
+        error = relative_pose_error(self._poses[query], self._poses[place], pose_message_to_matrix(message.pose),
+                                    covariance)
         (self.errors.metric if message.translation_metric else self.errors.monocular).append(error)
         if self.injection is None and self._relayed >= INJECT_AFTER_CLOSURES:
             self._inject(message, query, place)

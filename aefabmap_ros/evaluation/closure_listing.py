@@ -17,7 +17,7 @@ import numpy as np
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.evaluation.recordings import RecordedClosure, seconds_text
 from aefabmap_ros.stamps import stamp_to_ns
-from aefabmap_ros.verification.pose_error import PoseError, relative_pose_error
+from aefabmap_ros.verification.pose_error import OUTSIDE_COVARIANCE_CHI2, PoseError, relative_pose_error
 from aefabmap_ros.verification.relative_pose import pose_message_to_matrix
 
 # A closure's two stamps take the ground-truth poses nearest in time within this much (as the ATE does).
@@ -68,7 +68,8 @@ def closure_pose_error(message: Any, truth: PoseTruth) -> PoseError | None:
     matched = truth.pose_at(stamp_to_ns(message.matched_stamp))
     if query is None or matched is None:
         return None
-    return relative_pose_error(query, matched, pose_message_to_matrix(message.pose))
+    covariance = np.asarray(message.pose_covariance, dtype=np.float64) if message.translation_metric else None
+    return relative_pose_error(query, matched, pose_message_to_matrix(message.pose), covariance)
 
 
 def pose_is_wrong(error: PoseError, metric: bool) -> bool:
@@ -106,6 +107,13 @@ class ClosureRow:
     def pose_wrong(self) -> bool | None:
         return None if self.error is None else pose_is_wrong(self.error, self.translation_metric)
 
+    @property
+    def pose_outside_covariance(self) -> bool | None:
+        """Whether the metric pose's error lies outside its covariance's 99.9 % region (None: not checked)."""
+        if self.error is None or math.isnan(self.error.mahalanobis2):
+            return None
+        return self.error.mahalanobis2 > OUTSIDE_COVARIANCE_CHI2
+
 
 def closure_rows(topic: str, loop_closures: Sequence[Any], closures: Sequence[RecordedClosure], gt: np.ndarray,
                  pose_truth: PoseTruth | None = None) -> list[ClosureRow]:
@@ -126,12 +134,14 @@ def closure_rows(topic: str, loop_closures: Sequence[Any], closures: Sequence[Re
 
 CSV_COLUMNS = ("topic", "query_stamp", "query_frame", "matched_stamp", "matched_frame", "probability", "inliers",
                "true", "gt", "pose_available", "translation_metric", "x", "y", "z", "qx", "qy", "qz", "qw",
-               "rotation_error_deg", "translation_error_m", "direction_error_deg", "pose_wrong")
+               "rotation_error_deg", "translation_error_m", "direction_error_deg", "pose_wrong",
+               "pose_error_mahalanobis2")
 
 
 def closures_csv(rows: Iterable[ClosureRow]) -> str:
     """closures.csv: one line per recorded closure (CSV_COLUMNS). Empty cells: no pose, or no pose truth;
-    translation_error_m only for a metric pose."""
+    translation_error_m and pose_error_mahalanobis2 (the error under the pose's covariance) only for a metric
+    pose."""
     def number(value: float) -> str:
         return "" if math.isnan(value) else f"{value:.6f}"
 
@@ -141,14 +151,15 @@ def closures_csv(rows: Iterable[ClosureRow]) -> str:
     for row in rows:
         pose = [f"{value:.9g}" for value in row.pose] if row.pose_available else [""] * 7
         error = row.error
-        errors = ["", "", ""] if error is None else [
+        errors = ["", "", "", ""] if error is None else [
             number(error.rotation_deg), number(error.translation_m) if row.translation_metric else "",
-            number(error.direction_deg)]
+            number(error.direction_deg), number(error.mahalanobis2)]
         wrong = row.pose_wrong
         writer.writerow([row.topic, seconds_text(row.query_stamp_ns), row.query_frame,
                          seconds_text(row.matched_stamp_ns), row.matched_frame, f"{row.probability:.6g}",
                          row.inliers, int(row.true), row.gt_value, int(row.pose_available),
-                         int(row.translation_metric), *pose, *errors, "" if wrong is None else int(wrong)])
+                         int(row.translation_metric), *pose, *errors[:3], "" if wrong is None else int(wrong),
+                         errors[3]])
     return buffer.getvalue()
 
 

@@ -62,6 +62,15 @@ class TopicClosureScores:
     def num_wrong_poses(self) -> int:
         return sum(1 for row in self.rows if row.pose_wrong)
 
+    @property
+    def num_covariance_checked(self) -> int:
+        """Metric poses whose error was measured under their own covariance."""
+        return sum(1 for row in self.rows if row.pose_outside_covariance is not None)
+
+    @property
+    def num_outside_covariance(self) -> int:
+        return sum(1 for row in self.rows if row.pose_outside_covariance)
+
 
 def score_recorded_closures(role: str, topic: str, loop_closures: Sequence[Any], posteriors: Sequence[Any],
                             gt: np.ndarray, frames: FrameIndex, min_gap: int, event_gap: int = DEFAULT_EVENT_GAP,
@@ -106,8 +115,9 @@ def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
         "| closures | topic | closures | verified (inliers > 0) | false | precision | revisit events "
         "| events closed | fraction of events closed | recall (revisiting frames) "
         "| recall (revisiting frames processed) | missed frames with a true place ranked |"
-        + (f" wrong poses (> {WRONG_POSE_DEG:g} deg or > {WRONG_POSE_M:g} m) / checked |" if poses else ""),
-        "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if poses else ""),
+        + (f" wrong poses (> {WRONG_POSE_DEG:g} deg or > {WRONG_POSE_M:g} m) / checked "
+           "| metric poses outside their covariance's 99.9 % region / checked |" if poses else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|" if poses else ""),
     ]
     for row in rows:
         e = row.events
@@ -115,7 +125,8 @@ def closure_scores_markdown(rows: Sequence[TopicClosureScores]) -> str:
             f"| {row.role} | `{row.topic}` | {e.num_closures} | {row.num_verified} | {e.num_false_closures} "
             f"| {fmt(row.precision)} | {e.num_events} | {e.num_events_closed} | {fmt(e.fraction_closed)} "
             f"| {recall_cell(e)} | {_processed_recall_cell(row)} | {missed_ranked_cell(row.num_missed_ranked, e)} |"
-            + (f" {row.num_wrong_poses} / {row.num_poses_checked} |" if poses else "")
+            + (f" {row.num_wrong_poses} / {row.num_poses_checked} "
+               f"| {row.num_outside_covariance} / {row.num_covariance_checked} |" if poses else "")
         )
     return "\n".join(lines) + "\n"
 
@@ -128,4 +139,6 @@ def closure_scores_to_dict(row: TopicClosureScores) -> dict[str, Any]:
             "recall_revisiting_frames_processed": jsonable_float(row.processed_recall),
             MISSED_RANKED_KEY: row.num_missed_ranked,
             "wrong_poses": row.num_wrong_poses if row.pose_truth_given else None,
-            "poses_checked": row.num_poses_checked if row.pose_truth_given else None}
+            "poses_checked": row.num_poses_checked if row.pose_truth_given else None,
+            "poses_outside_covariance": row.num_outside_covariance if row.pose_truth_given else None,
+            "poses_covariance_checked": row.num_covariance_checked if row.pose_truth_given else None}

@@ -48,6 +48,11 @@ def pose_truth_file(tmp_path):
     return path
 
 
+# The covariance of the pose 0.3 m off along the query camera's x and 10 degrees off: 0.3 m along x, 1 cm along
+# y and z, 10 degrees about every axis.
+OFF_COVARIANCE = np.diag([0.3 ** 2, 0.01 ** 2, 0.01 ** 2] + [np.radians(10.0) ** 2] * 3)
+
+
 def test_the_pose_error_of_a_closure_against_a_hand_made_pair(tmp_path):
     truth = read_pose_truth(pose_truth_file(tmp_path))
     exact = closure(12, 0, pose=TRUE_T_Q_M, metric=True)
@@ -58,9 +63,12 @@ def test_the_pose_error_of_a_closure_against_a_hand_made_pair(tmp_path):
     off = TRUE_T_Q_M.copy()
     off[:3, :3] = off[:3, :3] @ Rotation.from_euler("y", 10, degrees=True).as_matrix()
     off[:3, 3] += [0.3, 0.0, 0.0]
-    error = closure_pose_error(closure(12, 0, pose=off, metric=True), truth)
+    error = closure_pose_error(closure(12, 0, pose=off, metric=True, covariance=OFF_COVARIANCE), truth)
     assert error is not None
     assert error.rotation_deg == pytest.approx(10.0, abs=1e-4) and error.translation_m == pytest.approx(0.3, abs=1e-5)
+    # One standard deviation along the query camera's x and 10 degrees of rotation: 1 + 1. Read in the place
+    # camera's axes (30 degrees turned), the 0.3 m would put 0.15 m along a 1 cm axis.
+    assert error.mahalanobis2 == pytest.approx(2.0, abs=1e-6)
     true_t = TRUE_T_Q_M[:3, 3]
     cosine = true_t @ off[:3, 3] / np.linalg.norm(true_t) / np.linalg.norm(off[:3, 3])
     expected_direction = np.degrees(np.arccos(cosine))
@@ -88,7 +96,8 @@ def test_closures_csv_against_hand_computed_truth(tmp_path):
     off[:3, 3] += [0.3, 0.0, 0.0]
     monocular = TRUE_T_Q_M.copy()
     monocular[:3, 3] /= np.linalg.norm(monocular[:3, 3])
-    closures = [closure(12, 0, 0.995, inliers=80, pose=off, metric=True),   # true, its pose wrong
+    closures = [closure(12, 0, 0.995, inliers=80, pose=off, metric=True,   # true, its pose wrong
+                        covariance=OFF_COVARIANCE),
                 closure(12, 0, 0.99, inliers=60, pose=monocular),            # true, a right monocular pose
                 closure(11, 1, 0.98, inliers=40)]                           # false, no pose
     posteriors = [posterior(i, [], []) for i in range(13)]
@@ -106,13 +115,16 @@ def test_closures_csv_against_hand_computed_truth(tmp_path):
     assert float(first["rotation_error_deg"]) == pytest.approx(10.0, abs=1e-5)
     assert float(first["translation_error_m"]) == pytest.approx(0.3, abs=1e-5)
     assert [float(first[k]) for k in ("x", "y", "z")] == pytest.approx(off[:3, 3].tolist(), abs=1e-7)
+    assert float(first["pose_error_mahalanobis2"]) == pytest.approx(2.0, abs=1e-5)
     assert second["translation_metric"] == "0" and second["translation_error_m"] == ""  # a direction only
+    assert second["pose_error_mahalanobis2"] == ""
     assert float(second["direction_error_deg"]) == pytest.approx(0.0, abs=1e-4) and second["pose_wrong"] == "0"
     assert (third["query_frame"], third["matched_frame"], third["true"], third["gt"]) == ("11", "1", "0", "0")
     assert third["pose_available"] == "0" and third["x"] == third["rotation_error_deg"] == third["pose_wrong"] == ""
     assert (row.num_wrong_poses, row.num_poses_checked) == (1, 2)
-    assert closure_scores_markdown([row]).splitlines()[-1].endswith("| 1 / 2 |")
+    assert closure_scores_markdown([row]).splitlines()[-1].endswith("| 1 / 2 | 0 / 1 |")
     assert closure_scores_to_dict(row)["wrong_poses"] == 1
+    assert (closure_scores_to_dict(row)["poses_outside_covariance"], row.num_covariance_checked) == (0, 1)
     listing = closure_listing_markdown(list(row.rows), pose_truth_given=True)
     assert "| `loop_closures` | 11 | 1700000001.100000000 | 1 | 1700000000.100000000 | 0.9800 | 40 |  |  |" in listing
     assert ("| `loop_closures` | 12 | 1700000001.200000000 | 0 | 1700000000.000000000 | 0.9950 | 80 | 10.00 "

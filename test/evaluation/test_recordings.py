@@ -48,8 +48,9 @@ def no_pose():
 
 
 def closure(frame, matched, probability=0.99, query_id=None, inliers=-1, pose=None, metric=False,
-            matched_stamp=None):
-    """A LoopClosure from frame ``frame`` to frame ``matched``; ``pose`` a 4x4 T_q_m or None."""
+            matched_stamp=None, covariance=None):
+    """A LoopClosure from frame ``frame`` to frame ``matched``; ``pose`` a 4x4 T_q_m or None, ``covariance``
+    its 6x6 (identity by default)."""
     fields = no_pose()
     if pose is not None:
         x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
@@ -60,7 +61,7 @@ def closure(frame, matched, probability=0.99, query_id=None, inliers=-1, pose=No
         query_id=frame + 1000 if query_id is None else query_id, matched_place_id=matched + 500,
         matched_stamp=stamp(frame_stamp(matched) if matched_stamp is None else matched_stamp),
         probability=probability, inliers=inliers, pose_available=pose is not None, translation_metric=metric,
-        pose=fields)
+        pose=fields, pose_covariance=(np.eye(6) if covariance is None else np.asarray(covariance)).reshape(36).tolist())
 
 
 # ------------------------------------------------------------------------------------------ stamps -> frames
