@@ -15,6 +15,7 @@ __all__ = [
     "metric",
     "odometry_wait",
     "pair_check",
+    "pose_covariance",
     "pose_error",
     "relative_pose",
     "reranking",

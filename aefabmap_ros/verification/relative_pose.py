@@ -10,18 +10,11 @@ it from the verified matches:
 * with the depth of the place's keypoints: the place's 3-D points and the query's pixels ->
   ``cv2.solvePnPRansac`` -> rotation and metric translation (``metric`` True).
 
-The covariance is the Gauss-Newton one, ``sigma^2 (J^T J)^-1`` of the inliers' residuals
-(reprojection error for PnP, Sampson error for the essential matrix), in ROS order
-(x, y, z, rot x, rot y, rot z) and, as a ``geometry_msgs/PoseWithCovariance`` in the query camera's
-frame, over errors in that frame's axes: ``t_true = t + dt`` and ``R_true = Exp(dtheta) R``. ``sigma``
-is the inliers' residual scatter, but never below ``min_pixel_sigma_px``: RANSAC kept only matches
-within its threshold, so their scatter under-states how far a keypoint matched across a revisit's
-viewpoint change is off, and that error is shared by many keypoints (a blob's centre shifts alike
-with the view), which no scatter shows. Measured against the ground truth of the dense synthetic
-video (docs/verifier.md, "The pose covariance"), the scatter alone put 19 % of the poses outside
-their covariance's 99.9 % region. For the monocular pose the variance along the translation
-direction is ``UNKNOWN_SCALE_VARIANCE``: the scale is unobserved, and a backend must not treat the
-unit length as a measurement.
+The covariance (``verification/pose_covariance.py``) is the Gauss-Newton one of the inliers' residuals
+(reprojection error for PnP, Sampson error for the essential matrix), over errors along and about the
+query camera's axes, with the keypoints' error at least ``min_pixel_sigma_px``. For the monocular pose
+the variance along the translation direction is ``UNKNOWN_SCALE_VARIANCE``: the scale is unobserved,
+and a backend must not treat the unit length as a measurement.
 
 Degenerate geometry gives no pose, never a wrong one: too few matches (or too few with depth), too
 few RANSAC inliers, or too little parallax for the essential matrix (a pure rotation leaves the
@@ -39,6 +32,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import ConfigError, DataError
+from aefabmap_ros.verification.pose_covariance import (
+    gauss_newton_covariance,
+    numeric_jacobian,
+    pnp_covariance,
+    to_ros_order,
+)
 from aefabmap_ros.verification.rigid_alignment import misfit, rigid_alignment
 
 # Below this many correspondences RANSAC has no redundancy (5-point essential, 4-point PnP + checks).
@@ -156,46 +155,6 @@ def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
     return vector.reshape(3)
 
 
-def _gauss_newton_covariance(jacobian: np.ndarray, residuals: np.ndarray, parameters: int,
-                             min_sigma: float) -> np.ndarray:
-    """sigma^2 (J^T J)^+ with sigma^2 = |r|^2 / (n - p), at least ``min_sigma^2``: the covariance of a
-    least-squares estimate whose residuals have that standard deviation."""
-    dof = max(residuals.size - parameters, 1)
-    sigma2 = max(float(residuals @ residuals) / dof, min_sigma ** 2)
-    return sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
-
-
-def _cross_matrices(vectors: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) matrices [v]x with [v]x w = v x w, one per row of ``vectors`` (M, 3)."""
-    matrices = np.zeros((vectors.shape[0], 3, 3))
-    matrices[:, 0, 1], matrices[:, 0, 2] = -vectors[:, 2], vectors[:, 1]
-    matrices[:, 1, 0], matrices[:, 1, 2] = vectors[:, 2], -vectors[:, 0]
-    matrices[:, 2, 0], matrices[:, 2, 1] = -vectors[:, 1], vectors[:, 0]
-    return matrices
-
-
-def _pnp_covariance(objects: np.ndarray, images: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-                    camera: CameraModel, min_sigma_px: float) -> np.ndarray:
-    """Covariance (ROS order, errors in the query camera's axes) of the pose that maps the place points
-    ``objects`` onto the query pixels ``images``, from their reprojection residuals."""
-    distortion = camera.distortion if camera.distortion.size else None
-    projected, jacobian = cv2.projectPoints(objects, rvec, tvec, camera.matrix, distortion)
-    residuals = (projected.reshape(-1, 2) - images).reshape(-1)
-    # A pixel moves with its point Y = R X + t in the query frame as it moves with t (cv2's d/dtvec); a
-    # rotation dtheta about the query camera's axes moves Y by dtheta x (R X) = -[R X]x dtheta.
-    by_translation = jacobian[:, 3:6].reshape(-1, 2, 3)
-    rotated = objects @ _rotation_matrix(rvec).T
-    by_rotation = -by_translation @ _cross_matrices(rotated)
-    ros_jacobian = np.concatenate([by_translation, by_rotation], axis=2).reshape(-1, 6)
-    return _gauss_newton_covariance(ros_jacobian, residuals, 6, min_sigma_px)
-
-
-def _to_ros_order(covariance_rot_trans: np.ndarray) -> np.ndarray:
-    """(rot, trans) ordered 6x6 -> ROS (trans, rot) order."""
-    order = [3, 4, 5, 0, 1, 2]
-    return np.ascontiguousarray(covariance_rot_trans[np.ix_(order, order)])
-
-
 def _sampson_errors(rotation_vector: np.ndarray, translation: np.ndarray, query_normalized: np.ndarray,
                     place_normalized: np.ndarray) -> np.ndarray:
     """Sampson distances (normalised image units) of x_query^T E x_place = 0, E = [t]x R."""
@@ -210,17 +169,6 @@ def _sampson_errors(rotation_vector: np.ndarray, translation: np.ndarray, query_
     scale = np.sqrt(e_place[:, 0] ** 2 + e_place[:, 1] ** 2 + e_query[:, 0] ** 2 + e_query[:, 1] ** 2)
     result: np.ndarray = algebraic / np.maximum(scale, 1e-12)
     return result
-
-
-def _numeric_jacobian(residual_fn: object, parameters: np.ndarray, step: float = 1e-6) -> np.ndarray:
-    assert callable(residual_fn)
-    base = residual_fn(parameters)
-    jacobian = np.empty((base.size, parameters.size))
-    for column in range(parameters.size):
-        shifted = parameters.copy()
-        shifted[column] += step
-        jacobian[:, column] = (residual_fn(shifted) - base) / step
-    return jacobian
 
 
 def _parallax_deg(rotation: np.ndarray, query_normalized: np.ndarray, place_normalized: np.ndarray) -> float:
@@ -287,7 +235,7 @@ def essential_pose(query_points: np.ndarray, place_points: np.ndarray, camera: C
     parameters = np.concatenate([np.zeros(3), translation])
     # The Sampson error is in normalised image units: the pixel floor over the focal length.
     min_sigma = config.min_pixel_sigma_px / float(np.mean(np.diag(camera.matrix)[:2]))
-    covariance = _to_ros_order(_gauss_newton_covariance(_numeric_jacobian(sampson, parameters),
+    covariance = to_ros_order(gauss_newton_covariance(numeric_jacobian(sampson, parameters),
                                                         sampson(parameters), 5, min_sigma))
     # The Sampson error ignores the length of t: put "unobserved" along its direction.
     direction = np.outer(translation, translation)
@@ -344,7 +292,7 @@ def pnp_pose(query_points: np.ndarray, place_points: np.ndarray, place_depths_m:
             raise DataError(f"{query_depths.size} query depths for {valid.size} matches")
         rvec, tvec = _depth_consistent(rvec, tvec, objects, images, query_depths[valid][inlier_index], camera,
                                        config.ransac_threshold_px)
-    covariance = _pnp_covariance(objects, images, rvec, tvec, camera, config.min_pixel_sigma_px)
+    covariance = pnp_covariance(objects, images, rvec, tvec, camera.matrix, distortion, config.min_pixel_sigma_px)
     return PoseOutcome(RelativePose(_rotation_matrix(rvec), tvec.reshape(3), covariance, metric=True,
                                     inliers=int(inlier_index.size)), PoseStatus.OK)
 

@@ -444,14 +444,15 @@ def test_recording_metrics(tmp_path, capsys):
                    "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 2,
                    "recall_revisiting_frames": 0.25, "revisiting_frames_processed": 8,
                    "revisiting_frames_processed_closed": 2, "recall_revisiting_frames_processed": 0.25,
-                   "missed_revisiting_frames_with_a_true_place_ranked": 6, "wrong_poses": None, "poses_checked": None}
+                   "missed_revisiting_frames_with_a_true_place_ranked": 6, "wrong_poses": None, "poses_checked": None,
+                   "poses_outside_covariance": None, "poses_covariance_checked": None}
     assert verified == {"role": "published", "topic": "loop_closures", "closures": 1, "verified": 1,
                         "false_closures": 0, "precision": 1.0, "revisit_events": 1, "events_closed": 1,
                         "fraction_of_events_closed": 1.0, "revisiting_frames": 8, "revisiting_frames_closed": 1,
                         "recall_revisiting_frames": 0.125, "revisiting_frames_processed": 8,
                         "revisiting_frames_processed_closed": 1, "recall_revisiting_frames_processed": 0.125,
                         "missed_revisiting_frames_with_a_true_place_ranked": 7, "wrong_poses": None,
-                        "poses_checked": None}
+                        "poses_checked": None, "poses_outside_covariance": None, "poses_covariance_checked": None}
     # Every revisiting frame had its true place among its recorded top places: each miss is the decision's.
     assert ("| published | `loop_closures` | 1 | 1 | 0 | 1.000 | 1 | 1 | 1.000 | 0.125 (1/8) | 0.125 (1/8) "
             "| 7 / 7 |") in printed
