@@ -28,7 +28,7 @@ def gauss_newton_covariance(jacobian: np.ndarray, residuals: np.ndarray, paramet
     return sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
 
 
-def _cross_matrices(vectors: np.ndarray) -> np.ndarray:
+def cross_matrices(vectors: np.ndarray) -> np.ndarray:
     """(M, 3, 3) matrices [v]x with [v]x w = v x w, one per row of ``vectors`` (M, 3)."""
     matrices = np.zeros((vectors.shape[0], 3, 3))
     matrices[:, 0, 1], matrices[:, 0, 2] = -vectors[:, 2], vectors[:, 1]
@@ -47,7 +47,7 @@ def pnp_covariance(objects: np.ndarray, images: np.ndarray, rvec: np.ndarray, tv
     # rotation dtheta about the query camera's axes moves Y by dtheta x (R X) = -[R X]x dtheta.
     by_translation = jacobian[:, 3:6].reshape(-1, 2, 3)
     rotated = objects @ cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0].T
-    by_rotation = -by_translation @ _cross_matrices(rotated)
+    by_rotation = -by_translation @ cross_matrices(rotated)
     ros_jacobian = np.concatenate([by_translation, by_rotation], axis=2).reshape(-1, 6)
     return gauss_newton_covariance(ros_jacobian, residuals, 6, min_sigma_px)
 

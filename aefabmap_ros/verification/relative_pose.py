@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.verification.pose_covariance import (
+    cross_matrices,
     gauss_newton_covariance,
     numeric_jacobian,
     pnp_covariance,
@@ -155,12 +156,11 @@ def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
     return vector.reshape(3)
 
 
-def _sampson_errors(rotation_vector: np.ndarray, translation: np.ndarray, query_normalized: np.ndarray,
+def _sampson_errors(rotation: np.ndarray, translation: np.ndarray, query_normalized: np.ndarray,
                     place_normalized: np.ndarray) -> np.ndarray:
     """Sampson distances (normalised image units) of x_query^T E x_place = 0, E = [t]x R."""
     t = translation / max(float(np.linalg.norm(translation)), 1e-12)
-    skew = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    essential = skew @ _rotation_matrix(rotation_vector)
+    essential = cross_matrices(t.reshape(1, 3))[0] @ rotation
     place_h = np.column_stack([place_normalized, np.ones(len(place_normalized))])
     query_h = np.column_stack([query_normalized, np.ones(len(query_normalized))])
     e_place = place_h @ essential.T  # rows: E x_place
@@ -229,8 +229,7 @@ def essential_pose(query_points: np.ndarray, place_points: np.ndarray, camera: C
     translation = translation.reshape(3) / np.linalg.norm(translation)
 
     def sampson(parameters: np.ndarray) -> np.ndarray:  # parameters: dtheta (applied as Exp(dtheta) R), t
-        return _sampson_errors(_rotation_vector(_rotation_matrix(parameters[:3]) @ rotation), parameters[3:],
-                               query_n, place_n)
+        return _sampson_errors(_rotation_matrix(parameters[:3]) @ rotation, parameters[3:], query_n, place_n)
 
     parameters = np.concatenate([np.zeros(3), translation])
     # The Sampson error is in normalised image units: the pixel floor over the focal length.
