@@ -7,10 +7,12 @@ without the example backend, do not need gtsam installed.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gtsam
 import numpy as np
+from geometry_msgs.msg import Pose
 from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.errors import ConfigError
@@ -21,6 +23,26 @@ def pose_to_gtsam(pose: Any) -> gtsam.Pose3:
     """A geometry_msgs/Pose as a gtsam Pose3 (one ``messages.message_pose_problem`` accepted: scipy raises on
     the rest)."""
     return gtsam.Pose3(np.asarray(pose_message_to_matrix(pose), dtype=np.float64))
+
+
+def gtsam_to_poses(poses: Sequence[gtsam.Pose3]) -> list[Pose]:
+    """Pose3s as geometry_msgs/Pose. The rotations go through scipy in one call: converted one at a time, its
+    checks of each matrix cost more than the rest of a message, and a backend republishes every keyframe."""
+    if not poses:
+        return []
+    quaternions = Rotation.from_matrix(np.stack([pose.rotation().matrix() for pose in poses])).as_quat()
+    messages = []
+    for pose3, (qx, qy, qz, qw) in zip(poses, quaternions.tolist(), strict=True):
+        message = Pose()
+        x, y, z = pose3.translation().tolist()
+        message.position.x, message.position.y, message.position.z = x, y, z
+        message.orientation.x, message.orientation.y, message.orientation.z, message.orientation.w = qx, qy, qz, qw
+        messages.append(message)
+    return messages
+
+
+def gtsam_to_pose(pose: gtsam.Pose3) -> Pose:
+    return gtsam_to_poses([pose])[0]
 
 
 def loop_closure_pose(message: Any) -> tuple[gtsam.Pose3, np.ndarray]:

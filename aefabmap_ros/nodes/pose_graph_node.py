@@ -30,13 +30,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import gtsam
 from aefabmap_msgs.msg import LoopClosure
-from geometry_msgs.msg import Pose, PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
-from scipy.spatial.transform import Rotation
 
 from aefabmap_ros.backend.odometry import closure_in_base_frame
 from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
@@ -52,7 +50,13 @@ from aefabmap_ros.nodes.common import (
 )
 from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.graph_view import GraphView
-from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
+from aefabmap_ros.nodes.gtsam_poses import (
+    extrinsic_to_gtsam,
+    gtsam_to_pose,
+    gtsam_to_poses,
+    loop_closure_pose,
+    pose_to_gtsam,
+)
 from aefabmap_ros.nodes.messages import (
     loop_closure_pose_problem,
     loop_closure_stamp_problem,
@@ -69,15 +73,6 @@ except ImportError:  # pragma: no cover - depends on the installation
 
 _DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureResult.INCONSISTENT,
             ClosureResult.NO_POSE, ClosureResult.SOLVER_FAILED}
-
-
-def gtsam_to_pose(pose3: gtsam.Pose3) -> Pose:
-    message = Pose()
-    x, y, z = (float(value) for value in pose3.translation())
-    message.position.x, message.position.y, message.position.z = x, y, z
-    qx, qy, qz, qw = (float(value) for value in Rotation.from_matrix(pose3.rotation().matrix()).as_quat())
-    message.orientation.x, message.orientation.y, message.orientation.z, message.orientation.w = qx, qy, qz, qw
-    return message
 
 
 class PoseGraphNode(Node):
@@ -172,8 +167,9 @@ class PoseGraphNode(Node):
         stamp = time_from_ns(stamp_ns)
         path = PathMessage()
         path.header.frame_id, path.header.stamp = self.map_frame, stamp
-        for keyframe_ns, pose in self.graph.trajectory():
-            entry = PoseStamped(pose=gtsam_to_pose(pose))
+        trajectory = self.graph.trajectory()
+        for (keyframe_ns, _), pose in zip(trajectory, gtsam_to_poses([pose for _, pose in trajectory]), strict=True):
+            entry = PoseStamped(pose=pose)
             entry.header.frame_id, entry.header.stamp = self.map_frame, time_from_ns(keyframe_ns)
             path.poses.append(entry)
         self.path_publisher.publish(path)

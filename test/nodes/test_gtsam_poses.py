@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, loop_closure_pose, pose_to_gtsam
+from aefabmap_ros.nodes.gtsam_poses import (
+    extrinsic_to_gtsam,
+    gtsam_to_pose,
+    gtsam_to_poses,
+    loop_closure_pose,
+    pose_to_gtsam,
+)
 
 QUARTER_TURN_ABOUT_Z = (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))  # x y z w
 
@@ -42,3 +48,19 @@ def test_an_extrinsic_is_normalised_and_a_bad_one_refused():
     for values in ([0.0] * 7, [0.0] * 6, [math.nan, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]):
         with pytest.raises(ConfigError, match="base_to_camera must be"):
             extrinsic_to_gtsam(values)
+
+
+def test_poses_converted_together_rebuild_to_the_same_gtsam_poses():
+    rng = np.random.default_rng(3)
+    poses = [gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 2.0), rng.normal(size=3) * 10.0) for _ in range(50)]
+    messages = gtsam_to_poses(poses)
+    assert len(messages) == 50 and gtsam_to_poses([]) == []
+    for pose, message in zip(poses, messages, strict=True):
+        q = message.orientation  # rebuilt by gtsam's own quaternion constructor (w, x, y, z)
+        assert gtsam.Rot3.Quaternion(q.w, q.x, q.y, q.z).equals(pose.rotation(), 1e-12)
+        assert abs(np.linalg.norm([q.x, q.y, q.z, q.w]) - 1.0) < 1e-12
+        position = message.position
+        np.testing.assert_allclose([position.x, position.y, position.z], pose.translation(), atol=1e-12)
+        assert pose_to_gtsam(message).equals(pose, 1e-9)  # and back
+    single = gtsam_to_pose(poses[7])
+    assert single == messages[7]

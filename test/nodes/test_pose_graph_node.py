@@ -14,8 +14,9 @@ msg = pytest.importorskip("aefabmap_msgs.msg")
 from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
+from aefabmap_ros.nodes.gtsam_poses import gtsam_to_pose  # noqa: E402
 from aefabmap_ros.nodes.messages import time_from_ns  # noqa: E402
-from aefabmap_ros.nodes.pose_graph_node import PoseGraphNode, gtsam_to_pose  # noqa: E402
+from aefabmap_ros.nodes.pose_graph_node import PoseGraphNode  # noqa: E402
 from test.backend.test_pose_graph import drifting_odometry, square_truth, stamp  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.usefixtures("ros_context")]
