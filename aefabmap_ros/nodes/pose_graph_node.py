@@ -3,13 +3,14 @@
 Subscribes to odometry (``odom``, ``nav_msgs/Odometry``, strictly increasing stamps) and to
 ``loop_closures``; every closure with a relative pose adds a keyframe at each endpoint (odometry
 interpolated at the image stamps) and a robust loop factor, and the graph is re-optimised with
-iSAM2 (backend/pose_graph.py has the model). Publishes the optimised keyframe trajectory on
-``pose_graph/path`` (``nav_msgs/Path`` in ``map_frame``) and ``map -> odom``: on ``/tf`` when the
-``tf2_msgs`` package is installed, else as a ``geometry_msgs/TransformStamped`` on
-``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). While something subscribes to
-``pose_graph/markers`` (``visualization_msgs/MarkerArray``), every decided closure republishes the graph:
-keyframes, odometry edges, loop edges green when added and red when refused, the odometry path and the
-optimised one (nodes/graph_view.py); nothing is drawn for nobody. On shutdown the keyframe
+iSAM2 (backend/pose_graph.py has the model). Publishes ``map -> odom`` after every added closure: on
+``/tf`` when the ``tf2_msgs`` package is installed, else as a ``geometry_msgs/TransformStamped`` on
+``pose_graph/map_to_odom`` (tf2_msgs has no PyPI wheel for this venv). The optimised keyframe trajectory
+(``pose_graph/path``, ``nav_msgs/Path`` in ``map_frame``) and, while something subscribes to
+``pose_graph/markers`` (``visualization_msgs/MarkerArray``), the graph (keyframes, odometry edges, loop
+edges green when added and red when refused, the odometry path and the optimised one; nodes/graph_view.py)
+go out at most every ``publish_period_s`` when the graph changed: each holds every keyframe, and
+republished per closure at 10 closures a second they cost the node more than the graph itself. On shutdown the keyframe
 trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not written).
 
 The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
@@ -38,6 +39,7 @@ from rclpy.node import Node
 
 from aefabmap_ros.backend.odometry import closure_in_base_frame
 from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
+from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.nodes.common import (
     ODOMETRY_QOS,
@@ -87,6 +89,11 @@ class PoseGraphNode(Node):
             self, "base_to_camera", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
             "The camera's pose in the odometry's child (base) frame, [x, y, z, qx, qy, qz, qw] (identity: the "
             "camera is the base frame)."))
+        publish_period_s = float(declare_parameter(
+            self, "publish_period_s", 1.0, "The path and the graph's markers are republished at most this often, "
+            "when the graph changed (seconds, > 0; map -> odom goes out on every added closure)."))
+        if not publish_period_s > 0:
+            raise ConfigError(f"pose_graph_node: publish_period_s must be > 0, got {publish_period_s}")
         self.graph = PoseGraph(declare_config(self, PoseGraphConfig))
         self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
@@ -105,6 +112,9 @@ class PoseGraphNode(Node):
                                     depth=ODOMETRY_QOS.depth, counter=self.counter,
                                     without_it="no keyframes: the graph is built on odometry")
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        self._path_changed_ns: int | None = None  # stamp of the newest change not published yet
+        self._markers_changed_ns: int | None = None
+        self.create_timer(publish_period_s, self.publish_changes)
         self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
 
     @node_callback
@@ -159,22 +169,34 @@ class PoseGraphNode(Node):
             else:
                 self.counter.ok(result.value)
         if ClosureResult.ADDED in results:
-            self._publish(stamp_ns)
+            self._publish_map_to_odom(stamp_ns)
+            self._path_changed_ns = stamp_ns
         if any(result is not ClosureResult.WAITING for result in results):  # a loop edge to draw
-            self.graph_view.publish_if_watched(self.graph, stamp_ns)
+            self._markers_changed_ns = stamp_ns
 
-    def _publish(self, stamp_ns: int) -> None:
-        stamp = time_from_ns(stamp_ns)
+    @node_callback
+    def publish_changes(self) -> None:
+        """The path and the markers, if the graph changed since they were last published (the timer's)."""
+        if self._path_changed_ns is not None:
+            self._publish_path(self._path_changed_ns)
+            self._path_changed_ns = None
+        if self._markers_changed_ns is not None:
+            self.graph_view.publish_if_watched(self.graph, self._markers_changed_ns)
+            self._markers_changed_ns = None
+
+    def _publish_path(self, stamp_ns: int) -> None:
         path = PathMessage()
-        path.header.frame_id, path.header.stamp = self.map_frame, stamp
+        path.header.frame_id, path.header.stamp = self.map_frame, time_from_ns(stamp_ns)
         trajectory = self.graph.trajectory()
         for (keyframe_ns, _), pose in zip(trajectory, gtsam_to_poses([pose for _, pose in trajectory]), strict=True):
             entry = PoseStamped(pose=pose)
             entry.header.frame_id, entry.header.stamp = self.map_frame, time_from_ns(keyframe_ns)
             path.poses.append(entry)
         self.path_publisher.publish(path)
+
+    def _publish_map_to_odom(self, stamp_ns: int) -> None:
         transform = TransformStamped()
-        transform.header.frame_id, transform.header.stamp = self.map_frame, stamp
+        transform.header.frame_id, transform.header.stamp = self.map_frame, time_from_ns(stamp_ns)
         transform.child_frame_id = self.odom_frame
         pose = gtsam_to_pose(self.graph.map_to_odom())
         transform.transform.translation.x = pose.position.x

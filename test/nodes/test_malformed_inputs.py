@@ -154,7 +154,8 @@ def test_fabmap_node_counts_every_malformed_words_message(revisit_data: RevisitD
 
 def test_pose_graph_node_counts_every_malformed_odometry_and_closure(probed: list[TopicProbe],
                                                                      reliability: Recorder) -> None:
-    node = PoseGraphNode()
+    # The path answers each valid closure within 0.05 s (its period), so every frame is checked quickly.
+    node = PoseGraphNode(parameter_overrides=[Parameter("publish_period_s", value=0.05)])
     probe = TopicProbe(node, {"/odom": Odometry, "/loop_closures": LoopClosure}, {"/pose_graph/path": PathMessage})
     probed.append(probe)
     probe.wait_connected()

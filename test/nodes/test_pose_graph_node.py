@@ -65,6 +65,9 @@ def test_pose_graph_node_closes_the_loop_and_writes_tum(tmp_path: Path) -> None:
         node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0]), with_pose=False))  # no pose
         node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
         node._on_loop_closure(_closure(end, -5, truth[end].between(truth[0])))  # before the odometry
+        assert not paths and len(transforms) == 1  # map -> odom at once; the path with the next period's changes
+        node.publish_changes()
+        node.publish_changes()  # nothing changed since: nothing more
         counts = node.counter.counts
         assert counts["added"] == 1
         assert counts["dropped_odometry_out_of_order"] == 1
@@ -103,6 +106,7 @@ def test_pose_graph_node_moves_camera_closures_to_the_base_frame() -> None:
                 node._on_odometry(_odometry(index, pose))
             # To frame 2, not 0: the loop ends where it began, and an identity closure looks alike in any frame.
             node._on_loop_closure(_closure(end, 2, cameras[end].between(cameras[2])))
+            node.publish_changes()
             last = paths[-1].poses[-1].pose.position if paths else None
             errors[label] = (np.inf if last is None else
                              float(np.linalg.norm(np.array([last.x, last.y, last.z]) - truth[end].translation())))
@@ -118,6 +122,8 @@ def test_pose_graph_node_refuses_a_malformed_extrinsic() -> None:
 
     with pytest.raises(ConfigError, match="base_to_camera"):
         PoseGraphNode(parameter_overrides=[Parameter("base_to_camera", value=[0.0, 0.0, 0.0])])
+    with pytest.raises(ConfigError, match="publish_period_s"):
+        PoseGraphNode(parameter_overrides=[Parameter("publish_period_s", value=0.0)])
 
 
 def test_pose_graph_node_publishes_map_to_odom_on_tf() -> None:
@@ -197,8 +203,10 @@ def test_pose_graph_node_counts_malformed_odometry_and_closures_and_goes_on(tmp_
         counts = node.counter.counts
         assert counts["dropped_bad_odometry"] == 4 and counts["dropped_bad_closure_pose"] == 5
         assert counts["dropped_bad_closure_stamp"] == 1
+        node.publish_changes()
         assert node.graph.counts["odometry"] == len(odometry) and not paths and not node.graph.keyframes
         node._on_loop_closure(_closure(end, 0, true_pose))  # a valid one: the loop closes
+        node.publish_changes()
         assert counts["added"] == 1 and len(paths) == 1 and len(paths[0].poses) == 2
         last = paths[0].poses[-1].pose.position
         assert np.linalg.norm(np.array([last.x, last.y, last.z]) - truth[end].translation()) < 0.1
@@ -228,6 +236,7 @@ def test_pose_graph_node_survives_any_exception_in_its_callbacks(monkeypatch: py
         assert node.counter.counts["dropped_ValueError"] == 1
         monkeypatch.setattr(node.graph, "add_closure", real)
         node._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        node.publish_changes()
         assert node.counter.counts["added"] == 1 and len(paths) == 1
     finally:
         node.destroy_node()
