@@ -53,13 +53,14 @@ class VerifierNode(Node):
                                 folder=Path(p.store_dir) if p.store_dir else None)
         for note in self.store.load():
             self.get_logger().info(note)
-        self.clock = FeatureClock(p.max_lag_s)
+        self.clock = FeatureClock(p.max_lag_s, p.drop_after_lag_s)
         self.future_stamps = FutureStamps(self)
         self.chain = LoopClosureChain(
             self.store, p.config, p.pose_config, self._publish, self.counter,
             gate=OdometryGate(p.drift_model, p.base_to_camera) if p.odometry_gate else None,
             max_pending=p.max_pending, odometry_wait_s=p.odometry_wait_s,
             max_awaiting_odometry=p.max_awaiting_odometry, depth_wait_s=p.depth_wait_s, behind=self.clock.behind,
+            too_late=self.clock.too_late,
             log=self._log)
         self.chain.pairs.camera = p.camera
         self.camera_fixed = self.chain.pairs.camera is not None

@@ -50,6 +50,7 @@ class VerifierParameters:
     max_features: int
     max_pending: int
     max_lag_s: float
+    drop_after_lag_s: float
     store_dir: str
     save_period_s: float
     config: VerificationConfig
@@ -85,6 +86,10 @@ def declare_verifier_parameters(node: Node) -> VerifierParameters:
                          "were sent is checked against its detection only (no re-ranking) and loop tracking waits, "
                          "so the verifier catches up with a live camera instead of falling behind during a "
                          "revisit (seconds; 0 = never: a lockstep replay, reproducible)."),
+        drop_after_lag_s=number("drop_after_lag_s", 1.0, "A closure whose query's features were sent more than "
+                                "this long ago is dropped unverified (dropped_behind), so a verifier that cannot "
+                                "keep up with the camera stays at most this far behind it (seconds, 0 or >= "
+                                "max_lag_s; 0 = never: a lockstep replay)."),
         store_dir=declare_parameter(node, "store_dir", "", "Folder the frame store (features, depths, each "
                                     "frame's place) is saved to and reloaded from ('' = memory only)."),
         save_period_s=number("save_period_s", 10.0, "Save the frames added since the last save this often "
@@ -125,6 +130,9 @@ def _check(parameters: VerifierParameters) -> None:
     bounds = {"max_stored_frames": parameters.max_frames, "max_pending": parameters.max_pending,
               "max_awaiting_odometry": parameters.max_awaiting_odometry, "max_store_mb": parameters.max_store_bytes}
     too_small = [f"{name} ({value})" for name, value in bounds.items() if value < 1]
+    if parameters.drop_after_lag_s and not parameters.drop_after_lag_s >= parameters.max_lag_s:
+        raise ConfigError(f"verifier_node: drop_after_lag_s ({parameters.drop_after_lag_s}) must be 0 (never) or >= "
+                          f"max_lag_s ({parameters.max_lag_s}): a closure is cut short before it is dropped")
     if too_small or parameters.max_features < 0 or not parameters.odometry_wait_s >= 0 \
             or not parameters.depth_wait_s >= 0:
         raise ConfigError(f"verifier_node: {', '.join(too_small) or 'the bounds'} must be >= 1 (max_store_mb > 0), "

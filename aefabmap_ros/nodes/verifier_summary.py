@@ -15,11 +15,12 @@ from aefabmap_ros.verification.chain import POSTERIOR_HISTORY, LoopClosureChain
 
 class FeatureClock:
     """When feature_node sent each recent frame's features (wall clock, as DDS stamps them): how far behind
-    the verifier is, the time they waited in its queue included (``max_lag_s``), and each published
-    closure's delay from its query's features."""
+    the verifier is, the time they waited in its queue included (``max_lag_s``, ``drop_after_lag_s``), and
+    each published closure's delay from its query's features."""
 
-    def __init__(self, max_lag_s: float) -> None:
+    def __init__(self, max_lag_s: float, drop_after_lag_s: float = 0.0) -> None:
         self.max_lag_s = max_lag_s
+        self.drop_after_lag_s = drop_after_lag_s
         self._sent_ns: dict[int, int] = {}  # features stamp -> sent (wall clock ns)
         self.delays_s: deque[float] = deque(maxlen=10_000)
 
@@ -30,8 +31,16 @@ class FeatureClock:
 
     def behind(self, query_ns: int) -> bool:
         """More than max_lag_s since the query's features were sent: the verifier is behind the camera."""
+        return self._older_than(query_ns, self.max_lag_s)
+
+    def too_late(self, query_ns: int) -> bool:
+        """More than drop_after_lag_s since the query's features were sent: too late to verify at all."""
+        return self._older_than(query_ns, self.drop_after_lag_s)
+
+    def _older_than(self, query_ns: int, lag_s: float) -> bool:
+        """The query's features were sent more than ``lag_s`` ago (never, for ``lag_s`` 0 or unknown features)."""
         sent_ns = self._sent_ns.get(query_ns)
-        return bool(self.max_lag_s) and sent_ns is not None and time.time_ns() - sent_ns > self.max_lag_s * 1e9
+        return bool(lag_s) and sent_ns is not None and time.time_ns() - sent_ns > lag_s * 1e9
 
     def published(self, query_ns: int) -> None:
         sent_ns = self._sent_ns.get(query_ns)

@@ -21,7 +21,9 @@ feeds it a recorded sequence. Both therefore publish the same closures for the s
 - **Odometry gate** (verification/odometry_wait.py): a verified closure is published when odometry
   agrees with its relative pose, or waits for odometry to reach its stamps.
 - **Behind the camera** (``behind``, verifier_node's ``max_lag_s``): a query the chain takes too late is
-  checked against its detection only, and loop tracking skips it, so a live verifier catches up.
+  checked against its detection only, and loop tracking skips it, so a live verifier catches up. One taken
+  later still (``too_late``, ``drop_after_lag_s``) is dropped unverified: the verifier's lag stays bounded
+  when even the detections alone cost more than the camera leaves it.
 """
 
 from __future__ import annotations
@@ -82,12 +84,13 @@ class LoopClosureChain:
                  publish: Callable[[Closure], None], outcomes: Outcomes, *, gate: ClosureGate | None = None,
                  max_pending: int = 100, odometry_wait_s: float = 10.0, max_awaiting_odometry: int = 1000,
                  depth_wait_s: float = 2.0, behind: Callable[[int], bool] = _never_behind,
-                 log: Callable[[str, bool], None] = _no_log) -> None:
+                 too_late: Callable[[int], bool] = _never_behind, log: Callable[[str, bool], None] = _no_log) -> None:
         self.store = store
         self.pairs = PairCheck(store, config, pose_config, outcomes)
         self.outcomes = outcomes
         self.max_pending = max_pending
         self.behind = behind
+        self.too_late = too_late
         self.log = log
         self.track = LoopTrack(config.track_seconds, config.track_island_seconds)
         self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.track, publish, outcomes)
@@ -204,6 +207,10 @@ class LoopClosureChain:
 
     def _verify(self, detection: Detection, posterior: Posterior | None) -> None:
         query_ns = detection.query_ns
+        if self.too_late(query_ns):
+            self.outcomes.drop("behind", f"loop closure query {detection.query_id}: taken too long after its "
+                               "features (drop_after_lag_s), dropped unverified so the verifier catches up")
+            return
         query, matched = self.store.get(query_ns), self.store.get(detection.matched_ns)
         if query is None or matched is None:
             self.outcomes.drop("place_features_unknown",

@@ -68,7 +68,7 @@ def _odometry(sec: int, pose: Any) -> Any:
     """nav_msgs/Odometry of the camera (its own base frame) at ``sec``; ``pose`` a gtsam Pose3."""
     from nav_msgs.msg import Odometry
 
-    from aefabmap_ros.nodes.pose_graph_node import gtsam_to_pose
+    from aefabmap_ros.nodes.gtsam_poses import gtsam_to_pose
 
     message = Odometry()
     message.header.stamp = Time(sec=sec)
@@ -137,7 +137,7 @@ def test_verifier_node_refuses_bad_parameters() -> None:
     with pytest.raises(ConfigError, match="min_inliers"):
         VerifierNode(parameter_overrides=_params(min_inliers=3))
     for name, value in (("max_stored_frames", 0), ("max_store_mb", 0.0), ("max_awaiting_odometry", 0),
-                        ("odometry_wait_s", -1.0), ("depth_wait_s", -1.0)):
+                        ("odometry_wait_s", -1.0), ("depth_wait_s", -1.0), ("drop_after_lag_s", 0.1)):
         with pytest.raises(ConfigError, match=name):
             VerifierNode(parameter_overrides=_params(**{name: value}))
 

@@ -58,7 +58,7 @@ class Rig:
 
 def rig(*, gate: bool = False, depths: bool = False, camera: CameraModel | None = None, max_pending: int = 100,
         odometry_wait_s: float = 5.0, max_awaiting_odometry: int = 1000, behind: bool = False,
-        depth_wait_s: float = 2.0, **config: object) -> Rig:
+        too_late: frozenset[int] = frozenset(), depth_wait_s: float = 2.0, **config: object) -> Rig:
     outcomes = Outcomes()
     published: list[Closure] = []
     store = FrameStore(20_000, 2**40, 500, keep_depths=depths)
@@ -67,7 +67,7 @@ def rig(*, gate: bool = False, depths: bool = False, camera: CameraModel | None 
                              gate=OdometryGate(PoseGraphConfig(), gtsam.Pose3()) if gate else None,
                              max_pending=max_pending, odometry_wait_s=odometry_wait_s,
                              max_awaiting_odometry=max_awaiting_odometry, depth_wait_s=depth_wait_s,
-                             behind=lambda _query_ns: behind)
+                             behind=lambda _query_ns: behind, too_late=too_late.__contains__)
     chain.pairs.camera = camera
     return Rig(chain, outcomes, published)
 
@@ -103,6 +103,24 @@ def test_true_closures_pass_and_the_rest_is_held_back() -> None:
     assert run.counts["dropped_place_features_unknown"] == 1
     assert run.counts["dropped_query_features_never_came"] == 1 and run.counts["dropped_bad_features"] == 1
     assert len(run.chain.store) == 4 and not run.chain.pending
+
+
+def test_a_closure_taken_too_late_is_dropped_unverified_and_the_next_one_verified() -> None:
+    """A verifier that cannot keep up drops the detections whose features came too long ago (``too_late``)
+    without spending a verification on them, counts each, and verifies the next fresh one as before."""
+    query, place, _ = _two_views(seed=21)
+    run = rig(candidates=1, track_seconds=0.0, too_late=frozenset({3 * SECOND, 4 * SECOND}))
+    run.chain.pairs.verify = None  # type: ignore[assignment]  # a late detection must not reach verification
+    for sec, features in ((1, place), (3, query), (4, query)):
+        run.features(sec, features)
+    run.chain.add_detection(detection(3, 1, query_id=30))
+    run.chain.add_detection(detection(4, 1, query_id=40))
+    assert not run.published and not run.chain.pending
+    assert run.counts["dropped_behind"] == 2
+    del run.chain.pairs.verify  # the class's own again
+    run.features(5, query)
+    run.chain.add_detection(detection(5, 1, query_id=50))
+    assert run.ids() == [(50, 1)] and run.counts["accepted"] == 1 and "rejected" not in run.counts
 
 
 def _place_depth(seed: int = 21) -> np.ndarray:
