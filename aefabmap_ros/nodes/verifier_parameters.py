@@ -86,9 +86,9 @@ def declare_verifier_parameters(node: Node) -> VerifierParameters:
                          "were sent is checked against its detection only (no re-ranking) and loop tracking waits, "
                          "so the verifier catches up with a live camera instead of falling behind during a "
                          "revisit (seconds; 0 = never: a lockstep replay, reproducible)."),
-        drop_after_lag_s=number("drop_after_lag_s", 1.0, "A closure whose query's features were sent more than "
-                                "this long ago is dropped unverified (dropped_behind), so a verifier that cannot "
-                                "keep up with the camera stays at most this far behind it (seconds, 0 or >= "
+        drop_after_lag_s=number("drop_after_lag_s", 1.0, "While the verifier takes features more than this long "
+                                "after they were sent (it is that far behind the camera), it drops the detections "
+                                "it takes unverified (dropped_behind), so its lag stays bounded (seconds, 0 or >= "
                                 "max_lag_s; 0 = never: a lockstep replay)."),
         store_dir=declare_parameter(node, "store_dir", "", "Folder the frame store (features, depths, each "
                                     "frame's place) is saved to and reloaded from ('' = memory only)."),

@@ -15,32 +15,33 @@ from aefabmap_ros.verification.chain import POSTERIOR_HISTORY, LoopClosureChain
 
 class FeatureClock:
     """When feature_node sent each recent frame's features (wall clock, as DDS stamps them): how far behind
-    the verifier is, the time they waited in its queue included (``max_lag_s``, ``drop_after_lag_s``), and
-    each published closure's delay from its query's features."""
+    the camera the verifier is, the time they waited in its queue included (``max_lag_s``,
+    ``drop_after_lag_s``), and each published closure's delay from its query's features."""
 
     def __init__(self, max_lag_s: float, drop_after_lag_s: float = 0.0) -> None:
         self.max_lag_s = max_lag_s
         self.drop_after_lag_s = drop_after_lag_s
         self._sent_ns: dict[int, int] = {}  # features stamp -> sent (wall clock ns)
+        self.queue_wait_ns = 0  # of the newest features taken: how far behind the camera the verifier takes its input
         self.delays_s: deque[float] = deque(maxlen=10_000)
 
     def sent(self, stamp_ns: int, sent_ns: int | None) -> None:
-        self._sent_ns[stamp_ns] = time.time_ns() if sent_ns is None else sent_ns
+        now_ns = time.time_ns()
+        self._sent_ns[stamp_ns] = now_ns if sent_ns is None else sent_ns
+        self.queue_wait_ns = max(0, now_ns - self._sent_ns[stamp_ns])
         while len(self._sent_ns) > POSTERIOR_HISTORY:
             del self._sent_ns[next(iter(self._sent_ns))]
 
     def behind(self, query_ns: int) -> bool:
         """More than max_lag_s since the query's features were sent: the verifier is behind the camera."""
-        return self._older_than(query_ns, self.max_lag_s)
-
-    def too_late(self, query_ns: int) -> bool:
-        """More than drop_after_lag_s since the query's features were sent: too late to verify at all."""
-        return self._older_than(query_ns, self.drop_after_lag_s)
-
-    def _older_than(self, query_ns: int, lag_s: float) -> bool:
-        """The query's features were sent more than ``lag_s`` ago (never, for ``lag_s`` 0 or unknown features)."""
         sent_ns = self._sent_ns.get(query_ns)
-        return bool(lag_s) and sent_ns is not None and time.time_ns() - sent_ns > lag_s * 1e9
+        return bool(self.max_lag_s) and sent_ns is not None and time.time_ns() - sent_ns > self.max_lag_s * 1e9
+
+    def too_late(self, _query_ns: int) -> bool:
+        """The newest features waited more than drop_after_lag_s in the queue: the verifier is that far behind
+        the camera and drops detections until it catches up. Measured on its input, not on the query, so a query
+        that waited for its depth image while the verifier kept up is still verified."""
+        return bool(self.drop_after_lag_s) and self.queue_wait_ns > self.drop_after_lag_s * 1e9
 
     def published(self, query_ns: int) -> None:
         sent_ns = self._sent_ns.get(query_ns)

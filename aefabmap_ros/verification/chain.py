@@ -21,9 +21,9 @@ feeds it a recorded sequence. Both therefore publish the same closures for the s
 - **Odometry gate** (verification/odometry_wait.py): a verified closure is published when odometry
   agrees with its relative pose, or waits for odometry to reach its stamps.
 - **Behind the camera** (``behind``, verifier_node's ``max_lag_s``): a query the chain takes too late is
-  checked against its detection only, and loop tracking skips it, so a live verifier catches up. One taken
-  later still (``too_late``, ``drop_after_lag_s``) is dropped unverified: the verifier's lag stays bounded
-  when even the detections alone cost more than the camera leaves it.
+  checked against its detection only, and loop tracking skips it, so a live verifier catches up. Further
+  behind still (``too_late``, ``drop_after_lag_s``), detections are dropped unverified: the verifier's lag
+  stays bounded when even the detections alone cost more than the camera leaves it.
 """
 
 from __future__ import annotations
@@ -89,8 +89,7 @@ class LoopClosureChain:
         self.pairs = PairCheck(store, config, pose_config, outcomes)
         self.outcomes = outcomes
         self.max_pending = max_pending
-        self.behind = behind
-        self.too_late = too_late
+        self.behind, self.too_late = behind, too_late  # how far behind a live camera (verifier_node's clock)
         self.log = log
         self.track = LoopTrack(config.track_seconds, config.track_island_seconds)
         self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.track, publish, outcomes)
@@ -207,9 +206,8 @@ class LoopClosureChain:
 
     def _verify(self, detection: Detection, posterior: Posterior | None) -> None:
         query_ns = detection.query_ns
-        if self.too_late(query_ns):
-            self.outcomes.drop("behind", f"loop closure query {detection.query_id}: taken too long after its "
-                               "features (drop_after_lag_s), dropped unverified so the verifier catches up")
+        if self.too_late(query_ns):  # too far behind the camera to verify it: dropped so the chain catches up
+            self.outcomes.drop("behind", f"loop closure query {detection.query_id} dropped unverified, far behind")
             return
         query, matched = self.store.get(query_ns), self.store.get(detection.matched_ns)
         if query is None or matched is None:

@@ -11,16 +11,17 @@ from aefabmap_ros.nodes.verifier_summary import FeatureClock, delay_summary
 SECOND = 1_000_000_000
 
 
-def test_a_query_is_behind_after_max_lag_and_too_late_after_drop_after_lag() -> None:
+def test_a_query_is_behind_after_max_lag_and_the_verifier_too_late_while_its_input_waits_past_drop_after_lag(
+) -> None:
     clock = FeatureClock(max_lag_s=0.25, drop_after_lag_s=1.0)
     now = time.time_ns()
-    clock.sent(1, now - SECOND // 2)  # sent 0.5 s ago
-    clock.sent(2, now - 2 * SECOND)  # 2 s ago
-    clock.sent(3, now + 60 * SECOND)  # just now, as far as this test runs
+    clock.sent(1, now - SECOND // 2)  # taken 0.5 s after it was sent
     assert clock.behind(1) and not clock.too_late(1)
-    assert clock.behind(2) and clock.too_late(2)
-    assert not clock.behind(3) and not clock.too_late(3)
-    assert not clock.behind(99) and not clock.too_late(99)  # features never seen: nothing to measure by
+    clock.sent(2, now - 2 * SECOND)  # taken 2 s after: the verifier is 2 s behind the camera
+    assert clock.behind(2) and clock.too_late(2) and clock.too_late(1)
+    clock.sent(3, time.time_ns())  # caught up: a query that waited (for its depth image, say) is verified
+    assert clock.behind(2) and not clock.too_late(2) and not clock.too_late(3)
+    assert not clock.behind(99)  # features never seen: nothing to measure by
 
 
 def test_zero_means_never_as_a_lockstep_replay_wants() -> None:
