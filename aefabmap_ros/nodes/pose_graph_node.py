@@ -10,8 +10,9 @@ iSAM2 (backend/pose_graph.py has the model). Publishes ``map -> odom`` after eve
 ``pose_graph/markers`` (``visualization_msgs/MarkerArray``), the graph (keyframes, odometry edges, loop
 edges green when added and red when refused, the odometry path and the optimised one; nodes/graph_view.py)
 go out at most every ``publish_period_s`` when the graph changed: each holds every keyframe, and
-republished per closure at 10 closures a second they cost the node more than the graph itself. On shutdown the keyframe
-trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not written).
+republished per closure at 10 closures a second they cost the node more than the graph itself. On
+shutdown the keyframe trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not
+written).
 
 The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
 ``base_to_camera`` ([x, y, z, qx, qy, qz, qw], the camera's pose in the base frame, T_base_camera;
