@@ -1,6 +1,7 @@
 """Odometry by stamp and a loop closure in the robot's frame, shared by the pose graph and the odometry gate:
 the buffer that interpolates odometry poses (SE(3) geodesic), a camera-frame closure moved into the base
-(odometry child) frame, and its disagreement with the relative pose odometry predicts. gtsam and numpy only.
+(odometry child) frame, and its disagreement with the relative pose odometry predicts. gtsam and numpy, and
+the covariance order the verifier publishes (verification/pose_covariance.py).
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ import bisect
 
 import gtsam
 import numpy as np
+
+from aefabmap_ros.verification.pose_covariance import to_ros_order
 
 
 def interpolate(before: gtsam.Pose3, after: gtsam.Pose3, fraction: float) -> gtsam.Pose3:
@@ -63,9 +66,9 @@ class OdometryBuffer:
 
 
 def ros_to_gtsam_covariance(covariance: np.ndarray) -> np.ndarray:
-    """(x, y, z, rot) -> gtsam's Pose3 tangent order (rot, x, y, z)."""
-    order = [3, 4, 5, 0, 1, 2]
-    return covariance[np.ix_(order, order)]
+    """(x, y, z, rot) -> gtsam's Pose3 tangent order (rot, x, y, z): the swap ``to_ros_order`` makes, its own
+    inverse."""
+    return to_ros_order(covariance)
 
 
 def pose_covariance_to_tangent(pose: gtsam.Pose3, covariance: np.ndarray) -> np.ndarray:
@@ -94,8 +97,7 @@ def closure_in_base_frame(query_to_place: gtsam.Pose3, covariance: np.ndarray, b
     adjoint = base_to_camera.AdjointMap()  # gtsam order (rot, trans)
     moved = adjoint @ pose_covariance_to_tangent(query_to_place, covariance) @ adjoint.T
     moved = (moved + moved.T) / 2  # exactly symmetric again (the graph checks it)
-    back = [3, 4, 5, 0, 1, 2]  # gtsam (rot, trans) -> ROS (trans, rot): the same swap both ways
-    return pose, moved[np.ix_(back, back)]
+    return pose, to_ros_order(moved)
 
 
 def odometry_disagreement(query_to_place: gtsam.Pose3, loop_covariance: np.ndarray, predicted: gtsam.Pose3,
