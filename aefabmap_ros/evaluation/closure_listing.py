@@ -151,15 +151,15 @@ def closures_csv(rows: Iterable[ClosureRow]) -> str:
     for row in rows:
         pose = [f"{value:.9g}" for value in row.pose] if row.pose_available else [""] * 7
         error = row.error
-        errors = ["", "", "", ""] if error is None else [
+        errors = ["", "", ""] if error is None else [
             number(error.rotation_deg), number(error.translation_m) if row.translation_metric else "",
-            number(error.direction_deg), number(error.mahalanobis2)]
+            number(error.direction_deg)]
         wrong = row.pose_wrong
         writer.writerow([row.topic, seconds_text(row.query_stamp_ns), row.query_frame,
                          seconds_text(row.matched_stamp_ns), row.matched_frame, f"{row.probability:.6g}",
                          row.inliers, int(row.true), row.gt_value, int(row.pose_available),
-                         int(row.translation_metric), *pose, *errors[:3], "" if wrong is None else int(wrong),
-                         errors[3]])
+                         int(row.translation_metric), *pose, *errors, "" if wrong is None else int(wrong),
+                         "" if error is None else number(error.mahalanobis2)])
     return buffer.getvalue()
 
 
