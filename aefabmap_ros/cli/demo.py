@@ -50,6 +50,7 @@ from aefabmap_ros.nodes.launch_table import (
     VIEW_TOPICS,
     verifier_store_path,
 )
+from aefabmap_ros.vocabulary.config import VocabularyConfig
 
 # What the replay publishes beside the images (aefabmap_synth's bag): the verifier's depth and
 # intrinsics, and the backend's drifting odometry.
@@ -74,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--bags", type=Path, default=Path("bags") / "generated",
                         help="where the sample bags are made (once) and found (default bags/generated)")
     parser.add_argument("--frames", type=int, default=300, help="frames per synthetic sequence (default 300)")
-    parser.add_argument("--size", type=int, default=1000, help="visual words per vocabulary (default 1000)")
+    parser.add_argument("--size", type=int, default=VocabularyConfig().size,
+                        help=f"visual words per vocabulary (default {VocabularyConfig().size})")
     parser.add_argument("--skip-ros", action="store_true", help="offline evaluation only (no ROS nodes)")
     parser.add_argument("--quick", action="store_true",
                         help="a small, fast version (fewer and smaller frames, small vocabularies)")
