@@ -199,8 +199,8 @@ class Verification:
     # The epipolar test's own decision: with depth, the metric test may accept a pair it refused for its share
     # of the keypoints, or refuse one it accepted whose views do not overlap.
     epipolar_accepted: bool = False
-    # (M, 2) keypoint rows of the matches (query, place): an accepted pair's relative pose is computed from
-    # the same matches without matching again. Not part of the outcome's value.
+    # (M, 2) keypoint rows (query, place) of the matches that fit the accepted geometry: an accepted pair's
+    # relative pose is computed from them without matching again. Not part of the outcome's value.
     matched_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
@@ -278,7 +278,10 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     # The share of keypoints that fit one geometry: an overlap measure, independent of resolution.
     shared = inliers >= config.min_inlier_ratio * max(min(len(query), len(place)), 1)
     accepted = inliers >= config.min_inliers and shared
-    verification = Verification(matches=int(rows.shape[0]), inliers=inliers, accepted=accepted, matched_rows=rows,
+    # The pose of an accepted pair is fitted to the matches on its epipolar geometry: a rigid motion's inliers
+    # lie on it too, so PnP's RANSAC needs a few iterations over them instead of many over every match.
+    verification = Verification(matches=int(rows.shape[0]), inliers=inliers, accepted=accepted,
+                                matched_rows=rows[epipolar] if fundamental is not None else rows,
                                 epipolar_accepted=accepted)
     if depths is None or not config.metric_min_inliers or fundamental is None:
         return verification
@@ -332,4 +335,4 @@ def _accepted_by_metric_test(verification: Verification, query: Features, place:
                                               rows[on_lines], depths, config)
     accepted = moved and overlapping
     return replace(verification, accepted=accepted, metric=check,
-                   matched_rows=rows if accepted else verification.matched_rows)
+                   matched_rows=rows[on_lines] if accepted else verification.matched_rows)

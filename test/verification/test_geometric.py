@@ -144,11 +144,27 @@ def test_a_true_second_view_is_accepted_with_its_correspondences_as_inliers() ->
     assert result.accepted
     # Independent reference: the scene's own correspondences are the inliers (clutter is not).
     assert 0.9 * shared <= result.inliers <= result.matches <= shared + 5
-    # The accepted pair keeps its matches (the relative pose uses them): the matcher's rows.
-    assert result.matched_rows is not None
-    np.testing.assert_array_equal(result.matched_rows, match_indices(query, place, ratio=0.8))
+    # The accepted pair keeps its inlier matches (the relative pose uses them): rows of the matcher's.
+    assert result.matched_rows is not None and result.matched_rows.shape[0] == result.inliers
+    matcher_rows = {tuple(row) for row in match_indices(query, place, ratio=0.8)}
+    assert {tuple(row) for row in result.matched_rows} <= matcher_rows
     # The rows are not part of the value.
     assert result == Verification(result.matches, result.inliers, True, epipolar_accepted=True)
+
+
+def test_an_accepted_pair_keeps_its_correspondences_and_not_matches_off_its_geometry() -> None:
+    """Ten clutter keypoints of the place carry the descriptors of ten of the query's, at unrelated positions:
+    the matcher pairs them, the geometry does not. The pose is fitted to the rows kept: the scene's own
+    correspondences (row i with row i), none of the ten."""
+    query, place, shared = _two_views(seed=5)
+    decoys = np.arange(shared, shared + 10)
+    place.descriptors[decoys] = query.descriptors[decoys]
+    assert {(int(d), int(d)) for d in decoys} <= {tuple(row) for row in match_indices(query, place, ratio=0.8)}
+    result = verify_pair(query, place, VerificationConfig())
+    assert result.accepted and result.matched_rows is not None
+    kept = {tuple(row) for row in result.matched_rows.tolist()}
+    assert not kept & {(int(d), int(d)) for d in decoys}
+    assert len(kept & {(i, i) for i in range(shared)}) >= 0.9 * shared
 
 
 def test_a_small_shared_part_of_two_busy_images_is_no_match() -> None:
