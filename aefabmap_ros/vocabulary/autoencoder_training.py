@@ -289,7 +289,7 @@ def _pretrain(
             loss = bce(logits, xb)
             if pair_order is not None and pairs is not None:
                 chosen = pairs[pair_order[np.arange(b * batch, (b + 1) * batch) % len(pairs)]]
-                loss = loss + options.ae_match_weight * _pair_loss(model, x_all, chosen, options)
+                loss = loss + options.ae_match_weight * _match_loss(model, x_all, chosen, options.ae_match_temperature)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -307,21 +307,6 @@ def cosine_rate(base: float, step: int, total_steps: int) -> float:
 def _set_learning_rate(optimizer: torch.optim.Optimizer, rate: float) -> None:
     for group in optimizer.param_groups:
         group["lr"] = rate
-
-
-def _pair_loss(model: Autoencoder, x_all: np.ndarray, chosen: np.ndarray, options: VocabularyConfig) -> torch.Tensor:
-    if options.ae_match_loss == "cross":
-        return _cross_view_loss(model, x_all, chosen)
-    return _match_loss(model, x_all, chosen, options.ae_match_temperature)
-
-
-def _cross_view_loss(model: Autoencoder, x_all: np.ndarray, chosen: np.ndarray) -> torch.Tensor:
-    """Binary cross-entropy of each descriptor of a matched pair decoded into its partner (both ways): the
-    embedding keeps what a scene point's descriptor keeps from one view to the next."""
-    xa = torch.from_numpy(x_all[chosen[:, 0]])
-    xb = torch.from_numpy(x_all[chosen[:, 1]])
-    bce = nn.functional.binary_cross_entropy_with_logits
-    return 0.5 * (bce(model(xa)[1], xb) + bce(model(xb)[1], xa))
 
 
 def _match_loss(model: Autoencoder, x_all: np.ndarray, chosen: np.ndarray, temperature: float) -> torch.Tensor:

@@ -16,7 +16,6 @@ from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS
 
 AE_INPUTS = ("pca", "matches")  # the autoencoder's input projections (``AutoencoderOptions.ae_input``)
-AE_MATCH_LOSSES = ("infonce", "cross")  # the match term's forms (``AutoencoderOptions.ae_match_loss``)
 AE_NETWORKS = ("mlp", "conv")  # the autoencoders (``AutoencoderOptions.ae_network``)
 Check = tuple[str, bool, str]  # field name, whether its value is valid, the rule it breaks otherwise
 
@@ -97,9 +96,6 @@ class AutoencoderOptions:
         "needs matched pairs; 0 = off.")
     ae_match_temperature: float = _describe(
         0.5, "Temperature of the match term's InfoNCE (relative to the batch's mean squared distance).")
-    ae_match_loss: str = _describe(
-        "infonce", "The match term: 'infonce' (a matched pair embeds closer than the batch's other pairs) or "
-        "'cross' (each descriptor of a pair is decoded into its partner: cross-view reconstruction).")
     ae_student_hidden: int = _describe(
         256, "ae_network 'conv': hidden units of a small encoder distilled from the network that then quantizes "
         "(PCA -> hidden -> embedding, numpy) instead of the network; 0 = the paper's network quantizes "
@@ -138,7 +134,6 @@ class AutoencoderOptions:
             ("ae_max_train_descriptors", self.ae_max_train_descriptors >= 1, ">= 1"),
             ("ae_match_weight", self.ae_match_weight >= 0, ">= 0"),
             ("ae_match_temperature", self.ae_match_temperature > 0, "> 0"),
-            ("ae_match_loss", self.ae_match_loss in AE_MATCH_LOSSES, f"one of {', '.join(AE_MATCH_LOSSES)}"),
             ("ae_student_hidden", self.ae_student_hidden >= 0, ">= 0"),
             ("ae_student_epochs", self.ae_student_epochs >= 1, ">= 1"),
             ("ae_student_learning_rate", self.ae_student_learning_rate > 0, "> 0"),

@@ -67,35 +67,3 @@ def test_centroids_are_member_means_and_an_empty_words_nearest_descriptor() -> N
     for word in range(3):
         np.testing.assert_allclose(means[word], rows[labels == word].mean(axis=0), rtol=1e-5)
     np.testing.assert_array_equal(means[3], rows[nearest_row])
-
-
-def test_cross_view_loss_is_log_two_for_a_network_that_predicts_one_half() -> None:
-    import math
-
-    import torch
-
-    from aefabmap_ros.vocabulary.autoencoder import MlpAutoencoder
-    from aefabmap_ros.vocabulary.autoencoder_training import _cross_view_loss
-
-    model = MlpAutoencoder(6, 8, 3)
-    for parameter in model.parameters():
-        torch.nn.init.zeros_(parameter)  # every logit 0: p = 1/2 for every target, BCE = ln 2 whatever it is
-    rows = np.random.default_rng(0).uniform(0, 1, (10, 6)).astype(np.float32)
-    pairs = np.array([[0, 5], [1, 6], [2, 7]])
-    assert float(_cross_view_loss(model, rows, pairs)) == pytest.approx(math.log(2.0), rel=1e-6)
-
-
-def test_cross_view_loss_of_a_pair_of_one_row_is_its_reconstruction_loss() -> None:
-    import torch
-
-    from aefabmap_ros.vocabulary.autoencoder import MlpAutoencoder
-    from aefabmap_ros.vocabulary.autoencoder_training import _cross_view_loss
-
-    torch.manual_seed(0)
-    model = MlpAutoencoder(6, 8, 3)
-    rows = np.random.default_rng(1).uniform(0, 1, (4, 6)).astype(np.float32)
-    logits = model(torch.from_numpy(rows))[1].detach().numpy().astype(np.float64)
-    probability = 1 / (1 + np.exp(-logits))
-    by_hand = -np.mean(rows * np.log(probability) + (1 - rows) * np.log(1 - probability))
-    pairs = np.stack([np.arange(4), np.arange(4)], axis=1)
-    assert float(_cross_view_loss(model, rows, pairs)) == pytest.approx(by_hand, rel=1e-5)

@@ -30,7 +30,7 @@ def test_every_key_is_declared_by_exactly_one_kind() -> None:
             owners.setdefault(name, []).append(options.__name__)
     assert {name for name, classes in owners.items() if len(classes) > 1} == set()
     assert set(owners) == {f.name for f in fields(VocabularyConfig)}
-    assert len(fields(VocabularyConfig)) == 33  # the flat keys YAML files and model folders use
+    assert len(fields(VocabularyConfig)) == 32  # the flat keys YAML files and model folders use
 
 
 def test_the_config_is_each_kinds_options_with_the_same_values() -> None:
