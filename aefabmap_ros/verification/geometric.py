@@ -281,7 +281,7 @@ def verify_pair(query: Features, place: Features, config: VerificationConfig,
     # The pose of an accepted pair is fitted to the matches on its epipolar geometry: a rigid motion's inliers
     # lie on it too, so PnP's RANSAC needs a few iterations over them instead of many over every match.
     verification = Verification(matches=int(rows.shape[0]), inliers=inliers, accepted=accepted,
-                                matched_rows=rows[epipolar] if fundamental is not None else rows,
+                                matched_rows=rows[epipolar],
                                 epipolar_accepted=accepted)
     if depths is None or not config.metric_min_inliers or fundamental is None:
         return verification
