@@ -27,6 +27,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_bench = aefabmap_ros.cli.bench:main",
     "aefabmap_ate = aefabmap_ros.cli.ate:main",
     "aefabmap_view = aefabmap_ros.cli.view:main",
+    "aefabmap_words = aefabmap_ros.cli.words:main",
 ]
 
 setup(

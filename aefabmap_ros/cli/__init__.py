@@ -35,4 +35,6 @@ __all__ = [
     "train",
     "train_run",
     "view",
+    "words",
+    "words_run",
 ]

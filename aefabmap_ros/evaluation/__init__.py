@@ -17,4 +17,5 @@ __all__ = [
     "reports",
     "tfidf",
     "trajectory_error",
+    "word_statistics",
 ]

@@ -127,19 +127,30 @@ def sequence_pairs(features: Sequence[Features], *, max_gap: int = 1, ratio: flo
     the self-supervised signal for ``train_vocabulary(..., pairs=...)``. The same matches the verifier
     counts (``features.matching``, then the epipolar inliers of its default settings).
     """
-
     if max_gap < 1:
         raise ConfigError(f"max_gap={max_gap} must be >= 1")
+    frames = [(i, j) for i in range(len(features)) for j in range(i + 1, min(len(features), i + max_gap + 1))]
+    return _matched_rows(features, frames, ratio)
+
+
+def pairs_at_gap(features: Sequence[Features], gap: int, *, ratio: float = 0.8) -> np.ndarray:
+    """``sequence_pairs`` between frames exactly ``gap`` apart only: (M, 2) rows, the earlier frame's first."""
+    if gap < 1:
+        raise ConfigError(f"gap={gap} must be >= 1")
+    return _matched_rows(features, [(i, i + gap) for i in range(len(features) - gap)], ratio)
+
+
+def _matched_rows(features: Sequence[Features], frames: Iterable[tuple[int, int]], ratio: float) -> np.ndarray:
+    """The epipolar-inlier matches of each (i, j) frame pair, as rows into the concatenated descriptors."""
     offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
     geometry = VerificationConfig()
     chunks = []
-    for i in range(len(features)):
-        for j in range(i + 1, min(len(features), i + max_gap + 1)):
-            local = match_indices(features[i], features[j], ratio=ratio)
-            points = (features[i].keypoints[local[:, 0], :2].astype(np.float32),
-                      features[j].keypoints[local[:, 1], :2].astype(np.float32))
-            local = local[epipolar_inliers(*points, geometry)]
-            chunks.append(local + np.array([offsets[i], offsets[j]]))
+    for i, j in frames:
+        local = match_indices(features[i], features[j], ratio=ratio)
+        points = (features[i].keypoints[local[:, 0], :2].astype(np.float32),
+                  features[j].keypoints[local[:, 1], :2].astype(np.float32))
+        local = local[epipolar_inliers(*points, geometry)]
+        chunks.append(local + np.array([offsets[i], offsets[j]]))
     return np.concatenate(chunks).astype(np.int64) if chunks else np.zeros((0, 2), np.int64)
 
 

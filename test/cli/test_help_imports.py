@@ -20,7 +20,10 @@ print("loaded:" + ",".join(name for name in sys.argv[2].split(",") if name in sy
 """
 
 
-@pytest.mark.parametrize("module", [f"aefabmap_ros.cli.{name}" for name in ("train", "evaluate", "bench", "gt")])
+HEAVY_WORK_CLIS = ("train", "evaluate", "bench", "gt", "words")
+
+
+@pytest.mark.parametrize("module", [f"aefabmap_ros.cli.{name}" for name in HEAVY_WORK_CLIS])
 def test_help_and_usage_errors_import_no_heavy_library(module):
     result = subprocess.run([sys.executable, "-c", PROBE, module, ",".join(HEAVY)], capture_output=True, text=True,
                             timeout=120, check=True)
@@ -28,7 +31,7 @@ def test_help_and_usage_errors_import_no_heavy_library(module):
     assert "usage:" in result.stdout + result.stderr or module.endswith("bench")
 
 
-CLIS = ("train", "evaluate", "gt", "synth", "bag", "ate", "launch", "replay", "record", "demo")
+CLIS = ("train", "evaluate", "gt", "synth", "bag", "ate", "launch", "replay", "record", "demo", "words")
 
 
 @pytest.mark.parametrize("name", CLIS)
