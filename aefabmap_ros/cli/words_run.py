@@ -111,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
     if args.far < 1:
         raise ConfigError(f"--far must be >= 1, got {args.far}")
     parse_gaps(args.gaps)  # a bad --gaps fails before any work
+    if args.json is not None and not args.json.resolve().parent.is_dir():
+        raise ConfigError(f"--json {args.json}: folder {args.json.resolve().parent} does not exist")
     source = image_source(args)
     models = [(path, load_model(path)) for path in args.model]
     results = statistics_of(models, args, source)

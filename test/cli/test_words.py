@@ -72,6 +72,7 @@ def test_bad_input_is_one_error_line(tmp_path: Path, revisit_data: RevisitData,
     assert "--gaps 'a,b'" in _error(capsys, [*model, *bag, "--gaps", "a,b"])
     assert "--stride must be >= 1" in _error(capsys, [*model, *bag, "--stride", "0"])
     assert "--far must be >= 1" in _error(capsys, [*model, *bag, "--far", "0"])
+    assert "does not exist" in _error(capsys, [*model, *bag, "--json", str(tmp_path / "no" / "w.json")])
     assert "usage: aefabmap_words" in _error(capsys, [*bag])  # --model is required
     missing = tmp_path / "no_model"
     assert str(missing) in _error(capsys, ["--model", str(missing), *bag])
