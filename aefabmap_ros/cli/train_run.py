@@ -73,17 +73,25 @@ def source_provenance(source: ImageSource) -> dict[str, Any]:
 
 def extract_all(sources: list[ImageSource], feature_config: FeatureConfig, work_dir: Path,
                 quiet: bool) -> list[list[Features]]:
-    sequences = []
-    for source in sources:
-        cache = work_dir / f"features-{source.fingerprint()}-{config_digest(feature_config)}.npz"
-        with tqdm(total=len(source), desc=f"features {source.name}", unit="img", disable=quiet,
-                  file=sys.stderr) as bar:
-            frames = (gray for _, gray in source.frames())
-            sequence = extract_sequence_features(frames, feature_config, cache_path=cache,
-                                                 on_frame=lambda _: bar.update())
-            bar.update(bar.total - bar.n)
-        sequences.append(sequence)
-    return sequences
+    return [source_features(source, feature_config, work_dir, quiet) for source in sources]
+
+
+def source_features(source: ImageSource, feature_config: FeatureConfig, work_dir: Path | None, quiet: bool,
+                    stride: int = 1) -> list[Features]:
+    """Every ``stride``-th frame's features, cached in ``work_dir`` (None: not cached) per source, feature settings
+    and stride; aefabmap_train's cache serves any tool that reads the same source with the same settings."""
+    cache = None
+    if work_dir is not None:
+        work_dir.mkdir(parents=True, exist_ok=True)
+        strided = "" if stride == 1 else f"-s{stride}"
+        cache = work_dir / f"features-{source.fingerprint()}{strided}-{config_digest(feature_config)}.npz"
+    frames = (gray for index, (_, gray) in enumerate(source.frames()) if index % stride == 0)
+    with tqdm(total=-(-len(source) // stride), desc=f"features {source.name}", unit="img", disable=quiet,
+              file=sys.stderr) as bar:
+        sequence = extract_sequence_features(frames, feature_config, cache_path=cache,
+                                             on_frame=lambda _: bar.update())
+        bar.update(bar.total - bar.n)
+    return sequence
 
 
 def run_training(args: argparse.Namespace) -> int:

@@ -5,21 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
+from aefabmap_ros.cli.train_run import source_features
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.evaluation.word_statistics import WordStatistics, word_statistics
-from aefabmap_ros.features.extraction import FeatureConfig, Features
+from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.io.atomic import atomic_write_text
 from aefabmap_ros.io.sources import ImageSource
 from aefabmap_ros.model.directory import Model, load_model
-from aefabmap_ros.model.training import config_digest, extract_sequence_features, pairs_at_gap
+from aefabmap_ros.model.training import config_digest, pairs_at_gap
 
 
 def parse_gaps(text: str) -> list[int]:
@@ -40,29 +39,15 @@ def image_source(args: argparse.Namespace) -> ImageSource:
     return source
 
 
-def sequence_features(source: ImageSource, config: FeatureConfig, stride: int, work_dir: Path | None,
-                      quiet: bool) -> list[Features]:
-    """Every ``stride``-th frame's features, cached in ``work_dir`` per source, stride and feature settings."""
-    cache = None
-    if work_dir is not None:
-        work_dir.mkdir(parents=True, exist_ok=True)
-        cache = work_dir / f"features-{source.fingerprint()}-s{stride}-{config_digest(config)}.npz"
-    frames = (gray for index, (_, gray) in enumerate(source.frames()) if index % stride == 0)
-    with tqdm(total=-(-len(source) // stride), desc=f"features {source.name}", unit="img", disable=quiet,
-              file=sys.stderr) as bar:
-        return extract_sequence_features(frames, config, cache_path=cache, on_frame=lambda _: bar.update())
-
-
-def statistics_of(models: list[tuple[Path, Model]], args: argparse.Namespace,
+def statistics_of(models: list[tuple[Path, Model]], gaps: list[int], args: argparse.Namespace,
                   source: ImageSource) -> list[tuple[Path, Model, WordStatistics]]:
     """Each model's statistics; features and matched pairs computed once per feature configuration."""
-    gaps = parse_gaps(args.gaps)
     by_features: dict[str, tuple[list[Features], dict[int, np.ndarray]]] = {}
     results = []
     for path, model in models:
         key = config_digest(model.feature_config)
         if key not in by_features:
-            features = sequence_features(source, model.feature_config, args.stride, args.work_dir, args.quiet)
+            features = source_features(source, model.feature_config, args.work_dir, args.quiet, args.stride)
             by_features[key] = (features, {gap: pairs_at_gap(features, gap) for gap in gaps})
         features, pairs = by_features[key]
         results.append((path, model, word_statistics(model.quantizer, features, pairs, args.far)))
@@ -110,12 +95,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--stride must be >= 1, got {args.stride}")
     if args.far < 1:
         raise ConfigError(f"--far must be >= 1, got {args.far}")
-    parse_gaps(args.gaps)  # a bad --gaps fails before any work
+    gaps = parse_gaps(args.gaps)  # a bad --gaps fails before any work
     if args.json is not None and not args.json.resolve().parent.is_dir():
         raise ConfigError(f"--json {args.json}: folder {args.json.resolve().parent} does not exist")
     source = image_source(args)
     models = [(path, load_model(path)) for path in args.model]
-    results = statistics_of(models, args, source)
+    results = statistics_of(models, gaps, args, source)
     print_table(results)
     if args.json is not None:
         write_json(args.json, results, source, args.stride)
