@@ -96,11 +96,13 @@ def _bag_argv(tool: str, bag: Path, topic: str, inputs: Inputs, tmp: Path) -> li
         np.savez(tmp / "gt.npz", gt=np.zeros((16, 16), np.uint8))
         return ["--bag", str(bag), "--topic", topic, "--gt", str(tmp / "gt.npz"), "--model", str(inputs.model),
                 "--out", str(tmp / "eval"), "--quiet"]
+    if tool == "words":
+        return ["--model", str(inputs.model), "--bag", str(bag), "--topic", topic, "--quiet"]
     return [str(bag), "--topic", topic, "--quiet", "--wait-timeout", "0.1"]  # replay: fails before it publishes
 
 
 @pytest.mark.parametrize("fault", BAG_FAULTS)
-@pytest.mark.parametrize("tool", ["train", "evaluate", "replay"])
+@pytest.mark.parametrize("tool", ["train", "evaluate", "replay", "words"])
 def test_a_broken_bag_is_one_error_line(tool: str, fault: str, inputs: Inputs, tmp_path: Path,
                                         capsys: pytest.CaptureFixture[str], reliability: Recorder) -> None:
     bag = inputs.mcap_bag if fault == "topic missing" else _bag_broken(inputs, tmp_path, fault)
@@ -158,7 +160,7 @@ MODEL_FAULTS = ["metadata missing", "metadata not JSON", "metadata wrong types",
 
 # aefabmap_launch checks the model's files before it starts a node; what only loading finds (contents whose
 # checksums agree) each node refuses at its start-up, and the loader meets those through aefabmap_eval.
-CASES = [("evaluate", fault) for fault in MODEL_FAULTS] + [
+CASES = [(tool, fault) for tool in ("evaluate", "words") for fault in MODEL_FAULTS] + [
     ("launch", fault) for fault in MODEL_FAULTS if "checksum agreeing" not in fault]
 
 
@@ -168,6 +170,8 @@ def test_a_broken_model_is_one_error_line(tool: str, fault: str, inputs: Inputs,
     model = _model_broken(inputs, tmp_path, fault)
     if tool == "launch":  # refused before a node starts
         argv = ["--model", str(model), "--map", str(tmp_path / "map.npz")]
+    elif tool == "words":
+        argv = ["--model", str(model), "--bag", str(inputs.mcap_bag), "--topic", "/image", "--quiet"]
     else:
         np.savez(tmp_path / "gt.npz", gt=np.zeros((16, 16), np.uint8))
         argv = ["--bag", str(inputs.mcap_bag), "--topic", "/image", "--gt", str(tmp_path / "gt.npz"), "--model",
@@ -280,7 +284,8 @@ def test_evaluate_refuses_a_broken_loop_matrix(fault: str, inputs: Inputs, tmp_p
 
 TOOLS: dict[str, str] = {"train": "aefabmap_ros.cli.train", "evaluate": "aefabmap_ros.cli.evaluate",
                          "replay": "aefabmap_ros.cli.replay", "gt": "aefabmap_ros.cli.gt",
-                         "ate": "aefabmap_ros.cli.ate", "launch": "aefabmap_ros.cli.launch"}
+                         "ate": "aefabmap_ros.cli.ate", "launch": "aefabmap_ros.cli.launch",
+                         "words": "aefabmap_ros.cli.words"}
 
 
 def _main(tool: str) -> Callable[[list[str]], int]:
