@@ -14,7 +14,8 @@ tell a revisit from another place, and both can be read off a sequence with no g
 Word usage is summed up by its perplexity (``exp`` of the entropy of how often each word is used: the
 number of equally used words that would be as spread), and each image by its number of distinct words.
 Every figure is about the quantizer on these features, so two vocabularies of one feature type compare
-on the same pairs.
+on the same pairs. The pairs are those the descriptors match, so they lean towards words found in the
+descriptors' own space (k-means'): views the descriptor does not match count for no vocabulary.
 """
 
 from __future__ import annotations
