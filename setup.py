@@ -28,6 +28,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_ate = aefabmap_ros.cli.ate:main",
     "aefabmap_view = aefabmap_ros.cli.view:main",
     "aefabmap_words = aefabmap_ros.cli.words:main",
+    "aefabmap_map = aefabmap_ros.cli.map:main",
 ]
 
 setup(

@@ -20,7 +20,7 @@ print("loaded:" + ",".join(name for name in sys.argv[2].split(",") if name in sy
 """
 
 
-HEAVY_WORK_CLIS = ("train", "evaluate", "bench", "gt", "words")
+HEAVY_WORK_CLIS = ("train", "evaluate", "bench", "gt", "words", "map")
 
 
 @pytest.mark.parametrize("module", [f"aefabmap_ros.cli.{name}" for name in HEAVY_WORK_CLIS])
@@ -31,7 +31,7 @@ def test_help_and_usage_errors_import_no_heavy_library(module):
     assert "usage:" in result.stdout + result.stderr or module.endswith("bench")
 
 
-CLIS = ("train", "evaluate", "gt", "synth", "bag", "ate", "launch", "replay", "record", "demo", "words")
+CLIS = ("train", "evaluate", "gt", "synth", "bag", "ate", "launch", "replay", "record", "demo", "words", "map")
 
 
 @pytest.mark.parametrize("name", CLIS)
