@@ -1,6 +1,10 @@
-"""The place map of a ``PlaceRecognizer`` on disk: places' word sets, stamps, frames, counters and last
-posterior in a versioned ``.npz`` written atomically, tied to the model's vocabulary id and recording the
-settings it was made with."""
+"""The place map of a ``PlaceRecognizer`` on disk: places' word sets, stamps, frames and sessions, the
+session table, counters and last posterior in a versioned ``.npz`` written atomically, tied to the model's
+vocabulary id and recording the settings it was made with.
+
+Format 2 adds the sessions (``place_sessions``, ``session_robots``, ``session_first_queries``). A format-1
+map (written before maps kept sessions) reads as one session of robot '' holding every place.
+"""
 
 from __future__ import annotations
 
@@ -11,13 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from aefabmap_ros.errors import ModelError, VocabularyMismatchError
+from aefabmap_ros.errors import DataError, ModelError, VocabularyMismatchError
 from aefabmap_ros.fabmap.config import FabMapConfig
+from aefabmap_ros.fabmap.sessions import SessionTable
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 
-MAP_FORMAT_VERSION = 1
+MAP_FORMAT_VERSION = 2
 _MAP_KEYS = ("vocabulary_id", "vocabulary_size", "word_indptr", "word_indices", "place_stamps_ns", "place_frames",
              "next_query_id", "previous_posterior", "has_previous_posterior")
+_SESSION_KEYS = ("place_sessions", "session_robots", "session_first_queries")
 
 ConfigDifferences = dict[str, tuple[Any, Any]]  # setting -> (value the map was made with, value now)
 
@@ -41,15 +47,37 @@ def config_differences(saved_json: str, config: FabMapConfig) -> ConfigDifferenc
 
 
 def write_map(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write a map's arrays (``_MAP_KEYS`` and ``config_json``) with the format version, atomically."""
+    """Write a map's arrays (``_MAP_KEYS``, ``_SESSION_KEYS`` and ``config_json``) with the format version,
+    atomically."""
+    missing = [key for key in (*_MAP_KEYS, *_SESSION_KEYS) if key not in arrays]
+    if missing:
+        raise ModelError(f"map for {path} lacks {missing}")
     write_npz_atomically(path, {"format_version": np.array(MAP_FORMAT_VERSION, dtype=np.int64), **arrays})
 
 
 def read_map(path: Path, vocabulary_id: str, vocabulary_size: int) -> dict[str, np.ndarray]:
     """A map's arrays, checked: VocabularyMismatchError for another vocabulary, ModelError when missing,
     corrupt or of another format version."""
-    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, MAP_FORMAT_VERSION)
+    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, (1, MAP_FORMAT_VERSION))
+    if int(arrays["format_version"]) == 1:
+        arrays = _with_one_session(arrays)
     return _validated_state(path, arrays, vocabulary_id, vocabulary_size)
+
+
+def read_map_unchecked_vocabulary(path: Path) -> dict[str, np.ndarray]:
+    """A map's arrays, checked as ``read_map`` does against the vocabulary the map itself names (for tools
+    that read a map without its model)."""
+    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, (1, MAP_FORMAT_VERSION))
+    if int(arrays["format_version"]) == 1:
+        arrays = _with_one_session(arrays)
+    return _validated_state(path, arrays, str(arrays["vocabulary_id"]), int(arrays["vocabulary_size"]))
+
+
+def _with_one_session(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A format-1 map's arrays with the session columns it lacks: one session of robot '' from query 0."""
+    n_places = max(int(np.asarray(arrays["word_indptr"]).size) - 1, 0)
+    return {**arrays, "place_sessions": np.zeros(n_places, dtype=np.int32),
+            "session_robots": np.array([""], dtype=np.str_), "session_first_queries": np.zeros(1, dtype=np.int64)}
 
 
 def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
@@ -89,8 +117,27 @@ def _validated_state(path: Path, arrays: dict[str, np.ndarray], vocabulary_id: s
         problems.append("stamps/frames do not match the number of places")
     if bool(arrays["has_previous_posterior"]) and previous.size > max(n_places, 0) + 1:
         problems.append("previous posterior longer than the map")
+    problems.extend(_session_problems(arrays, max(n_places, 0)))
     if problems:
         raise ModelError(f"corrupt map file {path}: {'; '.join(problems)}")
     arrays = dict(arrays)
     arrays["word_indptr"], arrays["word_indices"], arrays["previous_posterior"] = indptr, indices, previous
+    arrays["place_sessions"] = arrays["place_sessions"].astype(np.int32)
     return arrays
+
+
+def _session_problems(arrays: dict[str, np.ndarray], n_places: int) -> list[str]:
+    """What is wrong with a map's session columns: every place in a session of the table, a place's session
+    never older than the one before it (sessions append places), the table readable."""
+    try:
+        table = SessionTable.from_arrays(arrays["session_robots"], arrays["session_first_queries"])
+    except DataError as exc:
+        return [str(exc)]
+    sessions = np.asarray(arrays["place_sessions"])
+    if sessions.shape != (n_places,) or not np.issubdtype(sessions.dtype, np.integer):
+        return [f"place_sessions has shape {sessions.shape}, expected ({n_places},) integers"]
+    if n_places and (len(table) == 0 or sessions.min() < 0 or sessions.max() >= len(table)):
+        return [f"place sessions outside the {len(table)} sessions of the table"]
+    if np.any(np.diff(sessions) < 0):
+        return ["place sessions are not in the order the sessions started"]
+    return []

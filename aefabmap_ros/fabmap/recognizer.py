@@ -28,6 +28,14 @@ motion model continues from the last informative frame. Every other frame:
    have passed (whatever the overlap). A frame that adds no place belongs to the current place
    (``Recognition.current_place_id``).
 
+Sessions (:mod:`aefabmap_ros.fabmap.sessions`): a recognizer starts session 0 of its ``robot``; a map
+loaded from disk continues in a new session, and :meth:`PlaceRecognizer.start_session` starts one on
+request (a robot relocated). Every place and every candidate carries its session and robot. A new session
+starts with a uniform prior (the robot may be anywhere), a fresh consistency chain, and its first
+informative frame makes a place. The recency exclusions of step 2 apply to places of the current session
+only: a robot restarted where it stopped sees the last places of the earlier session, and that is the
+closure that joins the two sessions' graphs.
+
 Place ids are 0, 1, 2, ... in the order places are added (so with policy "all", default
 keyframing and ``min_words = 0``, place id == query id, as in openFABMAP's golden run).
 
@@ -58,6 +66,7 @@ from aefabmap_ros.fabmap.index import GrowableArray
 from aefabmap_ros.fabmap.map_file import ConfigDifferences, config_differences, read_map, write_map
 from aefabmap_ros.fabmap.observation import as_word_ids
 from aefabmap_ros.fabmap.posterior import motion_log_prior, posterior, top_k_indices
+from aefabmap_ros.fabmap.sessions import Session, SessionTable, check_robot_name
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,8 @@ class Candidate:
     stamp_ns: int  # stamp of the frame the place was created from
     probability: float
     log_likelihood: float  # FAB-MAP 2 scale: relative to a place without words
+    session: int = 0  # session the place was made in
+    robot: str = ""  # robot of that session
 
 
 @dataclass(frozen=True)
@@ -94,6 +105,8 @@ class Recognition:
     # left out of ==, which compares the decision).
     hypothesis_place_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64), compare=False)
     hypothesis_probabilities: np.ndarray = field(default_factory=lambda: np.zeros(0), compare=False)
+    session: int = 0  # session of the query frame
+    robot: str = ""  # robot of that session
 
 
 def jaccard(a: np.ndarray, b: np.ndarray) -> float:
@@ -121,11 +134,13 @@ class PlaceRecognizer:
         new_place_samples: sp.csr_matrix | None,
         config: FabMapConfig,
         vocabulary_id: str,
+        robot: str = "",
     ) -> None:
         if not isinstance(vocabulary_id, str) or not vocabulary_id:
             raise DataError(f"vocabulary_id must be a non-empty string, got {vocabulary_id!r}")
         self.config = config
         self.vocabulary_id = vocabulary_id
+        self.robot = check_robot_name(robot)
         self._engine = make_engine(tree, new_place_samples, config, "fabmap2")
         self._reset()
 
@@ -133,12 +148,36 @@ class PlaceRecognizer:
         self._engine.clear()
         self._place_stamps_ns = GrowableArray(np.int64, 64)  # (P,) stamp of each place's frame
         self._place_frames = GrowableArray(np.int64, 64)  # (P,) query id of each place's frame
+        self._place_sessions = GrowableArray(np.int32, 64)  # (P,) session each place was made in
         self._next_query_id = 0
+        self._sessions = SessionTable()
+        self._sessions.start(self.robot, 0)
+        self._begin_session_state()
+
+    def _begin_session_state(self) -> None:
+        """What a session starts afresh: the belief, the consistency chain, and a place at its first frame."""
         self._previous_posterior: np.ndarray | None = None  # over [new, every place at that time]
         self._consistency = TemporalConsistency(
             self.config.consistency_matches, self.config.island_seconds, max_skipped=self.config.consistency_skips,
             window_seconds=self.config.consistency_window_seconds,
         )
+        self._session_has_place = False
+
+    def start_session(self, robot: str | None = None) -> Session:
+        """Begin a new session (of ``robot``, default this recognizer's) from the next frame on.
+
+        A session that has seen no frame yet is reused rather than followed by an empty one, so a node
+        restarted twice without images adds one session, not two.
+        """
+        robot = self.robot if robot is None else check_robot_name(robot)
+        current = self._sessions.current
+        if current.first_query_id == self._next_query_id and current.robot == robot:
+            self._begin_session_state()
+            return current
+        session = self._sessions.start(robot, self._next_query_id)
+        self.robot = robot
+        self._begin_session_state()
+        return session
 
     # -- read-only views ----------------------------------------------------------------------
 
@@ -153,6 +192,19 @@ class PlaceRecognizer:
     @property
     def num_queries(self) -> int:
         return self._next_query_id
+
+    @property
+    def sessions(self) -> SessionTable:
+        return self._sessions
+
+    @property
+    def current_session(self) -> Session:
+        return self._sessions.current
+
+    @property
+    def place_sessions(self) -> np.ndarray:
+        """(P,) int32 session of each place (a copy)."""
+        return self._place_sessions.view().copy()
 
     def place_words(self, place_id: int) -> np.ndarray:
         if not 0 <= place_id < self.num_places:
@@ -196,6 +248,7 @@ class PlaceRecognizer:
         words = as_word_ids(word_ids, self.vocabulary_size)
         query_id = self._next_query_id
         self._next_query_id += 1
+        session = self._sessions.current
         if words.size < self.config.min_words:
             # No evidence: the belief stays as it was (the motion model continues from the last
             # informative frame) and the frame neither matches nor becomes a place.
@@ -203,6 +256,7 @@ class PlaceRecognizer:
                 query_id=query_id, stamp_ns=stamp_ns, assigned_place_id=-1, is_new_place=False,
                 new_place_probability=float("nan"), candidates=(), loop_closure=None,
                 new_place_log_likelihood=float("nan"), informative=False, current_place_id=self.num_places - 1,
+                session=session.number, robot=session.robot,
             )
 
         new_ll, place_ll = self._engine.log_likelihoods(words, exclude_sample)
@@ -234,6 +288,8 @@ class PlaceRecognizer:
             current_place_id=self.num_places - 1,
             hypothesis_place_ids=included,
             hypothesis_probabilities=place_p,
+            session=session.number,
+            robot=session.robot,
         )
 
     def _posterior(self, new_ll: float, place_ll: np.ndarray, included: np.ndarray) -> np.ndarray:
@@ -253,8 +309,10 @@ class PlaceRecognizer:
         return p
 
     def _candidate(self, place_id: int, probability: float, place_ll: np.ndarray) -> Candidate:
+        session = self._sessions[int(self._place_sessions.view()[place_id])]
         return Candidate(place_id=place_id, stamp_ns=int(self._place_stamps_ns.view()[place_id]),
-                         probability=float(probability), log_likelihood=float(place_ll[place_id]))
+                         probability=float(probability), log_likelihood=float(place_ll[place_id]),
+                         session=session.number, robot=session.robot)
 
     def _add_if_keyframe(self, words: np.ndarray, query_id: int, stamp_ns: int) -> int:
         """The id of the place this frame adds when it is a keyframe, else -1."""
@@ -263,10 +321,13 @@ class PlaceRecognizer:
         added = self._engine.add(words)
         self._place_stamps_ns.extend(np.array([stamp_ns], dtype=np.int64))
         self._place_frames.extend(np.array([query_id], dtype=np.int64))
+        self._place_sessions.extend(np.array([self._sessions.current.number], dtype=np.int32))
+        self._session_has_place = True
         return added
 
     def _included(self, query_id: int, stamp_ns: int, words: np.ndarray) -> np.ndarray:
-        """(P,) bool: places that are hypotheses for this query (not too recent)."""
+        """(P,) bool: places that are hypotheses for this query (not too recent; places of earlier sessions
+        are never too recent)."""
         frames = self._place_frames.view()
         keep = np.ones(frames.size, dtype=bool)
         if self.config.exclude_linked_overlap > 0.0:
@@ -277,17 +338,20 @@ class PlaceRecognizer:
             stamps = self._place_stamps_ns.view()
             window_ns = self.config.exclude_recent_seconds * 1e9
             keep &= (stamp_ns - stamps) >= window_ns
+        keep |= self._place_sessions.view() != self._sessions.current.number
         return keep
 
     def _linked_places(self, words: np.ndarray) -> int:
         """First place of the newest run of places that each overlap the query by >= exclude_linked_overlap."""
         first, places = self.num_places, self._engine.places
+        if not self._session_has_place:  # the newest places are another session's: none is linked
+            return first
         while first > 0 and jaccard(words, places.place_words(first - 1)) >= self.config.exclude_linked_overlap:
             first -= 1
         return first
 
     def _is_keyframe(self, words: np.ndarray, query_id: int, stamp_ns: int) -> bool:
-        if len(self._place_frames) == 0:
+        if not self._session_has_place:  # a session's first informative frame makes its first place
             return True
         since = query_id - int(self._place_frames.view()[-1])
         if since < self.config.keyframe_min_frames:
@@ -316,6 +380,8 @@ class PlaceRecognizer:
         first = self._next_query_id
         self._place_frames.extend(np.arange(first, first + matrix.shape[0], dtype=np.int64))
         self._place_stamps_ns.extend(stamps.astype(np.int64))
+        self._place_sessions.extend(np.full(matrix.shape[0], self._sessions.current.number, dtype=np.int32))
+        self._session_has_place = self._session_has_place or matrix.shape[0] > 0
         self._next_query_id += matrix.shape[0]
 
     # -- persistence --------------------------------------------------------------------------
@@ -336,12 +402,18 @@ class PlaceRecognizer:
             ),
             "has_previous_posterior": np.array(self._previous_posterior is not None),
             "config_json": np.array(json.dumps(asdict(self.config), sort_keys=True)),
+            "place_sessions": self._place_sessions.view().copy(),
+            **self._sessions.to_arrays(),
         }
         write_map(path, arrays)
 
-    def load_map(self, path: Path) -> ConfigDifferences:
+    def load_map(self, path: Path, new_session: bool = True) -> ConfigDifferences:
         """Replace the map by the one saved at ``path``; returns the settings it was made with that
         differ from this recognizer's (:func:`config_differences`), for the caller to report.
+
+        With ``new_session`` (a node starting on a saved map), later frames belong to a new session of
+        this recognizer's robot; without it they continue the map's last session (its belief and
+        consistency chain as saved).
 
         Raises VocabularyMismatchError (naming both ids) if it belongs to another vocabulary,
         ModelError if it is missing, corrupt or of another format version. Other settings do not
@@ -353,8 +425,17 @@ class PlaceRecognizer:
         self._engine.places.add_many(state["word_indptr"], state["word_indices"])
         self._place_stamps_ns.extend(state["place_stamps_ns"].astype(np.int64))
         self._place_frames.extend(state["place_frames"].astype(np.int64))
+        self._place_sessions.extend(state["place_sessions"].astype(np.int32))
         self._next_query_id = int(state["next_query_id"])
-        self._previous_posterior = state["previous_posterior"] if bool(state["has_previous_posterior"]) else None
+        self._sessions = SessionTable.from_arrays(state["session_robots"], state["session_first_queries"])
+        if new_session:
+            self.start_session()
+        else:
+            self.robot = self._sessions.current.robot
+            self._previous_posterior = (state["previous_posterior"] if bool(state["has_previous_posterior"])
+                                        else None)
+            sessions = self._place_sessions.view()
+            self._session_has_place = bool(sessions.size and sessions[-1] == self._sessions.current.number)
         if "config_json" not in state:  # written by a version that did not record its settings
             return {"config_json": (None, "not recorded in the map")}
         return config_differences(str(state["config_json"]), self.config)

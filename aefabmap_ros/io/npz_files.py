@@ -37,9 +37,10 @@ def write_npz_atomically(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
 
 
 def read_versioned_npz(path: Path, what: str, kind: str, required: Sequence[str],
-                       version: int) -> dict[str, np.ndarray]:
+                       version: int | Sequence[int]) -> dict[str, np.ndarray]:
     """The arrays of a ``what`` file (e.g. "map file"), checked for the ``required`` keys (else it is
-    "not a ``kind``") and ``format_version`` == ``version``; ModelError naming the file otherwise."""
+    "not a ``kind``") and a ``format_version`` this reader knows (``version``, or one of several);
+    ModelError naming the file otherwise."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -51,7 +52,9 @@ def read_versioned_npz(path: Path, what: str, kind: str, required: Sequence[str]
     missing = [key for key in ("format_version", *required) if key not in arrays]
     if missing:
         raise ModelError(f"{what} {path} is not a {kind} (missing {missing})")
+    known = (version,) if isinstance(version, int) else tuple(version)
     found = int(arrays["format_version"])
-    if found != version:
-        raise ModelError(f"{what} {path} has format version {found}, expected {version}")
+    if found not in known:
+        expected = str(known[0]) if len(known) == 1 else " or ".join(map(str, known))
+        raise ModelError(f"{what} {path} has format version {found}, expected {expected}")
     return arrays

@@ -20,6 +20,8 @@ def _arrays(**changes: Any) -> dict[str, np.ndarray]:
         "place_stamps_ns": [10, 20], "place_frames": [0, 1], "next_query_id": 2,
         "previous_posterior": [0.5, 0.25, 0.25], "has_previous_posterior": True,
         "config_json": json.dumps(asdict(FabMapConfig())),
+        "place_sessions": np.array([0, 1], dtype=np.int32), "session_robots": np.array(["", "r2"]),
+        "session_first_queries": [0, 1],
     }
     values.update(changes)
     return {key: np.asarray(value) for key, value in values.items()}
@@ -42,6 +44,11 @@ def test_a_written_map_reads_back(tmp_path):
     ({"word_indices": [4, 4, 7]}, "word ids not sorted unique per place"),
     ({"place_stamps_ns": [10]}, "stamps/frames do not match the number of places"),
     ({"previous_posterior": [0.25] * 4}, "previous posterior longer than the map"),
+    ({"place_sessions": np.array([0, 2], dtype=np.int32)}, "place sessions outside the 2 sessions"),
+    ({"place_sessions": np.array([1, 0], dtype=np.int32)}, "not in the order the sessions started"),
+    ({"place_sessions": np.array([0], dtype=np.int32)}, "place_sessions has shape"),
+    ({"session_first_queries": [1, 0]}, "first query ids are not increasing"),
+    ({"session_robots": np.array(["", "a\nb"])}, "one-line string"),
 ])
 def test_a_corrupt_map_is_refused_naming_the_problem(tmp_path, changes, problem):
     path = tmp_path / "map.npz"
@@ -80,3 +87,30 @@ def test_config_differences_name_each_setting_both_ways():
     assert config_differences(json.dumps(asdict(default)), default) == {}
     assert config_differences("{not json", default) == {"config_json": ("{not json", "unreadable")}
     assert config_differences("[1, 2]", default) == {"config_json": ("[1, 2]", "unreadable")}
+
+
+def test_sessions_read_back(tmp_path):
+    path = tmp_path / "map.npz"
+    write_map(path, _arrays())
+    state = read_map(path, "v", 10)
+    assert state["place_sessions"].tolist() == [0, 1]
+    assert state["session_robots"].tolist() == ["", "r2"] and state["session_first_queries"].tolist() == [0, 1]
+
+
+def test_a_format_1_map_reads_as_one_session_of_every_place(tmp_path):
+    """Maps written before sessions: no session columns, format version 1."""
+    path = tmp_path / "old.npz"
+    arrays = {key: value for key, value in _arrays().items()
+              if key not in ("place_sessions", "session_robots", "session_first_queries")}
+    arrays["format_version"] = np.array(1)
+    np.savez(path, **arrays)  # type: ignore[arg-type]
+    state = read_map(path, "v", 10)
+    assert state["place_sessions"].tolist() == [0, 0]
+    assert state["session_robots"].tolist() == [""] and state["session_first_queries"].tolist() == [0]
+
+
+def test_a_map_without_its_session_columns_is_not_written(tmp_path):
+    arrays = {key: value for key, value in _arrays().items() if key != "place_sessions"}
+    with pytest.raises(ModelError, match=r"lacks.*place_sessions"):
+        write_map(tmp_path / "map.npz", arrays)
+    assert not list(tmp_path.iterdir())

@@ -191,7 +191,7 @@ def test_map_round_trip_and_refusals(tmp_path):
     first.save_map(path)
     assert [p.name for p in path.parent.iterdir()] == ["map.npz"]  # no temp file left behind
     second = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a")
-    second.load_map(path)
+    second.load_map(path, new_session=False)  # the same session goes on: as if never stopped
     assert second.num_places == 5 and second.num_queries == 5
     for i, f in enumerate(frames[5:], start=5):
         a, b = first.process(f, 10 * i), second.process(f, 10 * i)

@@ -41,6 +41,10 @@ def test_custom_types_round_trip(tmp_path: Path, storage: str) -> None:
         log_likelihood=-12.5,
         inliers=37,
         **bag_messages.no_pose_fields(),
+        query_robot="r2",
+        query_session=1,
+        matched_robot="",
+        matched_session=0,
     )
     features = types["aefabmap_msgs/msg/Features"](
         header=bag_messages.make_header(5_000_000_123, "cam"),
