@@ -170,15 +170,17 @@ class _ChainFeed:
         if depths is not None and self.chain.store.depths is not None:
             self.chain.store.depths.keep(stamp_ns, depths)
         self.chain.add_features(stamp_ns, self.inputs.features[frame], self.inputs.image_size)
-        candidates = tuple(RankedPlace(c.place_id, c.stamp_ns, c.probability, c.log_likelihood)
+        candidates = tuple(RankedPlace(c.place_id, c.stamp_ns, c.probability, c.log_likelihood, c.session, c.robot)
                            for c in recognition.candidates)
         match = recognition.loop_closure
         self.chain.add_posterior(Posterior(stamp_ns, recognition.query_id, recognition.assigned_place_id,
-                                           recognition.current_place_id, match is not None, candidates))
+                                           recognition.current_place_id, match is not None, candidates, "",
+                                           recognition.session, recognition.robot))
         if match is not None:
             self.chain.add_detection(Detection(stamp_ns, recognition.query_id, recognition.assigned_place_id,
                                                match.place_id, match.stamp_ns, match.probability,
-                                               match.log_likelihood))
+                                               match.log_likelihood, "", recognition.session, recognition.robot,
+                                               match.session, match.robot))
 
     def _publish(self, closure: Closure) -> None:
         detection = closure.detection

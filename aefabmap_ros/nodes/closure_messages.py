@@ -15,18 +15,25 @@ from aefabmap_ros.verification.closures import Closure, Detection, Posterior, Ra
 def detection_from_message(message: LoopClosure) -> Detection:
     return Detection(stamp_to_ns(message.header.stamp), int(message.query_id), int(message.query_place_id),
                      int(message.matched_place_id), stamp_to_ns(message.matched_stamp), float(message.probability),
-                     float(message.log_likelihood), message.header.frame_id)
+                     float(message.log_likelihood), message.header.frame_id, int(message.query_session),
+                     message.query_robot, int(message.matched_session), message.matched_robot)
 
 
 def posterior_from_message(message: PlacePosterior) -> Posterior:
     """A PlacePosterior whose candidate arrays are of one length (``messages.posterior_problem`` checked)."""
+    count = len(message.place_ids)
+    # A publisher that predates sessions sends none: every place is then in session 0 of robot ''.
+    sessions = list(message.place_sessions) if len(message.place_sessions) else [0] * count
+    robots = list(message.place_robots) if len(message.place_robots) else [""] * count
     candidates = tuple(
-        RankedPlace(int(place_id), stamp_to_ns(stamp), float(probability), float(log_likelihood))
-        for place_id, stamp, probability, log_likelihood in zip(
-            message.place_ids, message.place_stamps, message.probabilities, message.log_likelihoods, strict=True))
+        RankedPlace(int(place_id), stamp_to_ns(stamp), float(probability), float(log_likelihood), int(session),
+                    robot)
+        for place_id, stamp, probability, log_likelihood, session, robot in zip(
+            message.place_ids, message.place_stamps, message.probabilities, message.log_likelihoods, sessions,
+            robots, strict=True))
     return Posterior(stamp_to_ns(message.header.stamp), int(message.query_id), int(message.assigned_place_id),
                      int(message.current_place_id), bool(message.loop_closure_candidate), candidates,
-                     message.header.frame_id)
+                     message.header.frame_id, int(message.session), message.robot)
 
 
 def closure_to_message(closure: Closure) -> LoopClosure:
@@ -37,6 +44,8 @@ def closure_to_message(closure: Closure) -> LoopClosure:
     message.header.stamp = time_from_ns(detection.query_ns)
     message.header.frame_id = detection.frame_id
     message.matched_stamp = time_from_ns(detection.matched_ns)
+    message.query_robot, message.query_session = detection.query_robot, detection.query_session
+    message.matched_robot, message.matched_session = detection.matched_robot, detection.matched_session
     fill_relative_pose(message, closure.pose)
     return message
 

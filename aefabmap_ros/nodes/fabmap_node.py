@@ -17,6 +17,11 @@ named in a warning at start, and do not order later frames.
 Every frame that reaches the node is answered on ``place_posteriors``: a dropped one (already
 mapped before a restart, out of order, in the future, malformed) with ``query_id`` -1 and no places.
 
+Sessions: the node works in one session of robot ``robot`` (fabmap/sessions.py). Started on a saved map, it
+begins a new session of that map; the service ``~/start_session`` (``std_srvs/Trigger``) begins another one
+from the next frame on, for a robot that was relocated (its odometry restarted) while the node ran. Every
+posterior and candidate says its query's session and robot and each place's.
+
 While running, the settings of ``detector.RUNTIME_SETTINGS`` (e.g. ``match_threshold``) can be
 changed with ``ros2 param set``; any other change is refused with the reason.
 """
@@ -28,6 +33,7 @@ from typing import Any
 
 from aefabmap_msgs.msg import BagOfWords, LoopClosure, PlacePosterior
 from rclpy.node import Node
+from std_srvs.srv import Trigger
 
 from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
 from aefabmap_ros.fabmap.chowliu import ChowLiuTree
@@ -72,6 +78,8 @@ class FabMapNode(Node):
             self, "save_period_s", 10.0, "Save the map this often when it changed (seconds; 0 = only on shutdown)."
         )
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the words subscription.")
+        robot = declare_parameter(self, "robot", "", "Name of the robot whose images this node recognises; kept "
+                                  "with every session of the map ('' = a map of one robot).")
         self.future_stamps = FutureStamps(self)
         config = declare_config(self, FabMapConfig)
         if not model_dir:
@@ -82,7 +90,7 @@ class FabMapNode(Node):
         self.vocabulary_id = model.vocabulary_id
         self.vocabulary_size = model.quantizer.size
         self.recognizer = PlaceRecognizer(
-            ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.vocabulary_id
+            ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.vocabulary_id, robot
         )
         warm_up_kernels()  # compile/load FAB-MAP's kernels now, not on the first image
         map_path = Path(map_file) if map_file else None
@@ -91,7 +99,10 @@ class FabMapNode(Node):
                 self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
         if map_path is not None and map_path.exists():
             differences = self.recognizer.load_map(map_path)
-            self.get_logger().info(f"reloaded {self.recognizer.num_places} places from {map_path}")
+            session = self.recognizer.current_session
+            self.get_logger().info(f"reloaded {self.recognizer.num_places} places in "
+                                   f"{len(self.recognizer.sessions) - 1} session(s) from {map_path}; this run is "
+                                   f"session {session.number} of robot {session.robot!r}")
             if differences:
                 self.get_logger().warning(_differences_text(map_path, differences))
         # Frames at or before the newest saved place are already in the map: replaying them after a
@@ -105,6 +116,7 @@ class FabMapNode(Node):
         report_when_connected(self, words, "words")
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self.recognizer.reconfigure)
+        self.create_service(Trigger, "~/start_session", self._on_start_session)
         self.get_logger().info(
             f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
@@ -127,6 +139,15 @@ class FabMapNode(Node):
                 f"kept but ignored for ordering: frames after {newest / 1e9:.3f} s are processed")
         return newest
 
+    def _on_start_session(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """A new session from the next frame on (the robot was relocated; its odometry restarted)."""
+        session = self.recognizer.start_session()
+        self.map_saver.mark_changed()
+        response.success = True
+        response.message = f"session {session.number} of robot {session.robot!r} starts with the next frame"
+        self.get_logger().info(response.message)
+        return response
+
     @node_callback
     def _on_words(self, message: BagOfWords) -> None:
         """Recognise one frame; every frame is answered on place_posteriors exactly once, a dropped one
@@ -135,8 +156,9 @@ class FabMapNode(Node):
         try:
             recognition = self._recognise(message)
         finally:  # an unexpected exception (counted by node_callback) gets its answer as well
-            answer = (unrecognised_posterior(message.header, self.recognizer.num_places) if recognition is None
-                      else recognition_to_posterior(recognition, message.header))
+            answer = (unrecognised_posterior(message.header, self.recognizer.num_places,
+                                             self.recognizer.current_session)
+                      if recognition is None else recognition_to_posterior(recognition, message.header))
             self.posterior_publisher.publish(answer)
         if recognition is not None:
             self._publish_candidate(recognition, message.header)

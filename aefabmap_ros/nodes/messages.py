@@ -18,6 +18,7 @@ from std_msgs.msg import Header
 
 from aefabmap_ros.errors import DataError, VocabularyMismatchError
 from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
+from aefabmap_ros.fabmap.sessions import Session
 from aefabmap_ros.features import extraction as core_features
 from aefabmap_ros.io.message_values import covariance_problem, pose_problem, stamp_problem
 from aefabmap_ros.verification.relative_pose import PoseOutcome
@@ -160,6 +161,8 @@ def _fill_candidates(message: PlacePosterior, candidates: tuple[Candidate, ...])
     message.log_likelihoods = _typed_array(
         "d", np.array([c.log_likelihood for c in candidates], dtype=np.float64)
     )
+    message.place_sessions = _typed_array("I", np.array([c.session for c in candidates], dtype=np.uint32))
+    message.place_robots = [c.robot for c in candidates]
 
 
 def posterior_problem(message: PlacePosterior) -> str | None:
@@ -168,6 +171,9 @@ def posterior_problem(message: PlacePosterior) -> str | None:
     and its probabilities in [0, 1]. None when they can."""
     lengths = {name: len(getattr(message, name))
                for name in ("place_ids", "place_stamps", "probabilities", "log_likelihoods")}
+    # Sessions and robots per candidate: absent (a publisher that predates sessions) or one per candidate.
+    lengths.update({name: len(getattr(message, name)) for name in ("place_sessions", "place_robots")
+                    if len(getattr(message, name))})
     what = f"PlacePosterior of query {message.query_id}"
     if len(set(lengths.values())) > 1:
         return f"{what}: candidate arrays differ in length {lengths}"
@@ -193,11 +199,12 @@ def recognition_to_posterior(recognition: Recognition, header: Any) -> PlacePost
     message.is_new_place = recognition.is_new_place
     message.loop_closure_candidate = recognition.loop_closure is not None
     message.new_place_probability = float(recognition.new_place_probability)
+    message.robot, message.session = recognition.robot, recognition.session
     _fill_candidates(message, recognition.candidates)
     return message
 
 
-def unrecognised_posterior(header: Any, num_places: int) -> PlacePosterior:
+def unrecognised_posterior(header: Any, num_places: int, session: Session | None = None) -> PlacePosterior:
     """The answer to a frame fabmap_node dropped (already mapped, out of order, stamped in the future,
     malformed): ``query_id`` -1, no place, new-place probability NaN."""
     message = PlacePosterior()
@@ -208,6 +215,8 @@ def unrecognised_posterior(header: Any, num_places: int) -> PlacePosterior:
     message.is_new_place = False
     message.loop_closure_candidate = False
     message.new_place_probability = float("nan")
+    if session is not None:
+        message.robot, message.session = session.robot, session.number
     return message
 
 
@@ -223,6 +232,8 @@ def recognition_to_loop_closure(recognition: Recognition, header: Any) -> LoopCl
     message.matched_stamp = time_from_ns(match.stamp_ns)
     message.probability = float(match.probability)
     message.log_likelihood = float(match.log_likelihood)
+    message.query_robot, message.query_session = recognition.robot, recognition.session
+    message.matched_robot, message.matched_session = match.robot, match.session
     return message
 
 

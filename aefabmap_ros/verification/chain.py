@@ -57,6 +57,8 @@ class PlaceToVerify(NamedTuple):
     place_id: int
     stamp_ns: int
     features: Features
+    session: int = 0  # the map's session and robot of the place
+    robot: str = ""
 
 
 class Match(NamedTuple):
@@ -96,6 +98,10 @@ class LoopClosureChain:
         self.depth_wait = DepthWait(depth_wait_s, outcomes)
         self.pending: OrderedDict[int, Detection] = OrderedDict()  # query stamp -> detection, oldest first
         self.posteriors: OrderedDict[int, Posterior] = OrderedDict()  # query stamp -> posterior
+        # Place id -> (session, robot), from the candidates FAB-MAP ranked: a tracked nearby frame names only its
+        # place. The newest accepted closure's place session stands in for a place never ranked.
+        self.place_sessions: dict[int, tuple[int, str]] = {}
+        self.tracked_session: tuple[int, str] = (0, "")
 
     @property
     def config(self) -> VerificationConfig:
@@ -144,6 +150,8 @@ class LoopClosureChain:
             self.store.add_place(posterior.query_ns, posterior.current_place_id)
         self.posteriors[posterior.query_ns] = posterior
         self.posteriors.move_to_end(posterior.query_ns)
+        self.place_sessions.update((candidate.place_id, (candidate.session, candidate.robot))
+                                   for candidate in posterior.candidates)
         while len(self.posteriors) > POSTERIOR_HISTORY:
             self.posteriors.popitem(last=False)
         self._verify_if_ready(posterior.query_ns)
@@ -201,7 +209,8 @@ class LoopClosureChain:
         for rank, candidate in enumerate(posterior.candidates):
             features = self.store.get(candidate.stamp_ns)
             if features is not None:
-                places.append((rank, PlaceToVerify(candidate.place_id, candidate.stamp_ns, features)))
+                places.append((rank, PlaceToVerify(candidate.place_id, candidate.stamp_ns, features,
+                                                   candidate.session, candidate.robot)))
         return places
 
     def _verify(self, detection: Detection, posterior: Posterior | None) -> None:
@@ -215,7 +224,8 @@ class LoopClosureChain:
                                f"no stored features of place {detection.matched_place_id} (before this node "
                                "started, or forgotten by the store's bounds)")
             return
-        candidates = [PlaceToVerify(detection.matched_place_id, detection.matched_ns, matched)]
+        candidates = [PlaceToVerify(detection.matched_place_id, detection.matched_ns, matched,
+                                    detection.matched_session, detection.matched_robot)]
         if posterior is not None:
             others = [place for _, place in self._ranked_places(posterior)
                       if place.place_id != detection.matched_place_id]
@@ -242,7 +252,8 @@ class LoopClosureChain:
         self.log(f"{text} accepted: {outcome.verification.inliers} inliers of {outcome.verification.matches} "
                  "matches", False)
         moved = Detection(query_ns, detection.query_id, detection.query_place_id, winner.place_id, winner.stamp_ns,
-                          detection.probability, detection.log_likelihood, detection.frame_id)
+                          detection.probability, detection.log_likelihood, detection.frame_id,
+                          detection.query_session, detection.query_robot, winner.session, winner.robot)
         self._submit(moved, query, Match(winner, detection.probability, detection.log_likelihood,
                                          outcome.verification))
 
@@ -283,7 +294,8 @@ class LoopClosureChain:
         self.log(f"loop closure query {posterior.query_id} -> place {place.place_id} tracked: "
                  f"{match.verification.inliers} inliers of {match.verification.matches} matches", True)
         detection = Detection(query_ns, posterior.query_id, posterior.assigned_place_id, place.place_id,
-                              place.stamp_ns, match.probability, match.log_likelihood, posterior.frame_id)
+                              place.stamp_ns, match.probability, match.log_likelihood, posterior.frame_id,
+                              posterior.session, posterior.robot, place.session, place.robot)
         self._submit(detection, query, match, tracked=True)
 
     def _track_candidates(self, query_ns: int, query: Features, posterior: Posterior, tried: set[int]) -> Match | None:
@@ -309,7 +321,8 @@ class LoopClosureChain:
             features = self.store.get(stamp_ns)
             place_id = self.store.timeline.place_of(stamp_ns)
             if stamp_ns not in tried and features is not None and place_id is not None:
-                places.append(PlaceToVerify(place_id, stamp_ns, features))
+                session, robot = self.place_sessions.get(place_id, self.tracked_session)
+                places.append(PlaceToVerify(place_id, stamp_ns, features, session, robot))
         tried.update(place.stamp_ns for place in places)
         outcome = rerank_by_inliers(places, lambda place: self.pairs.verify(query_ns, query, place.stamp_ns,
                                                                             place.features))
@@ -325,5 +338,6 @@ class LoopClosureChain:
     def _submit(self, detection: Detection, query: Features, match: Match, tracked: bool = False) -> None:
         """The closure with its relative pose, to the odometry gate."""
         place = match.place
+        self.tracked_session = (place.session, place.robot)
         pose = self.pairs.pose(detection.query_ns, query, place.stamp_ns, place.features, match.verification)
         self.odometry.submit(Closure(detection, match.verification.inliers, pose, tracked, match.nearby_frame))

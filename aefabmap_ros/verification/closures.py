@@ -22,6 +22,10 @@ class Detection:
     probability: float  # FAB-MAP's posterior of the matched place
     log_likelihood: float
     frame_id: str = ""  # the query image's frame, carried through
+    query_session: int = 0  # the map's session and robot of the query image (fabmap/sessions.py)
+    query_robot: str = ""
+    matched_session: int = 0  # ... and of the matched place's image
+    matched_robot: str = ""
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,8 @@ class RankedPlace:
     stamp_ns: int
     probability: float
     log_likelihood: float
+    session: int = 0  # session and robot the place was made in
+    robot: str = ""
 
 
 @dataclass(frozen=True)
@@ -45,6 +51,8 @@ class Posterior:
     loop_closure_candidate: bool  # a Detection of this frame comes too
     candidates: tuple[RankedPlace, ...]  # best first
     frame_id: str = ""
+    session: int = 0  # session and robot of the query image
+    robot: str = ""
 
 
 @dataclass(frozen=True)
