@@ -27,7 +27,7 @@ def _nodes(context: Any) -> list[Node]:
     def value(name: str) -> str:
         return LaunchConfiguration(name).perform(context)
 
-    options = SuiteOptions(model_dir=value("model_dir"), map_file=value("map_file"),
+    options = SuiteOptions(model_dir=value("model_dir"), map_file=value("map_file"), robot=value("robot"),
                            image_topic=value("image_topic"), image_qos=value("image_qos"),
                            verify=parse_bool(value("verify"), "verify"),
                            backend=parse_bool(value("backend"), "backend"),
@@ -57,6 +57,8 @@ def generate_launch_description() -> LaunchDescription:
         ),
         DeclareLaunchArgument("map_file", default_value="",
                               description="map file to save to / reload from (the verifier's features beside it)"),
+        DeclareLaunchArgument("robot", default_value="",
+                              description="this robot's name, kept with its sessions of the map ('' = one robot)"),
         DeclareLaunchArgument("image_topic", default_value="image", description="camera image topic"),
         DeclareLaunchArgument("image_qos", default_value="",
                               description="auto, best_effort or reliable ('' = the parameter file's)"),

@@ -54,7 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", type=Path, required=True, help="model directory (from aefabmap_train)")
     parser.add_argument("--params", type=Path, default=None,
                         help="parameter YAML (default: the aefabmap.yaml shipped in the package)")
-    parser.add_argument("--map", type=Path, default=None, help="map file to save to / reload from")
+    parser.add_argument("--map", type=Path, default=None,
+                        help="map file to save to / reload from; started on a saved map, this run is a new session of "
+                        "it (with --backend, the pose graph is kept beside it as <map>.graph.npz)")
+    parser.add_argument("--robot", default="", help="this robot's name, kept with its sessions of the map "
+                        "(default: '', a map of one robot)")
     parser.add_argument("--image-topic", default="image", help="camera image topic (default: image)")
     parser.add_argument("--image-qos", choices=("auto", "best_effort", "sensor_data", "reliable"), default=None,
                         help="override the image subscription QoS (reliable also processes every frame, in order: "
@@ -107,6 +111,7 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
     nodes merged into one aefabmap_pipeline process with --pipeline."""
     params = args.params or default_params_file()
     nodes = suite_nodes(SuiteOptions(model_dir=str(args.model), map_file=str(args.map) if args.map else "",
+                                     robot=args.robot,
                                      image_topic=args.image_topic, image_qos=args.image_qos or "",
                                      verify=args.verify, backend=args.backend,
                                      camera_info_topic=args.camera_info_topic, depth_topic=args.depth_topic,

@@ -59,6 +59,7 @@ class SuiteOptions:
 
     model_dir: str
     map_file: str = ""  # '' = the map stays in memory
+    robot: str = ""  # the robot's name, kept with each session of the map and the backend's graph
     image_topic: str = "image"
     image_qos: str = ""  # '' = the parameter file's value
     verify: bool = True
@@ -89,6 +90,12 @@ class NodeLaunch:
 def verifier_store_path(map_path: Path) -> Path:
     """Where verifier_node keeps its feature store beside a FAB-MAP map: office.npz -> office.features/."""
     return map_path.with_suffix(".features")
+
+
+def backend_graph_path(map_path: Path) -> Path:
+    """Where pose_graph_node keeps its pose graph beside a FAB-MAP map: office.npz -> office.graph.npz. Kept with
+    the map, so a session that closes a loop into an earlier one finds that session's keyframes and odometry."""
+    return map_path.with_suffix(".graph.npz")
 
 
 def parse_bool(value: str, what: str) -> bool:
@@ -129,6 +136,7 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     )
     sensors: dict[str, str] = {"sensor_qos": options.sensor_qos} if options.sensor_qos else {}
     fabmap: dict[str, str] = {"map_file": options.map_file} if options.map_file else {}
+    robot: dict[str, str] = {"robot": options.robot} if options.robot else {}
     extra = parse_remaps(options.remaps)
     closures = options.closures_topic or CLOSURES_TOPIC
     odometry = {"odom": options.odom_topic} if options.odom_topic else {}
@@ -137,7 +145,7 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
         NodeLaunch("feature_node", {"model_dir": options.model_dir, **image, **busy},
                    {"image": options.image_topic, **extra}),
         NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **busy}, dict(extra)),
-        NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap},
+        NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap, **robot},
                    {**extra, **({} if options.verify else {CANDIDATES_TOPIC: closures})}),
     ]
     if options.verify:
@@ -148,7 +156,8 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
         nodes.append(NodeLaunch(VERIFIER_NODE, {**store, **depth, **sensors},
                                 {**extra, **beside, **odometry, **published}))
     if options.backend:
-        nodes.append(NodeLaunch(BACKEND_NODE, dict(sensors), {**extra, **odometry, **published}))
+        graph = {"graph_file": str(backend_graph_path(Path(options.map_file)))} if options.map_file else {}
+        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, **robot}, {**extra, **odometry, **published}))
     if options.pictures:
         nodes.append(NodeLaunch(VIEW_NODE, {}, {"image": options.image_topic, **extra, **published}))
     return nodes

@@ -19,7 +19,7 @@ from aefabmap_ros.nodes.launch_table import CANDIDATES_TOPIC, CLOSURES_TOPIC
 from test.conftest import REPO_ROOT
 
 LAUNCH_FILE = REPO_ROOT / "launch" / "aefabmap.launch.py"
-TOPIC_ARGUMENTS = ("camera_info_topic", "depth_topic", "odom_topic", "closures_topic", "sensor_qos")
+TOPIC_ARGUMENTS = ("camera_info_topic", "depth_topic", "odom_topic", "closures_topic", "sensor_qos", "robot")
 SHARE_PARAMS = "/opt/share/aefabmap_ros/config/aefabmap.yaml"  # what the stand-in FindPackageShare resolves to
 
 

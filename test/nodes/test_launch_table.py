@@ -72,3 +72,17 @@ def test_pictures_add_the_view_node_on_the_robots_image_and_closures_topics() ->
     assert view.name == "closure_view_node"
     assert view.remaps == {"image": "/cam/image_raw", "loop_closures": "/lc/closures"}
     assert "closure_view_node" not in [node.name for node in suite_nodes(SuiteOptions(model_dir="m"))]
+
+
+def test_a_map_keeps_the_backend_s_graph_beside_it_and_the_robot_names_its_sessions() -> None:
+    options = SuiteOptions(model_dir="/m", map_file="/maps/office.npz", backend=True, robot="r1")
+    assert _parameters(options, "fabmap_node") == {"model_dir": "/m", "map_file": "/maps/office.npz", "robot": "r1"}
+    backend = _parameters(options, "pose_graph_node")
+    assert backend == {"graph_file": "/maps/office.graph.npz", "robot": "r1"}
+    assert _parameters(options, "verifier_node")["store_dir"] == "/maps/office.features"
+
+
+def test_without_a_map_the_backend_keeps_its_graph_in_memory() -> None:
+    options = SuiteOptions(model_dir="/m", backend=True)
+    assert "graph_file" not in _parameters(options, "pose_graph_node")
+    assert "robot" not in _parameters(options, "fabmap_node")
