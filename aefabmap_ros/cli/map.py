@@ -84,7 +84,7 @@ def run_merge(first: Path, second: Path, out: Path, model: Path | None) -> int:
     merged = merge_maps(a, b, names=(f"map file {first}", f"map file {second}"))
     write_map(out, merged)
     summary = map_summary(merged)
-    print(f"{out}: {summary.places} places in {len(summary.sessions)} sessions "
+    print(f"{out}: {summary.places} places in {_count(len(summary.sessions), 'session')} "
           f"({first}: {_places(a)}, {second}: {_places(b)})")
     return 0
 
@@ -97,7 +97,7 @@ def run_remove_session(path: Path, number: int, out: Path) -> int:
     arrays = read_map_file(path)
     kept = remove_session(arrays, number)
     write_map(out, kept)
-    print(f"{out}: {map_summary(kept).places} places in {len(kept['session_robots'])} sessions "
+    print(f"{out}: {map_summary(kept).places} places in {_count(len(kept['session_robots']), 'session')} "
           f"({_places(arrays) - _places(kept)} places of session {number} removed)")
     return 0
 
@@ -176,6 +176,10 @@ def format_summary(path: Path, summary: MapSummary) -> str:
 
 def _seconds(stamp_ns: int | None) -> str:
     return "-" if stamp_ns is None else f"{stamp_ns / 1e9:.3f}"
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def _places(arrays: MapArrays) -> int:
