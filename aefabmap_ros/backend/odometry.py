@@ -7,6 +7,7 @@ the covariance order the verifier publishes (verification/pose_covariance.py).
 from __future__ import annotations
 
 import bisect
+import itertools
 
 import gtsam
 import numpy as np
@@ -20,10 +21,17 @@ def interpolate(before: gtsam.Pose3, after: gtsam.Pose3, fraction: float) -> gts
 
 
 class OdometryBuffer:
-    """Odometry poses by stamp, strictly increasing; ``pose_at`` interpolates."""
+    """Odometry poses by stamp, strictly increasing; ``pose_at`` interpolates.
 
-    def __init__(self, max_samples: int) -> None:
+    At most ``max_samples`` are kept. By default the oldest are forgotten first (a gate that only checks recent
+    closures needs no more); with ``decimate`` a full buffer drops every second sample instead (the first and
+    the newest stay), so it still covers the whole run at half the rate: what a session of a saved map needs,
+    since a later session's closure may match any of its stamps. Each kept sample keeps its distance travelled.
+    """
+
+    def __init__(self, max_samples: int, decimate: bool = False) -> None:
         self.max_samples = max_samples
+        self.decimate = decimate
         self._stamps: list[int] = []
         self._poses: list[gtsam.Pose3] = []
         self._paths: list[float] = []  # distance travelled since the first sample, metres
@@ -48,9 +56,34 @@ class OdometryBuffer:
         self._stamps.append(stamp_ns)
         self._poses.append(pose)
         if len(self._stamps) > self.max_samples:
+            self._shrink()
+        return True
+
+    def _shrink(self) -> None:
+        if not self.decimate:
             drop = len(self._stamps) - self.max_samples
             del self._stamps[:drop], self._poses[:drop], self._paths[:drop]
-        return True
+            return
+        # Every second sample, and the newest: at most max_samples // 2 + 1 left (<= max_samples for max >= 2).
+        keep = [*range(0, len(self._stamps) - 1, 2), len(self._stamps) - 1]
+        self._stamps = [self._stamps[index] for index in keep]
+        self._poses = [self._poses[index] for index in keep]
+        self._paths = [self._paths[index] for index in keep]
+
+    def samples(self) -> tuple[list[int], list[gtsam.Pose3], list[float]]:
+        """Stamps, poses and distances travelled of the kept samples (copies), oldest first."""
+        return list(self._stamps), list(self._poses), list(self._paths)
+
+    def restore(self, stamps_ns: list[int], poses: list[gtsam.Pose3], paths_m: list[float]) -> None:
+        """Replace the content by saved samples (``samples``' output): stamps strictly increasing, paths kept as
+        given (a decimated buffer's distances are those of the full run, not of the kept samples)."""
+        if not len(stamps_ns) == len(poses) == len(paths_m):
+            raise ValueError(f"{len(stamps_ns)} stamps, {len(poses)} poses and {len(paths_m)} distances")
+        if any(later <= earlier for earlier, later in itertools.pairwise(stamps_ns)):
+            raise ValueError("odometry stamps are not strictly increasing")
+        self._stamps, self._poses, self._paths = list(stamps_ns), list(poses), list(paths_m)
+        while len(self._stamps) > self.max_samples:
+            self._shrink()
 
     def pose_at(self, stamp_ns: int) -> tuple[gtsam.Pose3, float] | None:
         """Odometry and distance travelled at that stamp, interpolated; None outside the buffer."""

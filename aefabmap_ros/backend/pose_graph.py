@@ -12,6 +12,18 @@ This is the pattern a user copies into their own backend (pose_graph_node is its
   verifier's relative pose and covariance, behind a robust kernel (Cauchy) so that one wrong
   closure is down-weighted instead of dragging the graph.
 
+Sessions. A session is one run of a robot's front end, named (robot, session number) as LoopClosure names
+it; each has its own odometry frame, its own odometry buffer and its own chain of keyframes. Odometry goes to
+the current session: the newest query session named for this graph's ``robot`` (odometry that comes before
+any closure named it is kept aside and given to the first session named). The first session given a keyframe
+is anchored (a prior at its first keyframe: map == odom there); every later session starts as a graph of its
+own, its first keyframe held by a prior at its own odometry pose, and is *unjoined*. The first closure between
+two graphs joins them: it is taken on the verifier's word (no odometry links two runs, so the odometry gate
+cannot apply), the moved graph loses its prior and all its keyframes are moved, rigidly, onto the other's
+frame through the closure (query keyframe = place keyframe * closure^-1) before iSAM2 sees them. Closures
+between two sessions of one graph are gated like any other (``PoseGraph._tie_distance`` has the drift bound).
+Closures and odometry that name no session are session ("", 0): a single-session graph, as before sessions.
+
 iSAM2 factors by Cholesky, on the normal equations: fast, but it squares the system's condition
 number, and a keyframe far from the anchor (30 km along a straight road, with the loop factors' 5 cm)
 makes the system look singular to it (gtsam's "indeterminate linear system"). A closure whose update
@@ -22,6 +34,7 @@ leaves the graph half updated.
 
 Keyframe poses are ``T_map_base``; ``map_to_odom`` is what a TF broadcaster publishes so that
 ``map -> odom -> base`` puts the robot on the optimised trajectory. No ROS import: gtsam and numpy only.
+The graph is saved and reloaded by backend/graph_file.py from the records kept here (``FactorRecord``).
 """
 
 from __future__ import annotations
@@ -48,12 +61,18 @@ SETTLED_M = 0.001
 # Two stamps this close (ns) are the same keyframe: a place seen again by a later closure reuses it.
 SAME_KEYFRAME_NS = 1_000_000
 MAX_DECIDED_KEPT = 5000
+# Standard deviation (m and rad) of the prior that holds a session's first keyframe.
+PRIOR_SIGMA = 1e-6
+
+SessionId = tuple[str, int]  # (robot, session number); robot '' = the map's only robot
+SINGLE_SESSION: SessionId = ("", 0)
 
 
 class ClosureResult(Enum):
     ADDED = "added"
     WAITING = "waiting_for_odometry"  # its query is newer than the last odometry: retried when odometry comes
     UNKNOWN_STAMP = "unknown_stamp"  # an endpoint before the odometry buffer (or a dropped waiting closure)
+    UNKNOWN_SESSION = "unknown_session"  # an endpoint in a session the graph never had (no odometry, not reloaded)
     NO_POSE = "no_pose"  # the closure carries no relative pose
     BAD_COVARIANCE = "bad_covariance"  # not a finite, symmetric positive semi-definite 6x6 (validation.py)
     INCONSISTENT = "inconsistent_with_odometry"  # further from the graph than odometry drift can explain
@@ -80,7 +99,8 @@ class PoseGraphConfig:
         "description": "A closure whose residual against the graph exceeds this Mahalanobis distance squared "
                        "(6 dof; 22.46 = 99.9 %) under loop + odometry-drift covariance is refused."})
     max_odometry: int = field(default=200_000, metadata={
-        "description": "Odometry samples kept for interpolation (oldest forgotten first)."})
+        "description": "Odometry samples kept for interpolation, per session (the odometry gate forgets the "
+                       "oldest first; the pose graph halves a full session's sample rate, keeping its whole run)."})
     max_waiting: int = field(default=100, metadata={
         "description": "Closures waiting for odometry to reach their query stamp, at most."})
 
@@ -98,20 +118,85 @@ class PoseGraphConfig:
 @dataclass(frozen=True)
 class Closure:
     """A verified loop closure: T_query_place (the place's base in the query's base frame) and its covariance
-    over (x, y, z, rot x, rot y, rot z), as in LoopClosure.pose / pose_covariance."""
+    over (x, y, z, rot x, rot y, rot z), as in LoopClosure.pose / pose_covariance; each endpoint in its
+    (robot, session)."""
 
     query_ns: int
     place_ns: int
     query_to_place: gtsam.Pose3
     covariance: np.ndarray
+    query_session: SessionId = SINGLE_SESSION
+    place_session: SessionId = SINGLE_SESSION
 
 
 @dataclass
 class Keyframe:
     stamp_ns: int
     key: int
-    odometry: gtsam.Pose3  # T_odom_base at the keyframe's stamp
+    odometry: gtsam.Pose3  # T_odom_base at the keyframe's stamp, in its session's odometry frame
     path_m: float  # odometry distance travelled at that stamp: odometry error grows with it
+    session: SessionId = SINGLE_SESSION
+
+
+@dataclass
+class Session:
+    """One run of a robot's front end: its odometry (one odometry frame) and its keyframes, by stamp.
+
+    ``root`` names the session whose prior holds the graph this one is part of: itself until a closure joins
+    it to another graph. Sessions whose root is the graph's ``anchor`` are joined (in the map frame)."""
+
+    id: SessionId
+    odometry: OdometryBuffer
+    root: SessionId
+    keyframes: list[Keyframe] = field(default_factory=list)
+
+
+class FactorKind(Enum):
+    PRIOR = 0
+    ODOMETRY = 1
+    LOOP = 2
+
+
+@dataclass(frozen=True)
+class FactorRecord:
+    """One factor as the graph keeps (and its file saves) it; gtsam's factor is made from it when needed.
+
+    ``pose`` is the prior's pose, or a between factor's measured T_first_second; ``covariance`` is in gtsam's
+    tangent order (rot, trans); a loop factor's Cauchy kernel has ``cauchy_scale`` (NaN for the others)."""
+
+    kind: FactorKind
+    first: int
+    second: int  # a prior's: its own key again
+    pose: gtsam.Pose3
+    covariance: np.ndarray
+    cauchy_scale: float = float("nan")
+
+    def factor(self) -> gtsam.NonlinearFactor:
+        covariance = np.asarray(self.covariance, dtype=np.float64)
+        noise: gtsam.noiseModel.Base
+        if self.kind is FactorKind.LOOP:
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.cauchy_scale),
+                                                   gtsam.noiseModel.Gaussian.Covariance(covariance))
+        elif np.count_nonzero(covariance - np.diag(np.diag(covariance))) == 0:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(covariance)))
+        else:
+            noise = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        if self.kind is FactorKind.PRIOR:
+            return gtsam.PriorFactorPose3(self.first, self.pose, noise)
+        return gtsam.BetweenFactorPose3(self.first, self.second, self.pose, noise)
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """What a failed update must not leave changed (the estimate is replaced, never changed in place)."""
+
+    sessions: dict[SessionId, tuple[list[Keyframe], SessionId]]
+    chain_factors: dict[tuple[int, int], int]
+    priors: dict[SessionId, int]
+    factors: dict[int, FactorRecord]
+    next_key: int
+    estimate: gtsam.Values
+    anchor: SessionId | None
 
 
 def drift_covariance(config: PoseGraphConfig, distance_m: float) -> np.ndarray:
@@ -140,28 +225,49 @@ def _isam_params(factorization: str) -> gtsam.ISAM2Params:
 
 
 class PoseGraph:
-    """Keyframes at closure endpoints, odometry and robust loop factors, optimised by iSAM2 on every closure."""
+    """Keyframes at closure endpoints, odometry and robust loop factors, optimised by iSAM2 on every closure;
+    one odometry frame and keyframe chain per session (module docstring)."""
 
-    def __init__(self, config: PoseGraphConfig) -> None:
+    def __init__(self, config: PoseGraphConfig, robot: str = "") -> None:
         self.config = config
-        self.odometry = OdometryBuffer(config.max_odometry)
-        self.keyframes: list[Keyframe] = []  # by stamp
+        self.robot = robot  # the robot whose odometry add_odometry receives
+        self.sessions: dict[SessionId, Session] = {}
+        self.current: SessionId | None = None  # the session add_odometry's samples belong to, once a closure named it
+        self.anchor: SessionId | None = None  # root of the joined graph: the first session given a keyframe
+        self._unnamed_odometry = self._new_buffer()  # odometry before any closure named its session
         self.counts: Counter[str] = Counter()
         # The latest closures decided (added or refused, not waiting): what a viewer draws as loop edges.
         self.decided: deque[tuple[Closure, ClosureResult]] = deque(maxlen=MAX_DECIDED_KEPT)
         self._waiting: list[Closure] = []
         self._chain_factors: dict[tuple[int, int], int] = {}  # (key before, key after) -> iSAM2 factor index
-        self._factors: dict[int, gtsam.NonlinearFactor] = {}  # iSAM2 factor index -> factor, the graph's own
+        self._priors: dict[SessionId, int] = {}  # root session -> iSAM2 index of the prior holding its graph
+        self.factors: dict[int, FactorRecord] = {}  # iSAM2 factor index -> factor, the graph's own
+        self._key_sessions: dict[int, SessionId] = {}
         self._next_key = 0
         self.factorization = "CHOLESKY"  # "QR" once Cholesky failed on this graph (module docstring)
         self.solver_error = ""  # gtsam's message of the last update that failed
         self._isam = gtsam.ISAM2(_isam_params(self.factorization))
         self._estimate = gtsam.Values()
 
+    def _new_buffer(self) -> OdometryBuffer:
+        # Decimated when full, not forgotten from the start: a later session may close a loop to any stamp.
+        return OdometryBuffer(self.config.max_odometry, decimate=True)
+
+    @property
+    def odometry(self) -> OdometryBuffer:
+        """The odometry ``add_odometry`` fills: the current session's (or the one no closure named yet)."""
+        return self._unnamed_odometry if self.current is None else self.sessions[self.current].odometry
+
+    @property
+    def keyframes(self) -> list[Keyframe]:
+        """Every session's keyframes, session after session, each session's by stamp."""
+        return [keyframe for session in self.sessions.values() for keyframe in session.keyframes]
+
     # -- input --------------------------------------------------------------------------------------------
 
     def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3) -> list[ClosureResult]:
-        """Buffer one odometry pose; closures waiting for it are retried (their results returned)."""
+        """Buffer one odometry pose of the current session; closures waiting for it are retried (their results
+        returned)."""
         if not self.odometry.add(stamp_ns, pose):
             self.counts["odometry_out_of_order"] += 1
             return []
@@ -179,109 +285,261 @@ class PoseGraph:
             self.decided.append((closure, result))
         return result
 
+    def start_session(self, session_id: SessionId) -> None:
+        """Make ``session_id`` the session odometry goes to from now on (``add_closure`` does it for the newest
+        query session of ``robot``; a backend told of a session's start can call it before the first closure).
+
+        The first session named takes the odometry that came before (it was this run's); a session named
+        later is a new run whose odometry restarted, so it starts an empty buffer, and closures still waiting
+        for the previous session's odometry are dropped (unknown_stamp): that odometry will not come. Odometry
+        between a session's start and its first closure, when the backend ran on through the change, was
+        taken as the previous session's: the new session's keyframes begin at its first odometry after."""
+        if self.current == session_id:
+            return
+        if self.current is None:
+            buffer, self._unnamed_odometry = self._unnamed_odometry, self._new_buffer()
+            existing = self.sessions.get(session_id)
+            if existing is None:
+                self.sessions[session_id] = Session(session_id, buffer, root=session_id)
+            else:  # a reloaded session continues (only the backend restarted): same odometry frame
+                for stamp_ns, pose, _ in zip(*buffer.samples(), strict=True):
+                    if not existing.odometry.add(stamp_ns, pose):
+                        self.counts["odometry_out_of_order"] += 1
+        else:
+            for closure in self._waiting:
+                self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
+                self.decided.append((closure, ClosureResult.UNKNOWN_STAMP))
+            self._waiting = []
+            if session_id not in self.sessions:
+                self.sessions[session_id] = Session(session_id, self._new_buffer(), root=session_id)
+        self.current = session_id
+
     def _add_closure(self, closure: Closure) -> ClosureResult:
         covariance = np.asarray(closure.covariance, dtype=np.float64)
         if covariance.shape != (6, 6) or covariance_problem(covariance) is not None:
             return ClosureResult.BAD_COVARIANCE
-        last = self.odometry.last_ns
+        named = closure.query_session
+        if named[0] == self.robot and (self.current is None or named[1] > self.current[1]):
+            self.start_session(named)
+        query, place = self.sessions.get(closure.query_session), self.sessions.get(closure.place_session)
+        if query is None or place is None:
+            return ClosureResult.UNKNOWN_SESSION
+        endpoints = ((query, closure.query_ns), (place, closure.place_ns))
         # No odometry yet waits too: a backend's callbacks may take a closure before the odometry queued ahead of it.
-        if last is None or max(closure.query_ns, closure.place_ns) > last:
+        current_stamps = [stamp_ns for session, stamp_ns in endpoints if session.id == self.current]
+        last = self.odometry.last_ns
+        if current_stamps and (last is None or max(current_stamps) > last):
             self._waiting.append(closure)
             if len(self._waiting) > self.config.max_waiting:
                 self._waiting.pop(0)
                 self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
             return ClosureResult.WAITING
-        endpoints = (closure.query_ns, closure.place_ns)
-        if any(self._find_keyframe(stamp_ns) is None and self.odometry.pose_at(stamp_ns) is None
-               for stamp_ns in endpoints):
+        if any(self._find_keyframe(session, stamp_ns) is None and session.odometry.pose_at(stamp_ns) is None
+               for session, stamp_ns in endpoints):
             return ClosureResult.UNKNOWN_STAMP  # checked first: a dropped closure leaves the graph as it was
         loop_covariance = loop_factor_covariance(self.config, covariance)
-        (query_pose, query_path), (place_pose, place_path) = (self._predicted(stamp_ns) for stamp_ns in endpoints)
-        # What odometry drift alone can explain between the two: the whole path travelled between them (an
-        # upper bound once other closures tie them closer).
-        drift = drift_covariance(self.config, abs(query_path - place_path))
-        if odometry_disagreement(closure.query_to_place, loop_covariance, query_pose.between(place_pose),
-                                 drift) > self.config.gate_chi2:
-            return ClosureResult.INCONSISTENT
+        if query.root != place.root:
+            distance_m = 0.0  # joins two graphs: no odometry relates them, the verifier's word is all there is
+        else:
+            (query_pose, query_path), (place_pose, place_path) = (self._predicted(*endpoint) for endpoint in endpoints)
+            # What odometry drift alone can explain between the two: in one session the whole path travelled
+            # between them (an upper bound once other closures tie them closer); across sessions _tie_distance's.
+            distance_m = (abs(query_path - place_path) if query is place
+                          else self._tie_distance(query, query_path) + self._tie_distance(place, place_path))
+            if odometry_disagreement(closure.query_to_place, loop_covariance, query_pose.between(place_pose),
+                                     drift_covariance(self.config, distance_m)) > self.config.gate_chi2:
+                return ClosureResult.INCONSISTENT
+        drift = drift_covariance(self.config, distance_m)
         # The Cauchy kernel's scale: the loop-whitened disagreement drift can explain. A true closure after
         # long drift keeps most of its weight; one the graph later contradicts (other closures) loses it.
         scale = self.config.cauchy_scale * float(np.sqrt(np.trace(drift[3:, 3:] + loop_covariance[3:, 3:])
                                                          / np.trace(loop_covariance[3:, 3:])))
-        robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(scale),
-                                                gtsam.noiseModel.Gaussian.Covariance(loop_covariance))
-        # What a failed update must not leave changed (the estimate is replaced, never changed in place).
-        kept = (list(self.keyframes), dict(self._chain_factors), dict(self._factors), self._next_key, self._estimate)
+        kept = self._keep()
         while True:
             try:
-                self._insert_closure(endpoints, closure.query_to_place, robust)
+                self._insert_closure(endpoints, FactorRecord(FactorKind.LOOP, -1, -1, closure.query_to_place,
+                                                             loop_covariance, scale))
                 return ClosureResult.ADDED
             except RuntimeError as exc:  # gtsam's IndeterminantLinearSystemException and kin
                 self.solver_error = " ".join(str(exc).split())
                 retry = self.factorization != "QR"
                 # The failed update left its factors inside iSAM2: start again from the graph kept before it.
-                self.keyframes, self._chain_factors, self._factors = list(kept[0]), dict(kept[1]), dict(kept[2])
-                self._next_key, self._estimate = kept[3], kept[4]
+                self._restore(kept)
                 self._rebuild("QR")
                 if not retry:
                     return ClosureResult.SOLVER_FAILED
 
-    def _insert_closure(self, endpoints: tuple[int, int], query_to_place: gtsam.Pose3,
-                        noise: gtsam.noiseModel.Base) -> None:
-        """Keyframes at both endpoints (made where missing) and the loop factor between them; one iSAM2 update.
-        A gtsam error leaves keyframes and iSAM2 half updated: the caller restores and rebuilds them."""
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    def _tie_distance(self, session: Session, path_m: float) -> float:
+        """Distance travelled from ``path_m`` to the session's nearest keyframe tied to another session by a loop
+        factor: what bounds the drift of one endpoint of a closure between two sessions of one graph.
+
+        The two sessions' relative placement is known only through such ties, to the closures' accuracy (the
+        loop covariance covers it); away from them each session's estimate is its odometry's, off by the drift
+        of the path travelled since the nearest tie. The bound is the sum of that distance for both endpoints.
+        The nearest tie, not the join's: every later tie holds the sessions as tightly as the first one did,
+        and a bound from the join alone would grow without limit over a long session and pass anything.
+        It ignores the ties' own error and, when the two sessions are tied only through a third, the path
+        through that one: a tighter gate than the exact covariance, which the Cauchy kernel and the gate's
+        99.9 % threshold leave room for."""
+        tied = self._tied_keys()
+        paths = ([keyframe.path_m for keyframe in session.keyframes if keyframe.key in tied]
+                 or [keyframe.path_m for keyframe in session.keyframes])
+        return min((abs(path_m - other) for other in paths), default=0.0)
+
+    def _tied_keys(self) -> set[int]:
+        tied: set[int] = set()
+        for record in self.factors.values():
+            if (record.kind is FactorKind.LOOP
+                    and self._key_sessions[record.first] != self._key_sessions[record.second]):
+                tied.update((record.first, record.second))
+        return tied
+
+    def _insert_closure(self, endpoints: tuple[tuple[Session, int], tuple[Session, int]], loop: FactorRecord) -> None:
+        """Keyframes at both endpoints (made where missing), the loop factor between them and, when it joins two
+        graphs, the moved graph; one iSAM2 update. A gtsam error leaves keyframes and iSAM2 half updated: the
+        caller restores and rebuilds them."""
+        records: list[FactorRecord] = []
+        values = gtsam.Values()
         removed: list[int] = []
-        tags: list[tuple[int, int] | None] = []  # per factor added: the keyframe pair of an odometry factor
-        if not self.keyframes and self.odometry.first_ns is not None:
-            # map == odom at the first odometry pose: the anchor (prior) of the whole graph.
-            self._new_keyframe(self.odometry.first_ns, graph, values, removed, tags)
+        (query, _), (place, _) = endpoints
+        moving = None  # the root of the graph this closure moves onto the other's, when it joins two
+        if query.root != place.root:
+            moving = place.root if query.root == self.anchor else query.root
+        if self.anchor is None:
+            self.anchor = place.root if moving == query.root else query.root
+        for session in (query,) if query is place else (query, place):
+            if not session.keyframes and session.odometry.first_ns is not None:
+                # A session's first keyframe, at its first odometry pose; a prior there holds its graph (map ==
+                # odom for the first session). One that joins another graph now needs none: the closure places it.
+                self._new_keyframe(session, session.odometry.first_ns, records, values, removed,
+                                   prior=session.id != moving)
         keys = []
-        for stamp_ns in endpoints:
-            keyframe = self._find_keyframe(stamp_ns) or self._new_keyframe(stamp_ns, graph, values, removed, tags)
+        for session, stamp_ns in endpoints:
+            keyframe = (self._find_keyframe(session, stamp_ns)
+                        or self._new_keyframe(session, stamp_ns, records, values, removed, prior=False))
             assert keyframe is not None  # resolvable, checked above
             keys.append(keyframe.key)
-        graph.add(gtsam.BetweenFactorPose3(keys[0], keys[1], query_to_place, noise))
-        tags.append(None)
-        self._update(graph, values, removed, tags)
+        records.append(FactorRecord(FactorKind.LOOP, keys[0], keys[1], loop.pose, loop.covariance, loop.cauchy_scale))
+        start = None
+        if moving is not None:
+            start = self._join(moving, query, keys, loop.pose, values, removed)
+        self._update(records, values, removed, start)
+
+    def _join(self, moving: SessionId, query: Session, keys: list[int], query_to_place: gtsam.Pose3,
+              values: gtsam.Values, removed: list[int]) -> gtsam.Values | None:
+        """Move the graph rooted at ``moving`` onto the other's frame through the joining closure (keys: its query
+        and place keyframes), rigidly, and drop its prior; the moved poses of new keyframes go into ``values``.
+
+        Returns None when that graph had no keyframe in iSAM2 yet (an ordinary update then starts at the answer),
+        else the whole estimate, moved: iSAM2 keeps a variable's linearisation point once it has it, so only a
+        new iSAM2 starts near the answer, and ``_update`` builds one (a join happens once per session)."""
+        query_pose, place_pose = (self._pose_of(key, values) for key in keys)
+        if query.root == moving:  # the query keyframe, seen from the place: place * closure^-1
+            offset = place_pose.compose(query_to_place.inverse()).compose(query_pose.inverse())
+            stay = self._session_of(keys[1]).root
+        else:
+            offset = query_pose.compose(query_to_place).compose(place_pose.inverse())
+            stay = query.root
+        members = [session for session in self.sessions.values() if session.root == moving]
+        moved = {keyframe.key for session in members for keyframe in session.keyframes}
+        for key in moved:
+            if values.exists(key):
+                values.update(key, offset.compose(values.atPose3(key)))
+        for session in members:
+            session.root = stay
+        if moving in self._priors:
+            removed.append(self._priors.pop(moving))
+        if not any(self._estimate.exists(key) for key in moved):
+            return None
+        estimate = gtsam.Values()
+        keys = [int(key) for key in self._estimate.keys()]  # noqa: SIM118 - gtsam.Values is no dict
+        for key in keys:
+            pose = self._estimate.atPose3(key)
+            estimate.insert(key, offset.compose(pose) if key in moved else pose)
+        return estimate
 
     # -- output -------------------------------------------------------------------------------------------
 
-    def trajectory(self) -> list[tuple[int, gtsam.Pose3]]:
-        """Optimised keyframe poses T_map_base by stamp."""
-        return [(keyframe.stamp_ns, self._estimate.atPose3(keyframe.key)) for keyframe in self.keyframes]
+    def is_joined(self, robot: str = "", session: int = 0) -> bool:
+        """Whether that session's keyframes are in the map frame (the anchored graph): False for a session of a
+        graph of its own, or one without keyframes."""
+        found = self.sessions.get((robot, session))
+        return found is not None and bool(found.keyframes) and found.root == self.anchor
 
-    def map_to_odom(self) -> gtsam.Pose3:
-        """T_map_odom from the newest keyframe: identity before the first closure."""
-        if not self.keyframes:
+    def trajectory(self) -> list[tuple[int, gtsam.Pose3]]:
+        """Optimised keyframe poses T_map_base of every joined session, by stamp."""
+        joined = [keyframe for session in self.sessions.values() if session.root == self.anchor
+                  for keyframe in session.keyframes]
+        return [(keyframe.stamp_ns, self._estimate.atPose3(keyframe.key))
+                for keyframe in sorted(joined, key=lambda keyframe: keyframe.stamp_ns)]
+
+    def session_trajectory(self, robot: str = "", session: int = 0) -> list[tuple[int, gtsam.Pose3]]:
+        """One session's optimised keyframe poses by stamp, in its graph's frame (the map for a joined one)."""
+        found = self.sessions.get((robot, session))
+        keyframes = found.keyframes if found is not None else []
+        return [(keyframe.stamp_ns, self._estimate.atPose3(keyframe.key)) for keyframe in keyframes]
+
+    def map_to_odom(self, robot: str | None = None, session: int | None = None) -> gtsam.Pose3:
+        """T_map_odom of a session (default: the current one, else the anchor) from its newest keyframe; identity
+        before its first closure. For an unjoined session the "map" is its own graph's frame."""
+        if robot is None and session is None:
+            session_id = self.current if self.current is not None else self.anchor
+        else:
+            session_id = (robot or "", session or 0)
+        found = self.sessions.get(session_id) if session_id is not None else None
+        if found is None or not found.keyframes:
             return gtsam.Pose3()
-        newest = self.keyframes[-1]
+        newest = found.keyframes[-1]
         return self._estimate.atPose3(newest.key).compose(newest.odometry.inverse())
+
+    def keyframe_in_map(self, session_id: SessionId, stamp_ns: int) -> gtsam.Pose3 | None:
+        """The optimised pose of a joined session's keyframe at that stamp; None if there is none."""
+        found = self.sessions.get(session_id)
+        if found is None or found.root != self.anchor:
+            return None
+        keyframe = self._find_keyframe(found, stamp_ns)
+        return None if keyframe is None else self._estimate.atPose3(keyframe.key)
+
+    def odometry_in_map(self, session_id: SessionId, stamp_ns: int) -> gtsam.Pose3 | None:
+        """The odometry pose at that stamp moved into the map frame by its session's map -> odom; None for a stamp
+        outside its odometry or a session outside the map frame (a session with no keyframe yet is in it while
+        the graph has no anchor: map == odom then)."""
+        found = self.sessions.get(session_id)
+        if found is None or not (found.root == self.anchor or (self.anchor is None and not found.keyframes)):
+            return None
+        odometry = found.odometry.pose_at(stamp_ns)
+        return None if odometry is None else self.map_to_odom(*session_id).compose(odometry[0])
 
     # -- graph building -----------------------------------------------------------------------------------
 
-    def _find_keyframe(self, stamp_ns: int) -> Keyframe | None:
-        stamps = [keyframe.stamp_ns for keyframe in self.keyframes]
+    def _session_of(self, key: int) -> Session:
+        return self.sessions[self._key_sessions[key]]
+
+    def _find_keyframe(self, session: Session, stamp_ns: int) -> Keyframe | None:
+        stamps = [keyframe.stamp_ns for keyframe in session.keyframes]
         index = bisect.bisect_left(stamps, stamp_ns)
         for candidate in (index - 1, index):
-            if 0 <= candidate < len(self.keyframes) and abs(stamps[candidate] - stamp_ns) <= SAME_KEYFRAME_NS:
-                return self.keyframes[candidate]
+            if 0 <= candidate < len(stamps) and abs(stamps[candidate] - stamp_ns) <= SAME_KEYFRAME_NS:
+                return session.keyframes[candidate]
         return None
 
-    def _new_keyframe(self, stamp_ns: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                      removed: list[int], tags: list[tuple[int, int] | None]) -> Keyframe | None:
-        found = self.odometry.pose_at(stamp_ns)
+    def _new_keyframe(self, session: Session, stamp_ns: int, records: list[FactorRecord], values: gtsam.Values,
+                      removed: list[int], prior: bool) -> Keyframe | None:
+        found = session.odometry.pose_at(stamp_ns)
         if found is None:
             return None
         odometry, path_m = found
-        keyframe = Keyframe(stamp_ns, self._next_key, odometry, path_m)
+        keyframe = Keyframe(stamp_ns, self._next_key, odometry, path_m, session.id)
         self._next_key += 1
-        index = bisect.bisect_left([existing.stamp_ns for existing in self.keyframes], stamp_ns)
-        before = self.keyframes[index - 1] if index > 0 else None
-        after = self.keyframes[index] if index < len(self.keyframes) else None
+        self._key_sessions[keyframe.key] = session.id
+        index = bisect.bisect_left([existing.stamp_ns for existing in session.keyframes], stamp_ns)
+        before = session.keyframes[index - 1] if index > 0 else None
+        after = session.keyframes[index] if index < len(session.keyframes) else None
         if before is None and after is None:
-            values.insert(keyframe.key, odometry)  # the first keyframe: map == odom there
-            graph.add(gtsam.PriorFactorPose3(keyframe.key, odometry, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-            tags.append(None)
+            values.insert(keyframe.key, odometry)  # the session's first keyframe: its odom frame is its graph's
+            if prior:
+                records.append(FactorRecord(FactorKind.PRIOR, keyframe.key, keyframe.key, odometry,
+                                            np.eye(6) * PRIOR_SIGMA ** 2))
         else:
             anchor = before if before is not None else after
             assert anchor is not None
@@ -291,76 +549,144 @@ class PoseGraph:
             removed.append(self._chain_factors.pop((before.key, after.key)))  # split the factor it interrupts
         for first, second in ((before, keyframe), (keyframe, after)):
             if first is not None and second is not None:
-                graph.add(self._odometry_factor(first, second))
-                tags.append((first.key, second.key))
-        self.keyframes.insert(index, keyframe)
+                records.append(self._odometry_record(first, second))
+        session.keyframes.insert(index, keyframe)
         return keyframe
 
     def _pose_of(self, key: int, pending: gtsam.Values) -> gtsam.Pose3:
         return pending.atPose3(key) if pending.exists(key) else self._estimate.atPose3(key)
 
-    def _odometry_factor(self, first: Keyframe, second: Keyframe) -> gtsam.BetweenFactorPose3:
+    def _odometry_record(self, first: Keyframe, second: Keyframe) -> FactorRecord:
         relative = first.odometry.between(second.odometry)
         # Travelled, not the straight line: a loop ends near its start.
         covariance = drift_covariance(self.config, abs(second.path_m - first.path_m))
-        return gtsam.BetweenFactorPose3(first.key, second.key, relative,
-                                        gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(covariance))))
+        return FactorRecord(FactorKind.ODOMETRY, first.key, second.key, relative, covariance)
 
-    def _predicted(self, stamp_ns: int) -> tuple[gtsam.Pose3, float]:
-        """Current estimate of the pose at a stamp (a keyframe's, else odometry moved with its nearest
-        keyframe) and the distance travelled there."""
-        existing = self._find_keyframe(stamp_ns)
+    def _predicted(self, session: Session, stamp_ns: int) -> tuple[gtsam.Pose3, float]:
+        """Current estimate of the pose at a stamp of a session (a keyframe's, else odometry moved with the
+        session's nearest keyframe) and the distance travelled there."""
+        existing = self._find_keyframe(session, stamp_ns)
         if existing is not None:
             return self._estimate.atPose3(existing.key), existing.path_m
-        found = self.odometry.pose_at(stamp_ns)
+        found = session.odometry.pose_at(stamp_ns)
         assert found is not None  # resolvable, checked by the caller
         odometry, path_m = found
-        if not self.keyframes:
+        if not session.keyframes:
             return odometry, path_m
-        index = bisect.bisect_left([keyframe.stamp_ns for keyframe in self.keyframes], stamp_ns)
-        anchor = self.keyframes[max(index - 1, 0)]
+        index = bisect.bisect_left([keyframe.stamp_ns for keyframe in session.keyframes], stamp_ns)
+        anchor = session.keyframes[max(index - 1, 0)]
         return self._estimate.atPose3(anchor.key).compose(anchor.odometry.between(odometry)), path_m
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, removed: list[int],
-                tags: list[tuple[int, int] | None]) -> None:
-        """One iSAM2 update and its extra iterations; the factors are recorded once all of it succeeded."""
-        result = self._isam.update(graph, values, removed)
-        new_indices = [int(index) for index in result.getNewFactorsIndices()]
+    def _update(self, records: list[FactorRecord], values: gtsam.Values, removed: list[int],
+                start: gtsam.Values | None = None) -> None:
+        """One iSAM2 update and its extra iterations; the factors are recorded once all of it succeeded.
+        With ``start`` (a join's moved estimate), a new iSAM2 takes every factor kept and the new ones there."""
+        graph = gtsam.NonlinearFactorGraph()
+        for record in records:
+            graph.add(record.factor())
+        if start is None:
+            result = self._isam.update(graph, values, removed)
+            new_indices = [int(index) for index in result.getNewFactorsIndices()]
+        else:
+            dropped = set(removed)
+            removed = []
+            new_indices = self._restart([index for index in sorted(self.factors) if index not in dropped],
+                                        self.factorization, start, graph, values)
         # The Cauchy kernel is re-weighted at each relinearisation (IRLS): a true closure far from the
         # drifted estimate starts with a small weight and gains it as the graph moves towards it; a wrong one
         # stays far and keeps a small weight. A few more iterations, until the estimate settles.
+        keys = [keyframe.key for keyframe in self.keyframes]
         for _ in range(MAX_EXTRA_ITERATIONS):
             before = self._isam.calculateEstimate()
             self._isam.update()
-            keys = [keyframe.key for keyframe in self.keyframes]
             if _largest_change(before, self._isam.calculateEstimate(), keys) < SETTLED_M:
                 break
         self._estimate = self._isam.calculateEstimate()
         # iSAM2 numbers the new factors in the order they were added: remember the odometry factors' numbers
-        # so that a keyframe inserted later between two keyframes can remove the factor it splits.
-        for position, (tag, index) in enumerate(zip(tags, new_indices, strict=True)):
-            self._factors[index] = graph.at(position)
-            if tag is not None:
-                self._chain_factors[tag] = index
+        # so that a keyframe inserted later between two keyframes can remove the factor it splits, and the
+        # priors' so that a join can remove its graph's.
+        for record, index in zip(records, new_indices, strict=True):
+            self._record(index, record)
         for index in removed:
-            self._factors.pop(index, None)
+            self.factors.pop(index, None)
+
+    def _record(self, index: int, record: FactorRecord) -> None:
+        self.factors[index] = record
+        if record.kind is FactorKind.ODOMETRY:
+            self._chain_factors[(record.first, record.second)] = index
+        elif record.kind is FactorKind.PRIOR:
+            self._priors[self._session_of(record.first).root] = index
+
+    def _restart(self, kept: list[int], factorization: str, estimate: gtsam.Values,
+                 graph: gtsam.NonlinearFactorGraph | None = None, values: gtsam.Values | None = None) -> list[int]:
+        """A new iSAM2 (``factorization``) holding the recorded factors numbered ``kept`` (renumbered; the others
+        forgotten) and ``graph``'s new ones, at ``estimate`` and ``values``; the new factors' numbers."""
+        self.factorization = factorization
+        self._isam = gtsam.ISAM2(_isam_params(factorization))
+        full = gtsam.NonlinearFactorGraph()
+        for index in kept:
+            full.add(self.factors[index].factor())
+        added = 0 if graph is None else graph.size()
+        for position in range(added):
+            assert graph is not None
+            full.add(graph.at(position))
+        initial = gtsam.Values(estimate)
+        if values is not None:
+            initial.insert(values)
+        if full.size() == 0:
+            self._estimate = gtsam.Values()
+            self.factors, self._chain_factors, self._priors = {}, {}, {}
+            return []
+        result = self._isam.update(full, initial)
+        indices = [int(index) for index in result.getNewFactorsIndices()]
+        renumbered = dict(zip(kept, indices[:len(kept)], strict=True))
+        self.factors = {renumbered[index]: self.factors[index] for index in kept}
+        self._chain_factors = {pair: renumbered[index] for pair, index in self._chain_factors.items()
+                               if index in renumbered}
+        self._priors = {root: renumbered[index] for root, index in self._priors.items() if index in renumbered}
+        self._estimate = self._isam.calculateEstimate()
+        return indices[len(kept):]
 
     def _rebuild(self, factorization: str) -> None:
         """A new iSAM2 (``factorization``) holding the recorded factors at the last estimate."""
-        self.factorization = factorization
-        self._isam = gtsam.ISAM2(_isam_params(factorization))
-        if not self._factors:
-            self._estimate = gtsam.Values()
-            return
-        old_indices = sorted(self._factors)
-        graph = gtsam.NonlinearFactorGraph()
-        for index in old_indices:
-            graph.add(self._factors[index])
-        result = self._isam.update(graph, self._estimate)
-        renumbered = dict(zip(old_indices, (int(index) for index in result.getNewFactorsIndices()), strict=True))
-        self._factors = {renumbered[index]: factor for index, factor in self._factors.items()}
-        self._chain_factors = {pair: renumbered[index] for pair, index in self._chain_factors.items()}
-        self._estimate = self._isam.calculateEstimate()
+        self._restart(sorted(self.factors), factorization, self._estimate)
+
+    def _keep(self) -> _Kept:
+        sessions = {session_id: (list(session.keyframes), session.root)
+                    for session_id, session in self.sessions.items()}
+        return _Kept(sessions, dict(self._chain_factors), dict(self._priors), dict(self.factors), self._next_key,
+                     self._estimate, self.anchor)
+
+    def _restore(self, kept: _Kept) -> None:
+        for session_id, (keyframes, root) in kept.sessions.items():
+            self.sessions[session_id].keyframes, self.sessions[session_id].root = list(keyframes), root
+        self._chain_factors, self._priors = dict(kept.chain_factors), dict(kept.priors)
+        self.factors, self._next_key = dict(kept.factors), kept.next_key
+        self._estimate, self.anchor = kept.estimate, kept.anchor
+
+    # -- a saved graph (backend/graph_file.py) ------------------------------------------------------------
+
+    def estimate_of(self, key: int) -> gtsam.Pose3:
+        """The optimised pose of a keyframe, by key."""
+        return self._estimate.atPose3(key)
+
+    def load(self, sessions: list[Session], anchor: SessionId | None, records: list[FactorRecord],
+             estimate: gtsam.Values, factorization: str) -> None:
+        """Take a saved graph into this empty one and rebuild iSAM2 from its factors at the saved estimate.
+
+        The current session stays unnamed: the next run's first closure names it (a reloaded session named
+        again continues its odometry). RuntimeError (gtsam's) when the factors cannot be solved."""
+        if self.sessions or self.factors:
+            raise ValueError("a saved graph is loaded into an empty one only")
+        self.sessions = {session.id: session for session in sessions}
+        self.anchor = anchor
+        self._key_sessions = {keyframe.key: session.id for session in sessions for keyframe in session.keyframes}
+        self._next_key = max(self._key_sessions, default=-1) + 1
+        self.factors, self._chain_factors, self._priors = {}, {}, {}
+        for index, record in enumerate(records):
+            self._record(index, record)
+        self._estimate = estimate
+        self._rebuild(factorization)
 
 
 def _largest_change(before: gtsam.Values, after: gtsam.Values, keys: list[int]) -> float:

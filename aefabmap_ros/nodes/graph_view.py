@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import bisect
-
 import gtsam
 import numpy as np
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
-from aefabmap_ros.backend.pose_graph import SAME_KEYFRAME_NS, ClosureResult, PoseGraph
+from aefabmap_ros.backend.pose_graph import ClosureResult, PoseGraph
 from aefabmap_ros.nodes.common import RESULT_QOS
 from aefabmap_ros.nodes.messages import time_from_ns
 from aefabmap_ros.nodes.view_messages import marker_array
@@ -40,27 +38,16 @@ class GraphView:
 
 def drawing(graph: PoseGraph, odometry_path: np.ndarray) -> GraphDrawing:
     """The graph in the map frame: accepted loops between their optimised keyframes, refused ones between the
-    odometry poses at their stamps (map <- odom as the graph has it now; they never became keyframes)."""
+    odometry poses at their stamps (map <- odom of their sessions as the graph has it now; they never became
+    keyframes). A loop with an end in a session not joined to the map (its frame is not the map's) is left out."""
     trajectory = graph.trajectory()
-    stamps = [stamp_ns for stamp_ns, _ in trajectory]
     positions = np.array([pose.translation() for _, pose in trajectory], np.float64).reshape(-1, 3)
-    map_to_odom = graph.map_to_odom()
-
-    def keyframe_at(stamp_ns: int) -> np.ndarray | None:
-        index = bisect.bisect_left(stamps, stamp_ns - SAME_KEYFRAME_NS)
-        if index < len(stamps) and abs(stamps[index] - stamp_ns) <= SAME_KEYFRAME_NS:
-            return np.asarray(positions[index])
-        return None
-
-    def odometry_at(stamp_ns: int) -> np.ndarray | None:
-        found = graph.odometry.pose_at(stamp_ns)
-        return None if found is None else np.asarray(map_to_odom.compose(found[0]).translation(), np.float64)
-
     loops = []
     for closure, result in graph.decided:
         accepted = result is ClosureResult.ADDED
-        locate = keyframe_at if accepted else odometry_at
-        start, end = locate(closure.query_ns), locate(closure.place_ns)
+        locate = graph.keyframe_in_map if accepted else graph.odometry_in_map
+        start, end = locate(closure.query_session, closure.query_ns), locate(closure.place_session, closure.place_ns)
         if start is not None and end is not None:
-            loops.append((start, end, accepted))
+            loops.append((np.asarray(start.translation(), np.float64), np.asarray(end.translation(), np.float64),
+                          accepted))
     return GraphDrawing(keyframes=positions, odometry_path=odometry_path, loops=loops)
