@@ -12,7 +12,21 @@ edges green when added and red when refused, the odometry path and the optimised
 go out at most every ``publish_period_s`` when the graph changed: each holds every keyframe, and
 republished per closure at 10 closures a second they cost the node more than the graph itself. On
 shutdown the keyframe trajectory is written in TUM format to ``trajectory_file`` (atomically; '' = not
-written).
+written): every session joined to the map, by stamp; a session not joined yet to
+``<stem>.session<k><suffix>`` beside it (``<stem>.<robot>.session<k><suffix>`` for a named robot), in its own
+graph's frame.
+
+Several sessions (backend/pose_graph.py has the model). Closures name each endpoint's (robot, session); this
+node's odometry is of robot ``robot`` (parameter, '' = the map's only robot) and belongs to the newest query
+session named for it. A closure into a session the backend never saw (no odometry, not in ``graph_file``) is
+counted as ``unknown_session`` and logged with the robot and session it names. ``map -> odom`` is the current
+session's: as ``map_frame -> odom_frame`` for the map's first session, and for a later one as ``map_frame ->
+session_odom_frame`` ('' = ``odom_frame``; ``{robot}`` and ``{session}`` in it are replaced); not published
+while the current session is not joined to the map (its map frame is undefined: logged once per session,
+counted as ``map_to_odom_unjoined``). With ``graph_file`` set the graph (sessions, keyframes, odometry,
+factors; backend/graph_file.py) is reloaded at start -- a file that cannot be used stops the node with one
+error naming it, and is left as it was -- and saved atomically on shutdown and every ``save_period_s`` when it
+changed.
 
 The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
 ``base_to_camera`` ([x, y, z, qx, qy, qz, qw], the camera's pose in the base frame, T_base_camera;
@@ -24,7 +38,7 @@ pose, one with an unusable pose or covariance (``bad_closure_pose``) or stamp (`
 a closure to a stamp the odometry never covered, a closure the odometry drift cannot explain, one the
 solver cannot take (``solver_failed``). Any other exception a message causes is counted by its type
 and dropped (``node_callback``): no message stops the node. Exit code 1 when the trajectory file
-cannot be written at shutdown.
+or the graph cannot be written at shutdown.
 """
 
 from __future__ import annotations
@@ -38,14 +52,23 @@ from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMessage
 from rclpy.node import Node
 
+from aefabmap_ros.backend.graph_file import load_graph, save_graph
 from aefabmap_ros.backend.odometry import closure_in_base_frame
-from aefabmap_ros.backend.pose_graph import Closure, ClosureResult, PoseGraph, PoseGraphConfig, trajectory_arrays
+from aefabmap_ros.backend.pose_graph import (
+    Closure,
+    ClosureResult,
+    PoseGraph,
+    PoseGraphConfig,
+    SessionId,
+    trajectory_arrays,
+)
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.io.atomic import atomic_write_text
+from aefabmap_ros.io.atomic import atomic_write_text, remove_stale_temporaries
 from aefabmap_ros.nodes.common import (
     ODOMETRY_QOS,
     RESULT_QOS,
     DropCounter,
+    PeriodicSave,
     declare_config,
     declare_parameter,
     node_callback,
@@ -74,8 +97,21 @@ try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
 except ImportError:  # pragma: no cover - depends on the installation
     TFMessage = None
 
-_DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.BAD_COVARIANCE, ClosureResult.INCONSISTENT,
-            ClosureResult.NO_POSE, ClosureResult.SOLVER_FAILED}
+_DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.UNKNOWN_SESSION, ClosureResult.BAD_COVARIANCE,
+            ClosureResult.INCONSISTENT, ClosureResult.NO_POSE, ClosureResult.SOLVER_FAILED}
+
+
+def session_trajectory_path(trajectory_file: Path, session_id: SessionId) -> Path:
+    """Where a session not joined to the map has its keyframes written: beside ``trajectory_file``, named by
+    the session (and its robot, when named)."""
+    robot, number = session_id
+    robot_part = f".{robot}" if robot else ""
+    return trajectory_file.with_name(f"{trajectory_file.stem}{robot_part}.session{number}{trajectory_file.suffix}")
+
+
+def session_frame(template: str, session_id: SessionId) -> str:
+    """``session_odom_frame`` for a session: ``{robot}`` and ``{session}`` replaced."""
+    return template.format(robot=session_id[0], session=session_id[1])
 
 
 class PoseGraphNode(Node):
@@ -95,7 +131,38 @@ class PoseGraphNode(Node):
             "when the graph changed (seconds, > 0; map -> odom goes out on every added closure)."))
         if not publish_period_s > 0:
             raise ConfigError(f"pose_graph_node: publish_period_s must be > 0, got {publish_period_s}")
-        self.graph = PoseGraph(declare_config(self, PoseGraphConfig))
+        self.robot = str(declare_parameter(
+            self, "robot", "", "The robot whose odometry this node receives ('' = the map's only robot): its newest "
+            "query session in the closures is the session the odometry belongs to."))
+        self.session_odom_frame = str(declare_parameter(
+            self, "session_odom_frame", "", "Odometry frame of a session other than the map's first, the child of "
+            "its map -> odom ('' = odom_frame; {robot} and {session} are replaced, e.g. odom_{session})."))
+        try:
+            session_frame(self.session_odom_frame, ("", 0))
+        except (KeyError, IndexError, ValueError) as exc:
+            raise ConfigError(f"pose_graph_node: session_odom_frame {self.session_odom_frame!r} is not a frame "
+                              f"name with {{robot}} / {{session}} fields: {exc}") from exc
+        graph_file = str(declare_parameter(
+            self, "graph_file", "", "The graph's file (.npz): reloaded at start, saved on shutdown and every "
+            "save_period_s when changed ('' = none: the graph lives as long as the node)."))
+        save_period_s = float(declare_parameter(
+            self, "save_period_s", 10.0, "Save the graph this often when it changed (seconds; 0 = only on shutdown)."))
+        if not save_period_s >= 0:
+            raise ConfigError(f"pose_graph_node: save_period_s must be >= 0, got {save_period_s}")
+        config = declare_config(self, PoseGraphConfig)
+        graph_path = Path(graph_file) if graph_file else None
+        if graph_path is not None:
+            for leftover in remove_stale_temporaries(graph_path.parent, graph_path.name):
+                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
+        if graph_path is not None and graph_path.exists():
+            self.graph = load_graph(graph_path, config, self.robot)
+            self.get_logger().info(f"reloaded {len(self.graph.sessions)} session(s), {len(self.graph.keyframes)} "
+                                   f"keyframes from {graph_path}")
+        else:
+            self.graph = PoseGraph(config, self.robot)
+        self.graph_saver = PeriodicSave(self, graph_path, lambda path: save_graph(self.graph, path), "pose graph",
+                                        save_period_s)
+        self._unpublished_sessions: set[SessionId] = set()  # unjoined sessions whose map -> odom was withheld
         self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
         self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
@@ -135,6 +202,7 @@ class PoseGraphNode(Node):
             self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
         else:
             self.graph_view.on_odometry(pose)
+            self.graph_saver.mark_changed()
         self._report(results, stamp_to_ns(message.header.stamp))
 
     @node_callback
@@ -157,12 +225,20 @@ class PoseGraphNode(Node):
             self.counter.drop("bad_closure_pose", f"closure of query {message.query_id}: {problem}")
             return
         pose, covariance = closure_in_base_frame(*loop_closure_pose(message), self.base_to_camera)
-        closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp), pose, covariance)
-        self._report([self.graph.add_closure(closure)], closure.query_ns)
+        closure = Closure(stamp_to_ns(message.header.stamp), stamp_to_ns(message.matched_stamp), pose, covariance,
+                          query_session=(message.query_robot, int(message.query_session)),
+                          place_session=(message.matched_robot, int(message.matched_session)))
+        self._report([self.graph.add_closure(closure)], closure.query_ns, closure)
 
-    def _report(self, results: list[ClosureResult], stamp_ns: int) -> None:
+    def _report(self, results: list[ClosureResult], stamp_ns: int, closure: Closure | None = None) -> None:
         for result in results:
-            if result is ClosureResult.SOLVER_FAILED:
+            if result is ClosureResult.UNKNOWN_SESSION and closure is not None:
+                unknown = [session_id for session_id in (closure.query_session, closure.place_session)
+                           if session_id not in self.graph.sessions]
+                named = ", ".join(f"session {number} of robot {robot!r}" for robot, number in unknown)
+                self.counter.drop(result.value, f"loop closure near stamp {stamp_ns} dropped: it names {named}, "
+                                  "which the backend never saw (no odometry, not in graph_file)")
+            elif result is ClosureResult.SOLVER_FAILED:
                 self.counter.drop(result.value, f"loop closure near stamp {stamp_ns} dropped: iSAM2 could not take "
                                   f"it ({self.graph.solver_error})")
             elif result in _DROPPED:
@@ -174,6 +250,8 @@ class PoseGraphNode(Node):
             self._path_changed_ns = stamp_ns
         if any(result is not ClosureResult.WAITING for result in results):  # a loop edge to draw
             self._markers_changed_ns = stamp_ns
+        if results:
+            self.graph_saver.mark_changed()  # the counts at least; the session table when a closure named a new one
 
     @node_callback
     def publish_changes(self) -> None:
@@ -196,10 +274,23 @@ class PoseGraphNode(Node):
         self.path_publisher.publish(path)
 
     def _publish_map_to_odom(self, stamp_ns: int) -> None:
+        """The current session's map -> odom; withheld (once logged) while that session is not joined to the map."""
+        session_id = self.graph.current if self.graph.current is not None else self.graph.anchor
+        if session_id is None:
+            return
+        if not self.graph.is_joined(*session_id):
+            self.counter.ok("map_to_odom_unjoined")
+            if session_id not in self._unpublished_sessions:
+                self._unpublished_sessions.add(session_id)
+                self.get_logger().info(
+                    f"map -> odom of session {session_id[1]} of robot {session_id[0]!r} not published: no closure has "
+                    "joined it to the map yet, so its map frame is undefined (its graph is optimised on its own)")
+            return
         transform = TransformStamped()
         transform.header.frame_id, transform.header.stamp = self.map_frame, time_from_ns(stamp_ns)
-        transform.child_frame_id = self.odom_frame
-        pose = gtsam_to_pose(self.graph.map_to_odom())
+        transform.child_frame_id = (self.odom_frame if session_id == self.graph.anchor or not self.session_odom_frame
+                                    else session_frame(self.session_odom_frame, session_id))
+        pose = gtsam_to_pose(self.graph.map_to_odom(*session_id))
         transform.transform.translation.x = pose.position.x
         transform.transform.translation.y = pose.position.y
         transform.transform.translation.z = pose.position.z
@@ -207,19 +298,26 @@ class PoseGraphNode(Node):
         self.tf_publisher.publish(TFMessage(transforms=[transform]) if TFMessage is not None else transform)
 
     def close(self) -> bool:
-        """Write the keyframe trajectory; False (the process then exits 1) when it cannot be written."""
-        saved = True
+        """Save the graph and write the keyframe trajectories; False (the process then exits 1) when either
+        cannot be written."""
+        saved = self.graph_saver.final_save()
         if self.trajectory_file is not None:
             from aefabmap_ros.evaluation.trajectory_error import tum_text  # evo: loaded at shutdown only
 
-            stamps_s, poses = trajectory_arrays(self.graph.trajectory())
-            try:
-                atomic_write_text(self.trajectory_file, tum_text(stamps_s, poses))
-                self.get_logger().info(f"wrote {len(stamps_s)} keyframes to {self.trajectory_file}")
-            except OSError as exc:
-                saved = False
-                self.get_logger().error(f"FINAL SAVE FAILED: the keyframe trajectory not written to "
-                                        f"{self.trajectory_file} ({type(exc).__name__}: {exc})")
+            files = [(self.trajectory_file, self.graph.trajectory())]
+            files += [(session_trajectory_path(self.trajectory_file, session_id),
+                       self.graph.session_trajectory(*session_id))
+                      for session_id, session in self.graph.sessions.items()
+                      if session.keyframes and not self.graph.is_joined(*session_id)]
+            for path, trajectory in files:
+                stamps_s, poses = trajectory_arrays(trajectory)
+                try:
+                    atomic_write_text(path, tum_text(stamps_s, poses))
+                    self.get_logger().info(f"wrote {len(stamps_s)} keyframes to {path}")
+                except OSError as exc:
+                    saved = False
+                    self.get_logger().error(f"FINAL SAVE FAILED: the keyframe trajectory not written to "
+                                            f"{path} ({type(exc).__name__}: {exc})")
         self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}; "
                                f"{self.odometry.summary()}")
         return saved

@@ -253,3 +253,133 @@ def test_pose_graph_node_reports_a_trajectory_it_cannot_write(tmp_path: Path) ->
             assert path.exists() is written
         finally:
             node.destroy_node()
+
+
+def _session_closure(query_ns: int, place_ns: int, relative: Any, query_session: int, matched_session: int) -> Any:
+    closure = msg.LoopClosure(query_session=query_session, matched_session=matched_session)
+    closure.header.stamp = time_from_ns(query_ns)
+    closure.matched_stamp = time_from_ns(place_ns)
+    closure.pose_available = True
+    closure.pose = gtsam_to_pose(relative)
+    closure.pose_covariance = list(np.diag([0.02**2] * 3 + [0.005**2] * 3).reshape(36))
+    closure.translation_metric = True
+    return closure
+
+
+def test_pose_graph_node_keeps_its_graph_across_runs(tmp_path: Path) -> None:
+    """Run 1 (session 0) saves its graph on shutdown; run 2 reloads it, its odometry restarted at the identity
+    (session 1): a closure into session 0 is added, B goes on the map, and the trajectory holds both runs."""
+    from aefabmap_ros.backend.graph_file import load_graph
+    from aefabmap_ros.backend.pose_graph import PoseGraphConfig
+    from test.backend.test_sessions import b_odometry, b_offset, b_stamp, b_truth
+
+    graph_file, trajectory_file = tmp_path / "office.graph.npz", tmp_path / "keyframes.tum"
+    parameters = [Parameter("graph_file", value=str(graph_file)),
+                  Parameter("trajectory_file", value=str(trajectory_file))]
+    truth = square_truth()
+    end = len(truth) - 1
+    first = PoseGraphNode(parameter_overrides=parameters)
+    try:
+        _captured_paths(first)
+        for index, pose in enumerate(truth):
+            first._on_odometry(_odometry(index, pose))
+        first._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        assert first.counter.counts["added"] == 1 and not graph_file.exists()  # saved at shutdown (or the period)
+        assert first.close()
+    finally:
+        first.destroy_node()
+    assert graph_file.exists() and len(trajectory_file.read_text().splitlines()) == 2
+
+    second = PoseGraphNode(parameter_overrides=parameters)
+    try:
+        transforms: list[Any] = []
+        _captured_paths(second)
+        second.tf_publisher.publish = transforms.append
+        assert list(second.graph.sessions) == [("", 0)]
+        b_end = len(b_odometry()) - 1
+        for index, pose in enumerate(b_odometry()):
+            message = _odometry(0, pose)
+            message.header.stamp = time_from_ns(b_stamp(index))
+            second._on_odometry(message)
+        b_truth_poses = b_truth()
+        second._on_loop_closure(_session_closure(b_stamp(10), stamp(31), b_truth_poses[10].between(truth[31]), 1, 5))
+        assert second.counter.counts["dropped_unknown_session"] == 1
+        # B's own loop: added in B's own graph; its map -> odom is withheld until B is joined to the map.
+        second._on_loop_closure(_session_closure(b_stamp(b_end), b_stamp(0),
+                                                 b_truth_poses[b_end].between(b_truth_poses[0]), 1, 1))
+        assert second.counter.counts["added"] == 1 and second.counter.counts["map_to_odom_unjoined"] == 1
+        assert transforms == []
+        second._on_loop_closure(_session_closure(b_stamp(10), stamp(31), b_truth_poses[10].between(truth[31]), 1, 0))
+        assert second.counter.counts["added"] == 2
+        assert not any(key.startswith("dropped_") and key != "dropped_unknown_session"
+                       for key in second.counter.counts)
+        (message,) = transforms
+        (transform,) = message.transforms
+        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "odom")
+        moved = transform.transform.translation
+        assert np.allclose([moved.x, moved.y, moved.z], b_offset().translation(), atol=1e-3)
+        assert second.close()
+    finally:
+        second.destroy_node()
+    stamps_s = [float(line.split()[0]) for line in trajectory_file.read_text().splitlines()]
+    expected_ns = [stamp(0), stamp(31), stamp(end), b_stamp(0), b_stamp(10), b_stamp(b_end)]
+    assert stamps_s == pytest.approx([stamp_ns / 1e9 for stamp_ns in expected_ns])
+    reloaded = load_graph(graph_file, PoseGraphConfig())
+    assert list(reloaded.sessions) == [("", 0), ("", 1)] and reloaded.is_joined("", 1)
+
+
+def test_pose_graph_node_writes_an_unjoined_session_beside_the_trajectory(tmp_path: Path) -> None:
+    from test.backend.test_sessions import b_odometry, b_stamp, b_truth
+
+    graph_file, trajectory_file = tmp_path / "office.graph.npz", tmp_path / "keyframes.tum"
+    parameters = [Parameter("graph_file", value=str(graph_file)),
+                  Parameter("trajectory_file", value=str(trajectory_file))]
+    truth = square_truth()
+    end = len(truth) - 1
+    first = PoseGraphNode(parameter_overrides=parameters)
+    try:
+        _captured_paths(first)
+        for index, pose in enumerate(truth):
+            first._on_odometry(_odometry(index, pose))
+        first._on_loop_closure(_closure(end, 0, truth[end].between(truth[0])))
+        assert first.close()
+    finally:
+        first.destroy_node()
+    second = PoseGraphNode(parameter_overrides=parameters)
+    try:
+        _captured_paths(second)
+        for index, pose in enumerate(b_odometry()):
+            message = _odometry(0, pose)
+            message.header.stamp = time_from_ns(b_stamp(index))
+            second._on_odometry(message)
+        b_end = len(b_odometry()) - 1
+        second._on_loop_closure(_session_closure(b_stamp(b_end), b_stamp(0), b_truth()[b_end].between(b_truth()[0]),
+                                                 1, 1))
+        assert second.close()
+    finally:
+        second.destroy_node()
+    assert len(trajectory_file.read_text().splitlines()) == 2  # the map's: session 0 only
+    beside = tmp_path / "keyframes.session1.tum"
+    assert [float(line.split()[0]) for line in beside.read_text().splitlines()] == \
+        pytest.approx([b_stamp(0) / 1e9, b_stamp(b_end) / 1e9])
+
+
+@pytest.mark.parametrize("content", [b"not a graph at all", b""])
+def test_pose_graph_node_refuses_a_broken_graph_file(tmp_path: Path, content: bytes) -> None:
+    from aefabmap_ros.errors import ModelError
+
+    broken = tmp_path / "office.graph.npz"
+    broken.write_bytes(content)
+    with pytest.raises(ModelError, match=str(broken)):
+        PoseGraphNode(parameter_overrides=[Parameter("graph_file", value=str(broken))])
+    assert broken.read_bytes() == content
+
+
+def test_pose_graph_node_names_later_sessions_odometry_frames() -> None:
+    from aefabmap_ros.errors import ConfigError
+    from aefabmap_ros.nodes.pose_graph_node import session_frame, session_trajectory_path
+
+    assert session_frame("odom_{robot}_{session}", ("rover", 2)) == "odom_rover_2"
+    assert session_trajectory_path(Path("out/keyframes.tum"), ("rover", 3)) == Path("out/keyframes.rover.session3.tum")
+    with pytest.raises(ConfigError, match="session_odom_frame"):
+        PoseGraphNode(parameter_overrides=[Parameter("session_odom_frame", value="odom_{bad}")])
