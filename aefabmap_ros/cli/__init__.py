@@ -28,6 +28,7 @@ __all__ = [
     "gt",
     "gt_run",
     "launch",
+    "map",
     "record",
     "replay",
     "replay_messages",

@@ -8,8 +8,10 @@ __all__ = [
     "engines",
     "index",
     "map_file",
+    "map_tools",
     "observation",
     "openfabmap",
     "posterior",
     "recognizer",
+    "sessions",
 ]

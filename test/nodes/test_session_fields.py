@@ -10,7 +10,7 @@ msg = pytest.importorskip("aefabmap_msgs.msg")
 
 from builtin_interfaces.msg import Time  # noqa: E402
 
-from aefabmap_ros.fabmap.recognizer import PlaceRecognizer  # noqa: E402
+from aefabmap_ros.fabmap.recognizer import PlaceRecognizer, Recognition  # noqa: E402
 from aefabmap_ros.nodes.closure_messages import (  # noqa: E402
     closure_to_message,
     detection_from_message,
@@ -26,7 +26,7 @@ from aefabmap_ros.verification.relative_pose import PoseOutcome, PoseStatus  # n
 from test.fabmap.test_recognizer import SAMPLES, _frames, _tree, openfabmap  # noqa: E402
 
 
-def _revisit_across_sessions():  # type: ignore[no-untyped-def]
+def _revisit_across_sessions() -> Recognition:
     """A frame of robot r2's session 1 that revisits a place of robot r1's session 0."""
     frames = _frames(5, seed=4)
     recognizer = PlaceRecognizer(_tree(), SAMPLES, openfabmap(top_k=3), "vocab-a", robot="r1")
