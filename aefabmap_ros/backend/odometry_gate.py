@@ -17,8 +17,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from aefabmap_ros.backend.factors import drift_covariance, loop_factor_covariance
+from aefabmap_ros.backend.graph_types import PoseGraphConfig
 from aefabmap_ros.backend.odometry import OdometryBuffer, closure_in_base_frame, odometry_disagreement
-from aefabmap_ros.backend.pose_graph import PoseGraphConfig, drift_covariance, loop_factor_covariance
 from aefabmap_ros.verification.gate import GateResult
 
 
