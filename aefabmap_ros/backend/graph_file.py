@@ -27,16 +27,10 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from aefabmap_ros.backend.odometry import OdometryBuffer
-from aefabmap_ros.backend.pose_graph import (
-    FactorKind,
-    FactorRecord,
-    Keyframe,
-    PoseGraph,
-    PoseGraphConfig,
-    Session,
-    SessionId,
-)
+from aefabmap_ros.backend.factors import FactorKind, FactorRecord
+from aefabmap_ros.backend.graph_types import Keyframe, PoseGraphConfig, SessionId
+from aefabmap_ros.backend.pose_graph import PoseGraph
+from aefabmap_ros.backend.sessions import Session, odometry_buffer
 from aefabmap_ros.errors import ModelError
 from aefabmap_ros.io.npz_files import read_versioned_npz, write_npz_atomically
 
@@ -108,6 +102,24 @@ def load_graph(path: Path, config: PoseGraphConfig, robot: str = "") -> PoseGrap
 
 def graph_from_arrays(arrays: dict[str, np.ndarray], config: PoseGraphConfig, robot: str = "") -> PoseGraph:
     """The graph ``graph_arrays`` gave; ValueError (or gtsam's RuntimeError) naming what is inconsistent."""
+    sessions, anchor = _sessions(arrays, config.max_odometry)
+    estimate = _keyframes(arrays, sessions)
+    _odometry(arrays, sessions)
+    records = _records(arrays, {keyframe.key for session in sessions for keyframe in session.keyframes})
+    factorization = str(_shaped(arrays, "factorization", ()))
+    if factorization not in ("CHOLESKY", "QR"):
+        raise ValueError(f"factorization {factorization!r} is neither CHOLESKY nor QR")
+    names = [str(name) for name in _shaped(arrays, "count_names", (-1,))]
+    values = _shaped(arrays, "count_values", (len(names),)).astype(np.int64)
+
+    graph = PoseGraph(config, robot)
+    graph.load(sessions, anchor, records, estimate, factorization)
+    graph.counts = Counter({name: int(value) for name, value in zip(names, values, strict=True)})
+    return graph
+
+
+def _sessions(arrays: dict[str, np.ndarray], max_odometry: int) -> tuple[list[Session], SessionId | None]:
+    """The session table, each session's keyframes and odometry still empty, and the anchor."""
     robots = [str(name) for name in _shaped(arrays, "session_robot", (-1,))]
     numbers = _shaped(arrays, "session_number", (len(robots),)).astype(np.int64)
     roots = _indices(arrays, "session_root", (len(robots),), len(robots))
@@ -117,11 +129,15 @@ def graph_from_arrays(arrays: dict[str, np.ndarray], config: PoseGraphConfig, ro
     anchor_index = int(_shaped(arrays, "anchor", ()))
     if not -1 <= anchor_index < len(ids):
         raise ValueError(f"anchor {anchor_index} is not a session")
-    sessions = [Session(session_id, OdometryBuffer(config.max_odometry, decimate=True), root=ids[int(root)])
+    sessions = [Session(session_id, odometry_buffer(max_odometry), root=ids[int(root)])
                 for session_id, root in zip(ids, roots, strict=True)]
+    return sessions, None if anchor_index < 0 else ids[anchor_index]
 
+
+def _keyframes(arrays: dict[str, np.ndarray], sessions: list[Session]) -> gtsam.Values:
+    """Each session's keyframes, put into it in stamp order; their optimised poses by key."""
     count = len(_shaped(arrays, "keyframe_key", (-1,)))
-    keyframe_session = _indices(arrays, "keyframe_session", (count,), len(ids))
+    keyframe_session = _indices(arrays, "keyframe_session", (count,), len(sessions))
     stamps = _shaped(arrays, "keyframe_stamp_ns", (count,)).astype(np.int64)
     keys = _shaped(arrays, "keyframe_key", (count,)).astype(np.int64)
     odometry = _poses(arrays, "keyframe_odometry", count, 4)
@@ -137,9 +153,13 @@ def graph_from_arrays(arrays: dict[str, np.ndarray], config: PoseGraphConfig, ro
         session.keyframes.append(Keyframe(int(stamps[index]), int(keys[index]), odometry[index], float(paths[index]),
                                           session.id))
         estimate.insert(int(keys[index]), poses[index])
+    return estimate
 
+
+def _odometry(arrays: dict[str, np.ndarray], sessions: list[Session]) -> None:
+    """Each session's odometry samples, restored into its buffer."""
     samples = len(_shaped(arrays, "odometry_stamp_ns", (-1,)))
-    sample_session = _indices(arrays, "odometry_session", (samples,), len(ids))
+    sample_session = _indices(arrays, "odometry_session", (samples,), len(sessions))
     sample_stamps = _shaped(arrays, "odometry_stamp_ns", (samples,)).astype(np.int64)
     sample_poses = _poses(arrays, "odometry_pose", samples, 3)
     sample_paths = _finite(arrays, "odometry_path_m", (samples,))
@@ -148,13 +168,15 @@ def graph_from_arrays(arrays: dict[str, np.ndarray], config: PoseGraphConfig, ro
         session.odometry.restore([int(sample_stamps[row]) for row in rows], [sample_poses[row] for row in rows],
                                  [float(sample_paths[row]) for row in rows])
 
+
+def _records(arrays: dict[str, np.ndarray], known: set[int]) -> list[FactorRecord]:
+    """The factors, each checked to name keyframes in ``known`` and to have a usable covariance and scale."""
     factors = len(_shaped(arrays, "factor_kind", (-1,)))
     kinds = _shaped(arrays, "factor_kind", (factors,)).astype(np.int64)
     factor_keys = _shaped(arrays, "factor_keys", (factors, 2)).astype(np.int64)
     factor_poses = _poses(arrays, "factor_pose", factors, 4)
     covariances = _finite(arrays, "factor_covariance", (factors, 6, 6))
     scales = _shaped(arrays, "factor_cauchy_scale", (factors,)).astype(np.float64)
-    known = set(keys.tolist())
     records = []
     for index in range(factors):
         kind = FactorKind(int(kinds[index]))  # ValueError for a kind that is none
@@ -167,17 +189,7 @@ def graph_from_arrays(arrays: dict[str, np.ndarray], config: PoseGraphConfig, ro
         if kind is FactorKind.LOOP and not scales[index] > 0:
             raise ValueError(f"loop factor {index}'s Cauchy scale {scales[index]} is not > 0")
         records.append(FactorRecord(kind, first, second, factor_poses[index], covariances[index], float(scales[index])))
-
-    factorization = str(_shaped(arrays, "factorization", ()))
-    if factorization not in ("CHOLESKY", "QR"):
-        raise ValueError(f"factorization {factorization!r} is neither CHOLESKY nor QR")
-    names = [str(name) for name in _shaped(arrays, "count_names", (-1,))]
-    values = _shaped(arrays, "count_values", (len(names),)).astype(np.int64)
-
-    graph = PoseGraph(config, robot)
-    graph.load(sessions, None if anchor_index < 0 else ids[anchor_index], records, estimate, factorization)
-    graph.counts = Counter({name: int(value) for name, value in zip(names, values, strict=True)})
-    return graph
+    return records
 
 
 def _matrices(poses: list[gtsam.Pose3], rows: int) -> np.ndarray:
