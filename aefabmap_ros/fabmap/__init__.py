@@ -11,7 +11,10 @@ __all__ = [
     "map_tools",
     "observation",
     "openfabmap",
+    "place_table",
     "posterior",
+    "recognition",
     "recognizer",
+    "robot_track",
     "sessions",
 ]

@@ -22,7 +22,7 @@ class Session:
 
     number: int  # index in the map's session table
     robot: str  # '' = the map's only robot
-    first_query_id: int  # query id of the session's first frame: frames before it belong to earlier sessions
+    first_query_id: int  # the map's query count when the session started: its frames' query ids are later
 
 
 def check_robot_name(robot: str) -> str:

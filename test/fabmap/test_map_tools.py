@@ -48,9 +48,9 @@ def _walk(n: int, seed: int) -> list[np.ndarray]:
     return frames
 
 
-def _run(recognizer: PlaceRecognizer, frames: list[np.ndarray], first_stamp_ns: int) -> None:
+def _run(recognizer: PlaceRecognizer, frames: list[np.ndarray], first_stamp_ns: int, robot: str | None = None) -> None:
     for i, words in enumerate(frames):
-        recognizer.process(words, first_stamp_ns + i * 100_000_000)  # 10 Hz
+        recognizer.process(words, first_stamp_ns + i * 100_000_000, robot=robot)  # 10 Hz
 
 
 def _recognizer(config: FabMapConfig, robot: str) -> PlaceRecognizer:
@@ -75,7 +75,7 @@ def maps(request, tmp_path: Path) -> dict[str, object]:
     one_go = _recognizer(config, "r1")
     _run(one_go, F1, 0)
     one_go.start_session("r2")
-    _run(one_go, F2, F2_START_NS)
+    _run(one_go, F2, F2_START_NS, robot="r2")
     one_go.save_map(tmp_path / "one_go.npz")
     if request.param == "keyframes":  # the comparison must cover frames keyframing leaves out
         assert one_go.num_places < len(F1) + len(F2)

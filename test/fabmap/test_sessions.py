@@ -53,7 +53,7 @@ def test_earlier_sessions_are_never_too_recent_and_name_their_session():
     within = recognizer.process(frames[5], 6_000)
     assert 5 not in [c.place_id for c in within.candidates]  # one frame ago: excluded in the same session
     recognizer.start_session("r2")
-    revisit = recognizer.process(frames[5], 7_000)
+    revisit = recognizer.process(frames[5], 7_000, robot="r2")
     assert (revisit.session, revisit.robot) == (1, "r2")
     # Frames 5 and 6 (the same view, both places of session 0) share the posterior.
     assert {(c.place_id, c.session, c.robot) for c in revisit.candidates[:2]} == {(5, 0, "r1"), (6, 0, "r1")}
@@ -79,7 +79,7 @@ def test_sessions_survive_save_and_reload_and_a_reload_starts_a_new_one(tmp_path
         recognizer.process(words, 1_000 * i)
     recognizer.start_session("r2")
     for i, words in enumerate(frames[3:5], start=3):
-        recognizer.process(words, 1_000 * i)
+        recognizer.process(words, 1_000 * i, robot="r2")
     path = tmp_path / "map.npz"
     recognizer.save_map(path)
     reloaded = PlaceRecognizer(_tree(), SAMPLES, openfabmap(), "vocab-a", robot="r3")
@@ -116,3 +116,40 @@ def test_session_table_round_trips_and_refuses_bad_columns():
         again[2]
     with pytest.raises(DataError, match="one-line"):
         table.start("bad\nname", 20)
+
+
+def test_two_robots_interleaved_score_every_place_as_the_oracle_does():
+    """Two robots' frames interleaved on one map, with every place a hypothesis and a uniform prior: each
+    frame's posterior is the offline run's over the frames in arrival order, whichever robot sent them."""
+    frames = _frames(12, seed=5)
+    config = openfabmap(top_k=100)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a", robot="r1")
+    oracle = fabmap_score_matrices(frames, _tree(), SAMPLES, config)
+    for i, words in enumerate(frames):
+        robot = "r1" if i % 2 == 0 else "r2"
+        result = recognizer.process(words, 1_000 * (i // 2), robot=robot)  # the two clocks run side by side
+        assert (result.robot, result.session, result.added_place_id) == (robot, i % 2, i)
+        assert result.new_place_probability == pytest.approx(oracle.probabilities[i, i], abs=1e-12)
+        for candidate in result.candidates:
+            assert candidate.probability == pytest.approx(oracle.probabilities[i, candidate.place_id], abs=1e-12)
+            assert candidate.robot == ("r1" if candidate.place_id % 2 == 0 else "r2")
+    assert [(s.number, s.robot) for s in recognizer.sessions] == [(0, "r1"), (1, "r2")]
+
+
+def test_recent_places_are_each_robot_s_own():
+    """A place robot r1 made a frame ago is too recent for r1 but a revisit for r2, which is elsewhere in
+    its own session (the inter-robot closure); a robot's keyframing compares with its own last place."""
+    frames = _frames(6, seed=6)
+    config = openfabmap(exclude_recent_frames=2, top_k=10, keyframe_max_overlap=0.5)
+    recognizer = PlaceRecognizer(_tree(), SAMPLES, config, "vocab-a", robot="r1")
+    for i, words in enumerate(frames[:3]):
+        recognizer.process(words, 1_000 * i, robot="r2")
+    made = recognizer.process(frames[3], 5_000, robot="r1")
+    assert made.added_place_id == 3
+    other = recognizer.process(frames[3], 5_001, robot="r2")
+    assert other.candidates[0].place_id == 3 and other.candidates[0].robot == "r1"
+    assert other.added_place_id == 4  # r2's last place is place 2 (other words): a keyframe of r2
+    same = recognizer.process(frames[3], 5_002, robot="r1")
+    assert 3 not in [c.place_id for c in same.candidates]  # r1's own frame of one frame ago
+    assert same.added_place_id == -1  # the same view as r1's last place: no keyframe
+    assert same.current_place_id == 3

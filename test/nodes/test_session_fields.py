@@ -32,8 +32,7 @@ def _revisit_across_sessions() -> Recognition:
     recognizer = PlaceRecognizer(_tree(), SAMPLES, openfabmap(top_k=3), "vocab-a", robot="r1")
     for i, words in enumerate(frames):
         recognizer.process(words, 1_000_000 * (i + 1))
-    recognizer.start_session("r2")
-    return recognizer.process(frames[2], 9_000_000)
+    return recognizer.process(frames[2], 9_000_000, robot="r2")
 
 
 def test_a_cross_session_candidate_names_both_sessions() -> None:
