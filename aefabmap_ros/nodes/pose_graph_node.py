@@ -142,26 +142,7 @@ class PoseGraphNode(Node):
         except (KeyError, IndexError, ValueError) as exc:
             raise ConfigError(f"pose_graph_node: session_odom_frame {self.session_odom_frame!r} is not a frame "
                               f"name with {{robot}} / {{session}} fields: {exc}") from exc
-        graph_file = str(declare_parameter(
-            self, "graph_file", "", "The graph's file (.npz): reloaded at start, saved on shutdown and every "
-            "save_period_s when changed ('' = none: the graph lives as long as the node)."))
-        save_period_s = float(declare_parameter(
-            self, "save_period_s", 10.0, "Save the graph this often when it changed (seconds; 0 = only on shutdown)."))
-        if not save_period_s >= 0:
-            raise ConfigError(f"pose_graph_node: save_period_s must be >= 0, got {save_period_s}")
-        config = declare_config(self, PoseGraphConfig)
-        graph_path = Path(graph_file) if graph_file else None
-        if graph_path is not None:
-            for leftover in remove_stale_temporaries(graph_path.parent, graph_path.name):
-                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
-        if graph_path is not None and graph_path.exists():
-            self.graph = load_graph(graph_path, config, self.robot)
-            self.get_logger().info(f"reloaded {len(self.graph.sessions)} session(s), {len(self.graph.keyframes)} "
-                                   f"keyframes from {graph_path}")
-        else:
-            self.graph = PoseGraph(config, self.robot)
-        self.graph_saver = PeriodicSave(self, graph_path, lambda path: save_graph(self.graph, path), "pose graph",
-                                        save_period_s)
+        self.graph = self._graph_from_file(declare_config(self, PoseGraphConfig))
         self._unpublished_sessions: set[SessionId] = set()  # unjoined sessions whose map -> odom was withheld
         self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
@@ -184,6 +165,28 @@ class PoseGraphNode(Node):
         self._markers_changed_ns: int | None = None
         self.create_timer(publish_period_s, self.publish_changes)
         self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
+
+    def _graph_from_file(self, config: PoseGraphConfig) -> PoseGraph:
+        """The graph saved at parameter ``graph_file`` (a fresh one without it), and its periodic save."""
+        graph_file = str(declare_parameter(
+            self, "graph_file", "", "The graph's file (.npz): reloaded at start, saved on shutdown and every "
+            "save_period_s when changed ('' = none: the graph lives as long as the node)."))
+        save_period_s = float(declare_parameter(
+            self, "save_period_s", 10.0, "Save the graph this often when it changed (seconds; 0 = only on shutdown)."))
+        if not save_period_s >= 0:
+            raise ConfigError(f"pose_graph_node: save_period_s must be >= 0, got {save_period_s}")
+        graph_path = Path(graph_file) if graph_file else None
+        graph = PoseGraph(config, self.robot)
+        if graph_path is not None:
+            for leftover in remove_stale_temporaries(graph_path.parent, graph_path.name):
+                self.get_logger().warning(f"deleted {leftover}, left by a save that was killed")
+            if graph_path.exists():
+                graph = load_graph(graph_path, config, self.robot)
+                self.get_logger().info(f"reloaded {len(graph.sessions)} session(s), {len(graph.keyframes)} "
+                                       f"keyframes from {graph_path}")
+        self.graph_saver = PeriodicSave(self, graph_path, lambda path: save_graph(self.graph, path), "pose graph",
+                                        save_period_s)
+        return graph
 
     @node_callback
     def _on_odometry(self, message: Odometry) -> None:

@@ -71,6 +71,37 @@ class Match(NamedTuple):
     nearby_frame: bool = False
 
 
+def ranked_places(store: FrameStore, posterior: Posterior) -> list[tuple[int, PlaceToVerify]]:
+    """The posterior's candidates (rank, place) whose features are stored, best first."""
+    places = []
+    for rank, candidate in enumerate(posterior.candidates):
+        features = store.get(candidate.stamp_ns)
+        if features is not None:
+            places.append((rank, PlaceToVerify(candidate.place_id, candidate.stamp_ns, features,
+                                               candidate.session, candidate.robot)))
+    return places
+
+
+class PlaceSessions:
+    """Place id -> (session, robot) of the map, learned from the candidates FAB-MAP ranks: a frame loop
+    tracking verifies names only its place. A place never ranked takes the session of the newest accepted
+    closure's place, which the frames near it in time share."""
+
+    def __init__(self) -> None:
+        self._known: dict[int, tuple[int, str]] = {}
+        self._newest: tuple[int, str] = (0, "")
+
+    def learn(self, posterior: Posterior) -> None:
+        self._known.update((candidate.place_id, (candidate.session, candidate.robot))
+                           for candidate in posterior.candidates)
+
+    def accepted(self, session: int, robot: str) -> None:
+        self._newest = (session, robot)
+
+    def of(self, place_id: int) -> tuple[int, str]:
+        return self._known.get(place_id, self._newest)
+
+
 def _never_behind(_query_ns: int) -> bool:
     return False
 
@@ -98,10 +129,7 @@ class LoopClosureChain:
         self.depth_wait = DepthWait(depth_wait_s, outcomes)
         self.pending: OrderedDict[int, Detection] = OrderedDict()  # query stamp -> detection, oldest first
         self.posteriors: OrderedDict[int, Posterior] = OrderedDict()  # query stamp -> posterior
-        # Place id -> (session, robot), from the candidates FAB-MAP ranked: a tracked nearby frame names only its
-        # place. The newest accepted closure's place session stands in for a place never ranked.
-        self.place_sessions: dict[int, tuple[int, str]] = {}
-        self.tracked_session: tuple[int, str] = (0, "")
+        self.place_sessions = PlaceSessions()
 
     @property
     def config(self) -> VerificationConfig:
@@ -150,8 +178,7 @@ class LoopClosureChain:
             self.store.add_place(posterior.query_ns, posterior.current_place_id)
         self.posteriors[posterior.query_ns] = posterior
         self.posteriors.move_to_end(posterior.query_ns)
-        self.place_sessions.update((candidate.place_id, (candidate.session, candidate.robot))
-                                   for candidate in posterior.candidates)
+        self.place_sessions.learn(posterior)
         while len(self.posteriors) > POSTERIOR_HISTORY:
             self.posteriors.popitem(last=False)
         self._verify_if_ready(posterior.query_ns)
@@ -203,16 +230,6 @@ class LoopClosureChain:
         for query_ns in self.depth_wait.waiting_among(lambda stamp: stamp in self.pending or stamp in self.posteriors):
             self._verify_if_ready(query_ns)
 
-    def _ranked_places(self, posterior: Posterior) -> list[tuple[int, PlaceToVerify]]:
-        """The posterior's candidates (rank, place) whose features are stored, best first."""
-        places = []
-        for rank, candidate in enumerate(posterior.candidates):
-            features = self.store.get(candidate.stamp_ns)
-            if features is not None:
-                places.append((rank, PlaceToVerify(candidate.place_id, candidate.stamp_ns, features,
-                                                   candidate.session, candidate.robot)))
-        return places
-
     def _verify(self, detection: Detection, posterior: Posterior | None) -> None:
         query_ns = detection.query_ns
         if self.too_late(query_ns):  # too far behind the camera to verify it: dropped so the chain catches up
@@ -227,7 +244,7 @@ class LoopClosureChain:
         candidates = [PlaceToVerify(detection.matched_place_id, detection.matched_ns, matched,
                                     detection.matched_session, detection.matched_robot)]
         if posterior is not None:
-            others = [place for _, place in self._ranked_places(posterior)
+            others = [place for _, place in ranked_places(self.store, posterior)
                       if place.place_id != detection.matched_place_id]
             candidates += others[: self.config.candidates - 1]
         try:
@@ -300,7 +317,7 @@ class LoopClosureChain:
 
     def _track_candidates(self, query_ns: int, query: Features, posterior: Posterior, tried: set[int]) -> Match | None:
         """The query's top candidates near the tracked place, best verified wins (their stamps go to ``tried``)."""
-        near = self.track.near(query_ns, self._ranked_places(posterior),
+        near = self.track.near(query_ns, ranked_places(self.store, posterior),
                                lambda ranked: ranked[1].stamp_ns)[: self.config.candidates]
         tried.update(place.stamp_ns for _, place in near)
         outcome = rerank_by_inliers(near, lambda ranked: self.pairs.verify(query_ns, query, ranked[1].stamp_ns,
@@ -321,7 +338,7 @@ class LoopClosureChain:
             features = self.store.get(stamp_ns)
             place_id = self.store.timeline.place_of(stamp_ns)
             if stamp_ns not in tried and features is not None and place_id is not None:
-                session, robot = self.place_sessions.get(place_id, self.tracked_session)
+                session, robot = self.place_sessions.of(place_id)
                 places.append(PlaceToVerify(place_id, stamp_ns, features, session, robot))
         tried.update(place.stamp_ns for place in places)
         outcome = rerank_by_inliers(places, lambda place: self.pairs.verify(query_ns, query, place.stamp_ns,
@@ -338,6 +355,6 @@ class LoopClosureChain:
     def _submit(self, detection: Detection, query: Features, match: Match, tracked: bool = False) -> None:
         """The closure with its relative pose, to the odometry gate."""
         place = match.place
-        self.tracked_session = (place.session, place.robot)
+        self.place_sessions.accepted(place.session, place.robot)
         pose = self.pairs.pose(detection.query_ns, query, place.stamp_ns, place.features, match.verification)
         self.odometry.submit(Closure(detection, match.verification.inliers, pose, tracked, match.nearby_frame))
