@@ -111,6 +111,11 @@ class OdometryWait:
         if gate is None or not gate.active:
             return GateDecision.PUBLISH
         detection, pose = closure.detection, closure.pose.pose
+        if (detection.query_session, detection.query_robot) != (detection.matched_session, detection.matched_robot):
+            # The place is another session's or robot's: this odometry (the query session's own frame) says
+            # nothing of where it is. The backend tests such a closure once it joined the two graphs.
+            self.outcomes.ok("across_sessions_unchecked_by_odometry")
+            return GateDecision.PUBLISH
         text = f"loop closure query {detection.query_id} -> place {detection.matched_place_id}"
         if pose is None:
             self.outcomes.drop("no_pose_for_odometry_gate", f"{text} has no relative pose to check against odometry")

@@ -40,3 +40,22 @@ def test_a_closure_with_a_broken_pose_or_none_is_refused_and_a_sound_one_publish
     assert [c.detection.query_id for c in published] == [4]
     assert outcomes.counts["dropped_bad_closure_pose"] == 2
     assert outcomes.counts["dropped_no_pose_for_odometry_gate"] == 1
+
+
+def test_a_closure_into_another_session_or_robot_is_not_judged_by_this_odometry() -> None:
+    """Odometry is the query session's own frame: standing still here says nothing of where an earlier
+    session's place (or another robot's) is, so a pose far from it is not refused; within the session it is."""
+    outcomes, published = CountedOutcomes(), list[Closure]()
+    wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTrack(0.0, 0.0),
+                        published.append, outcomes)
+    for sec in (1, 2, 3):  # standing still
+        assert wait.add_odometry(sec * SECOND, gtsam.Pose3())
+    far = RelativePose(np.eye(3), np.array([5.0, 0.0, 0.0]), np.eye(6) * 1e-4, metric=True, inliers=50)
+    within = Detection(3 * SECOND, 1, -1, 1, SECOND, 0.9, -1.0, "", 1, "r1", 1, "r1")
+    earlier_session = Detection(3 * SECOND, 2, -1, 1, SECOND, 0.9, -1.0, "", 1, "r1", 0, "r1")
+    other_robot = Detection(3 * SECOND, 3, -1, 1, SECOND, 0.9, -1.0, "", 1, "r1", 1, "r2")
+    for detection in (within, earlier_session, other_robot):
+        wait.submit(Closure(detection, 50, PoseOutcome(far, PoseStatus.OK)))
+    assert [c.detection.query_id for c in published] == [2, 3]
+    assert outcomes.counts["across_sessions_unchecked_by_odometry"] == 2
+    assert outcomes.counts["dropped_inconsistent_with_odometry"] == 1
