@@ -3,6 +3,8 @@
     aefabmap_bag --images rtabmap_samples/images --rate 1 --out rtab_bag        # stamped 0, 1, 2 ... s
     aefabmap_bag --images rgb/ --out tum_bag                                     # TUM names: <seconds>.png
     aefabmap_bag --images frames/ --times times.txt --out kitti_bag             # one stamp (s) per line
+    aefabmap_bag split BAG --at 0.5 --restart-odometry --out DIR   # two sessions (aefabmap_bag split --help)
+    aefabmap_bag merge REC_A REC_B --out REC                       # recordings of several sessions in one
 
 Images are read in natural-sort order and written as ``sensor_msgs/Image`` (mono8, or bgr8 with
 --color) on --topic. Stamps matter: the nodes' time windows (recent places excluded for a few
@@ -77,8 +79,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+SUBCOMMANDS = ("split", "merge")  # cli/bag_split.py
+
+
 def main(argv: list[str] | None = None) -> int:
-    return run_cli(build_parser(), argv, run)
+    arguments = sys.argv[1:] if argv is None else list(argv)
+    if arguments and arguments[0] in SUBCOMMANDS:
+        from aefabmap_ros.cli import bag_split
+
+        return bag_split.main(arguments)
+    return run_cli(build_parser(), arguments, run)
 
 
 if __name__ == "__main__":
