@@ -49,7 +49,11 @@ A recording is scored by stamp: a message's header stamp (its query image's) and
 place_stamps (the matched places' images) name ground-truth frames, never its query_id, which
 counts only the frames that reached fabmap_node. Recall is given over all revisiting frames and
 over those the detector processed (a place_posteriors message); OUT/closures.csv lists every
-closure, its frames, truth and (--pose-truth) its relative pose's error.
+closure, its frames, truth and (--pose-truth) its relative pose's error. A recording of a map of several
+sessions (its closures name more than one robot/session) is also scored per pair of sessions: closures, false
+ones, the recall of the query session's frames that revisit the matched session, pose errors; with
+--trajectory (the backend's trajectory_file) and --session-odometry (each session's odometry, TUM) the joined
+trajectory's ATE is set beside each session's odometry aligned on its own (docs/sessions.md).
 
 Writes OUT/results.md, OUT/results.json, OUT/pr_curves.png, OUT/reliability.png (reliability
 diagram of the posterior the nodes publish: how often each frame's best place is right, per
@@ -152,6 +156,12 @@ def _add_recording_options(parser: argparse.ArgumentParser) -> None:
     recorded.add_argument("--pose-truth", type=Path,
                           help="TUM file of camera-to-world poses (t x y z qx qy qz qw, e.g. aefabmap_synth's "
                           "groundtruth.tum): each closure's relative pose scored against it")
+    recorded.add_argument("--trajectory", type=Path,
+                          help="with --pose-truth: the backend's keyframe trajectory (pose_graph_node's "
+                          "trajectory_file, TUM), its ATE against the truth")
+    recorded.add_argument("--session-odometry", type=Path, action="append", default=[],
+                          help="with --trajectory: one session's odometry (TUM, e.g. aefabmap_bag split's "
+                          "odometry.tum), aligned to the truth on its own at the trajectory's keyframes (repeatable)")
     recorded.add_argument("--frames-by-query-id", action="store_true",
                           help="map messages to frames by query_id instead of stamp: right only for a recording of a "
                           "lossless replay (every frame reached fabmap_node, in order)")

@@ -14,6 +14,7 @@ import numpy as np
 from aefabmap_ros.errors import ConfigError, DataError
 from aefabmap_ros.evaluation.closure_listing import PoseTruth, closure_listing_markdown, closures_csv, read_pose_truth
 from aefabmap_ros.evaluation.closure_scores import (
+    TopicClosureScores,
     closure_scores_markdown,
     closure_scores_to_dict,
     score_recorded_closures,
@@ -26,6 +27,15 @@ from aefabmap_ros.evaluation.recordings import (
     FrameIndex,
     frames_by_query_id,
     scores_from_recording,
+)
+from aefabmap_ros.evaluation.session_scores import (
+    closure_sessions,
+    frame_sessions,
+    recorded_sessions,
+    score_session_pairs,
+    session_name,
+    session_pair_to_dict,
+    session_pairs_markdown,
 )
 from aefabmap_ros.io import bags
 from aefabmap_ros.io.rgbd import read_times
@@ -138,6 +148,42 @@ def recording_frames(args: argparse.Namespace, num_frames: int, recording: Recor
         "instead, right only for a lossless replay (every frame reached fabmap_node, in order)")
 
 
+def check_session_options(args: argparse.Namespace) -> None:
+    if args.trajectory is not None and args.pose_truth is None:
+        raise ConfigError("--trajectory is scored against the pose truth: add --pose-truth FILE")
+    if args.session_odometry and args.trajectory is None:
+        raise ConfigError("--session-odometry is set beside the joined trajectory: add --trajectory FILE")
+
+
+def session_report(args: argparse.Namespace, recording: Recording, frames: FrameIndex, gt: np.ndarray,
+                   rows: list[TopicClosureScores], min_gap: int) -> tuple[str, dict[str, Any]]:
+    """The closures per pair of sessions when they name more than one, and the joined trajectory's error given
+    --trajectory; ('', {}) for a recording of one session without --trajectory (today's output)."""
+    by_topic = dict(topic for topic in (recording.candidates, recording.published) if topic is not None)
+    closure_lists = list(by_topic.values())
+    sessions = recorded_sessions(closure_lists)
+    markdown, payload = "", dict[str, Any]()
+    scored = next((row for row in rows if row.role == "published"), rows[-1] if rows else None)
+    if len(sessions) > 1 and scored is not None:
+        pairs = score_session_pairs(scored.rows, [closure_sessions(m) for m in by_topic[scored.topic]],
+                                    frame_sessions(recording.posteriors, closure_lists, frames), gt, min_gap)
+        markdown += session_pairs_markdown(scored.topic, pairs, scored.pose_truth_given)
+        payload["sessions"] = [session_name(session) for session in sessions]
+        payload["session_pairs"] = {"topic": scored.topic,
+                                    "pairs": [session_pair_to_dict(pair, scored.pose_truth_given) for pair in pairs]}
+    if args.trajectory is not None:
+        from aefabmap_ros.evaluation.session_trajectory import (
+            joined_trajectory_error,
+            joined_trajectory_markdown,
+            joined_trajectory_to_dict,
+        )
+
+        error = joined_trajectory_error(args.pose_truth, args.trajectory, args.session_odometry)
+        markdown += joined_trajectory_markdown(error)
+        payload["joined_trajectory"] = joined_trajectory_to_dict(error)
+    return markdown, payload
+
+
 def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[str, Any], str, dict[str, Any],
                                           dict[str, str]]:
     args, settings = run.args, run.settings
@@ -147,6 +193,7 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
             or args.train_on_test or args.verify or depth_given:
         raise ConfigError("--recording takes only the ground truth (--gt or --poses) and the frame stamps (--times, "
                           "--bag); it evaluates recorded outputs, no images, depth, models or --verify")
+    check_session_options(args)
     min_gap = settings.evaluation.min_gap
     gt = load_ground_truth(args, min_gap)
     pose_truth: PoseTruth | None = read_pose_truth(args.pose_truth) if args.pose_truth is not None else None
@@ -190,5 +237,7 @@ def evaluate_recording(run: Run) -> tuple[list[MethodResult], np.ndarray, dict[s
              + (closure_scores_markdown(rows) + closure_listing_markdown(listing, pose_truth is not None)
                 if rows else "No loop-closure topic in the recording.\n")
              + recording.note)
+    sessions_markdown, sessions_json = session_report(args, recording, frames, gt, rows, min_gap)
     files = {"closures.csv": closures_csv(listing)} if rows else {}
-    return [result], gt, header, extra, {"closures": [closure_scores_to_dict(row) for row in rows]}, files
+    return [result], gt, header, extra + sessions_markdown, \
+        {"closures": [closure_scores_to_dict(row) for row in rows], **sessions_json}, files

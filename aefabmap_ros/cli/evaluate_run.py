@@ -233,8 +233,10 @@ def model_entries(run: Run, methods: tuple[str, ...], source: ImageSource,
 
 def evaluate_images(run: Run, methods: tuple[str, ...]) -> tuple[list[MethodResult], np.ndarray, dict[str, Any]]:
     args, settings = run.args, run.settings
-    if args.times is not None or args.pose_truth is not None or args.frames_by_query_id:
-        raise ConfigError("--times, --pose-truth and --frames-by-query-id go with --recording")
+    if args.times is not None or args.pose_truth is not None or args.frames_by_query_id \
+            or args.trajectory is not None or args.session_odometry:
+        raise ConfigError("--times, --pose-truth, --trajectory, --session-odometry and --frames-by-query-id go "
+                          "with --recording")
     check_training_choice(args)
     depth_given = args.depth is not None or args.depth_topic is not None
     if depth_given and not args.verify:

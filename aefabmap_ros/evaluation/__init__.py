@@ -15,6 +15,8 @@ __all__ = [
     "protocol",
     "recordings",
     "reports",
+    "session_scores",
+    "session_trajectory",
     "tfidf",
     "trajectory_error",
     "word_statistics",

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from evo.core import metrics, sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 from scipy.spatial.transform import Rotation
@@ -87,7 +88,10 @@ def absolute_trajectory_error(reference: PoseTrajectory3D, estimate: PoseTraject
     if ref.num_poses < 3:
         raise DataError(f"only {ref.num_poses} poses matched by stamp: at least 3 are needed to align")
     aligned = copy.deepcopy(est)
-    aligned.align(ref, correct_scale=correct_scale)
+    try:
+        aligned.align(ref, correct_scale=correct_scale)
+    except GeometryException as exc:  # e.g. every pose on one line: no rotation fits them uniquely
+        raise DataError(f"the {ref.num_poses} poses matched by stamp cannot be aligned: {exc}") from exc
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, aligned))
     return AteResult(float(ape.get_statistic(metrics.StatisticsType.rmse)), ref.num_poses, aligned, ref)

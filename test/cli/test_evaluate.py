@@ -339,13 +339,19 @@ RecordedClosure = tuple[Any, ...]
 
 def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[float]]],
                     closures: Mapping[str, Sequence[RecordedClosure]], query_ids: Mapping[int, int] | None = None,
-                    posterior_topic: str = "/place_posteriors") -> None:
+                    posterior_topic: str = "/place_posteriors",
+                    sessions: Mapping[int, tuple[str, int]] | None = None) -> None:
     """A recording with ``posterior_topic`` and one LoopClosure topic per key of ``closures``. Entries name
-    frames (stamped ``frame_stamp``); ``query_ids`` numbers them as fabmap_node did (default: the frame)."""
+    frames (stamped ``frame_stamp``); ``query_ids`` numbers them as fabmap_node did (default: the frame);
+    ``sessions`` gives a frame's (robot, session) (default: ('', 0), a map of one session)."""
     from aefabmap_ros.io import bag_messages, bags
 
     types = bag_messages.get_typestore().types
     ids = query_ids or {}
+
+    def session(frame: int) -> tuple[str, int]:
+        return (sessions or {}).get(frame, ("", 0))
+
     with bags.BagWriter(path) as writer:
         writer.add_topic(posterior_topic, "aefabmap_msgs/msg/PlacePosterior")
         for topic in closures:
@@ -360,6 +366,9 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                 place_stamps=[bag_messages.make_time(frame_stamp(p)) for p in places],
                 probabilities=np.array(probabilities, dtype=np.float64),
                 log_likelihoods=np.zeros(len(places), dtype=np.float64),
+                robot=session(frame)[0], session=session(frame)[1],
+                place_sessions=np.array([session(p)[1] for p in places], dtype=np.uint32),
+                place_robots=[session(p)[0] for p in places],
             )
             writer.write(posterior_topic, frame_stamp(frame), message)
         for topic, entries in closures.items():
@@ -378,6 +387,8 @@ def write_recording(path: Path, posteriors: list[tuple[int, list[int], list[floa
                     matched_stamp=bag_messages.make_time(frame_stamp(place)), probability=probability,
                     log_likelihood=0.0,
                     inliers=rest[0] if rest else -1, **pose,
+                    query_robot=session(frame)[0], query_session=session(frame)[1],
+                    matched_robot=session(place)[0], matched_session=session(place)[1],
                 )
                 writer.write(topic, frame_stamp(frame), message)
 
