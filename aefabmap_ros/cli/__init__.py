@@ -6,6 +6,7 @@ only after parsing, so ``--help`` answers at once."""
 __all__ = [
     "ate",
     "bag",
+    "bag_split",
     "bench",
     "bench_backend",
     "bench_fabmap",
@@ -20,6 +21,7 @@ __all__ = [
     "demo",
     "demo_backend",
     "demo_printer",
+    "demo_sessions",
     "evaluate",
     "evaluate_depth",
     "evaluate_outputs",

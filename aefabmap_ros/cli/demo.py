@@ -16,7 +16,9 @@
    with the ATE of a second backend that was also sent one wrong closure (cli/demo_backend.py);
 4. evaluation: the paper's four methods offline, each also after geometric verification of its
    candidates (+ GV), and the online run from its recording (aefabmap_eval); the table is printed
-   and the plots written.
+   and the plots written;
+5. two sessions: the test bag cut into its two laps, the second with its odometry restarted, run one
+   after the other on one map and pose graph, scored per pair of sessions (cli/demo_sessions.py).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import numpy as np
 from aefabmap_ros.cli.common import ArgumentParser, parse_or_report, report_errors
 from aefabmap_ros.cli.demo_backend import INJECTED_NODE, INJECTED_TOPIC, ate_figures, ate_summary
 from aefabmap_ros.cli.demo_printer import ClosurePrinter
+from aefabmap_ros.cli.demo_sessions import run_sessions
 from aefabmap_ros.cli.launch import STOP_WRITING_CAP_S
 from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.evaluation.ground_truth import read_kitti_poses
@@ -93,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "config/fastdds_large_messages.xml, as a driver of large images should")
     parser.add_argument("--online-only", action="store_true",
                         help="score only the online run (no offline evaluation of the four methods)")
+    parser.add_argument("--no-sessions", action="store_true", help="skip the two-session run (step 5)")
     parser.add_argument("--models", type=Path, default=None,
                         help="where the vocabularies are trained (once) and found (default OUT/models)")
     parser.add_argument("--test", type=Path, default=None,
@@ -357,8 +361,13 @@ def run(args: argparse.Namespace) -> int:
         recording = run_online(args, models["autoencoder"], test)
     _step("4/4 evaluation of FABMAP2, AE-FABMAP, BoW and AE-BoW (and the online run)")
     evaluate(args, models, test, recording)
+    sessions = None
+    if not (args.skip_ros or args.no_sessions):
+        _step("two sessions: the first lap, then the second with its odometry restarted, on one map")
+        sessions = run_sessions(args, models["autoencoder"], test)
     print(f"\nDone in {time.monotonic() - started:.0f} s.\n  tables: {args.out / 'evaluation' / 'results.md'}"
           + (f", {args.out / 'evaluation_online' / 'results.md'}" if recording else "")
+          + (f", {sessions / 'results.md'}" if sessions else "")
           + f"\n  plots:  {args.out / 'evaluation'}/*.png"
           + (f"\n  recording (opens in Foxglove with the layout {shipped_config('foxglove_layout.json')}): "
              f"{recording}" if recording else ""))

@@ -20,7 +20,8 @@ class ClosurePrinter:
     """Prints the published (verified) loop closures as they arrive, counts FAB-MAP's raw candidates
     and the posteriors (spun in a thread)."""
 
-    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray, poses: np.ndarray | None = None) -> None:
+    def __init__(self, stamps_ns: np.ndarray, gt: np.ndarray, poses: np.ndarray | None = None,
+                 frames_to_process: int | None = None) -> None:
         import rclpy
         from aefabmap_msgs.msg import LoopClosure, PlacePosterior
         from rclpy.executors import SingleThreadedExecutor
@@ -31,7 +32,10 @@ class ClosurePrinter:
         self._stamps = stamps_ns
         self._gt = gt
         self.posteriors = 0
+        self._frames_to_process = len(stamps_ns) if frames_to_process is None else frames_to_process
         self.closures: list[tuple[int, int, bool]] = []  # /loop_closures: what a backend gets
+        # Each closure's (query, matched) sessions as (robot, session number), in the order of ``closures``.
+        self.closure_sessions: list[tuple[tuple[str, int], tuple[str, int]]] = []
         self.candidates: list[tuple[int, int, bool]] = []  # /loop_closure_candidates: FAB-MAP's raw closures
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
@@ -74,7 +78,7 @@ class ClosurePrinter:
             self.posterior_latencies_s.append(latency)
         self.posteriors += 1
         if self.posteriors % 50 == 0:
-            print(f"    ... {self.posteriors}/{len(self._stamps)} images processed", flush=True)
+            print(f"    ... {self.posteriors}/{self._frames_to_process} images processed", flush=True)
 
     def _judged(self, message: Any) -> tuple[int, int, bool]:
         query, matched = self._frame(message.header.stamp), self._frame(message.matched_stamp)
@@ -90,6 +94,9 @@ class ClosurePrinter:
             self.closure_latencies_s.append(latency)
         query, matched, true = self._judged(message)
         self.closures.append((query, matched, true))
+        sessions = ((str(message.query_robot), int(message.query_session)),
+                    (str(message.matched_robot), int(message.matched_session)))
+        self.closure_sessions.append(sessions)
         if self.backend is not None:
             self.backend.on_closure(message, query, matched)
         verdict = "true revisit" if true else "NOT a revisit in the ground truth"
@@ -97,7 +104,7 @@ class ClosurePrinter:
         pose = ("metric pose" if message.translation_metric else "monocular pose") if message.pose_available \
             else "no pose"
         print(f"    loop closure: frame {query:4d} -> frame {matched:4d}  p={message.probability:.4f}  {checked}, "
-              f"{pose}  ({verdict})", flush=True)
+              f"{pose}  ({verdict}){session_tag(*sessions)}", flush=True)
 
     def wait_until_quiet(self, idle_s: float, at_most_s: float) -> None:
         """Give the nodes time to finish the last frames: until nothing arrived for ``idle_s``."""
@@ -128,6 +135,14 @@ class ClosurePrinter:
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.context)
+
+
+def session_tag(query: tuple[str, int], matched: tuple[str, int]) -> str:
+    """'' for a closure of a map's only session (as before sessions); else '  [session 1 -> 0]'."""
+    if query == matched == ("", 0):
+        return ""
+    return f"  [session {'/'.join(filter(None, (query[0], str(query[1]))))} -> " \
+           f"{'/'.join(filter(None, (matched[0], str(matched[1]))))}]"
 
 
 def latency_summary(latencies_s: list[float], topic: str = "loop_closures", what: str = "closure") -> str:

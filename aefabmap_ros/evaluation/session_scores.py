@@ -91,13 +91,15 @@ def frame_sessions(posteriors: Sequence[Any], closure_lists: Iterable[Sequence[A
 def revisit_recall(pairs: Iterable[tuple[int, int]], gt: np.ndarray, query_frames: np.ndarray,
                    matched_frames: np.ndarray, min_gap: int) -> tuple[int, int]:
     """(closed, revisiting): the frames of ``query_frames`` (a bool mask) whose ground-truth row has a revisit
-    among ``matched_frames`` at least ``min_gap`` frames back, and those of them with a true closure among
-    ``pairs`` (query frame, matched frame; the caller picks the closures into the matched frames)."""
+    among ``matched_frames`` at least ``min_gap`` frames back, and those of them with a true closure
+    (gt[i, j] = 1) into one of ``matched_frames`` among ``pairs`` (query frame, matched frame)."""
+    matched_frames = np.asarray(matched_frames, dtype=bool)
     truth = np.asarray(gt).astype(bool) & eligible_mask(gt.shape[0], min_gap) & matched_frames[None, :]
     revisiting = np.asarray(query_frames, dtype=bool) & truth.any(axis=1)
     closed = np.zeros_like(revisiting)
     for query, matched in pairs:
-        if 0 <= query < len(closed) and 0 <= matched < len(closed) and gt[query, matched] == 1:
+        if 0 <= query < len(closed) and 0 <= matched < len(closed) and gt[query, matched] == 1 \
+                and matched_frames[matched]:
             closed[query] = True
     return int((revisiting & closed).sum()), int(revisiting.sum())
 

@@ -47,7 +47,10 @@ def test_revisit_recall_counts_frames_not_closures() -> None:
     gt[20, 1] = 1  # two true closures of frame 20 count once
     assert revisit_recall(pairs, gt, later, ~later, min_gap=10) == (2, 3)
     assert revisit_recall([(22, 9)], gt, later, ~later, min_gap=10) == (0, 3)
-    assert revisit_recall([(23, 15)], gt, later, later, min_gap=5) == (1, 1)
+    gt[22, 16] = 1  # 22 also revisits a frame of its own half: a true closure there closes no revisit of the other
+    assert revisit_recall([(22, 16)], gt, later, ~later, min_gap=5) == (0, 3)
+    assert revisit_recall([(22, 16)], gt, later, later, min_gap=5) == (1, 2)  # 22 -> 16 and 23 -> 15
+    assert revisit_recall([(23, 15)], gt, later, later, min_gap=5) == (1, 2)
     assert revisit_recall([(23, 15)], gt, later, later, min_gap=10) == (0, 0)  # 8 frames back: too recent
 
 
