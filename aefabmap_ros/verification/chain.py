@@ -20,6 +20,12 @@ feeds it a recorded sequence. Both therefore publish the same closures for the s
   depth image until it comes or will not (verification/depth_wait.py).
 - **Odometry gate** (verification/odometry_wait.py): a verified closure is published when odometry
   agrees with its relative pose, or waits for odometry to reach its stamps.
+- **Several robots** (docs/fleet.md): frames come from each robot's feature server with their depths
+  (``add_frame``) and are stored with the robot's name. A frame whose stamp is stored for another robot is
+  dropped (``stamp_of_another_robot``); a detection whose query or place is not the robot it names is dropped
+  (``robot_mismatch``), and so is one between two robots whose cameras differ (``cameras_differ``): it is
+  never verified against another robot's frame or through the wrong camera. Loop tracking and the odometry
+  gate are per robot.
 - **Behind the camera** (``behind``, verifier_node's ``max_lag_s``): a query the chain takes too late is
   checked against its detection only, and loop tracking skips it, so a live verifier catches up. Further
   behind still (``too_late``, ``drop_after_lag_s``), detections are dropped unverified: the verifier's lag
@@ -29,8 +35,7 @@ feeds it a recorded sequence. Both therefore publish the same closures for the s
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from collections.abc import Callable, Iterator, Mapping
 
 import gtsam
 import numpy as np
@@ -39,67 +44,35 @@ from aefabmap_ros.errors import AefabmapError
 from aefabmap_ros.features.extraction import Features
 from aefabmap_ros.verification.closures import Closure, Detection, Outcomes, Posterior
 from aefabmap_ros.verification.depth_wait import DepthWait
+from aefabmap_ros.verification.frame_depths import FrameDepths
 from aefabmap_ros.verification.frame_store import FrameStore
 from aefabmap_ros.verification.gate import ClosureGate
-from aefabmap_ros.verification.geometric import Verification, VerificationConfig
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.geometric import VerificationConfig
+from aefabmap_ros.verification.loop_tracking import LoopTracks
 from aefabmap_ros.verification.odometry_wait import OdometryWait
 from aefabmap_ros.verification.pair_check import PairCheck
+from aefabmap_ros.verification.places import Match, PlaceSessions, PlaceToVerify, ranked_places
 from aefabmap_ros.verification.relative_pose import RelativePoseConfig
 from aefabmap_ros.verification.reranking import rerank_by_inliers
+from aefabmap_ros.verification.tracking_search import TrackingSearch
 
 # Posteriors kept by query stamp: a detection is decided right after its query's posterior, so only the
 # last few are ever looked up; the rest bounds memory when no detections come.
 POSTERIOR_HISTORY = 1000
 
 
-class PlaceToVerify(NamedTuple):
-    place_id: int
-    stamp_ns: int
-    features: Features
-    session: int = 0  # the map's session and robot of the place
-    robot: str = ""
-
-
-class Match(NamedTuple):
-    """An accepted place before it becomes a closure."""
-
-    place: PlaceToVerify
-    probability: float
-    log_likelihood: float
-    verification: Verification
-    nearby_frame: bool = False
-
-
-def ranked_places(store: FrameStore, posterior: Posterior) -> list[tuple[int, PlaceToVerify]]:
-    """The posterior's candidates (rank, place) whose features are stored, best first."""
-    places = []
-    for rank, candidate in enumerate(posterior.candidates):
-        features = store.get(candidate.stamp_ns)
-        if features is not None:
-            places.append((rank, PlaceToVerify(candidate.place_id, candidate.stamp_ns, features,
-                                               candidate.session, candidate.robot)))
-    return places
-
-
-class PlaceSessions:
-    """Place id -> (session, robot) of the map, learned from the candidates FAB-MAP ranks: a frame loop
-    tracking verifies names only its place. A place never ranked takes the session of the newest accepted
-    closure's place, which the frames near it in time share."""
-
-    def __init__(self) -> None:
-        self._known: dict[int, tuple[int, str]] = {}
-        self._newest: tuple[int, str] = (0, "")
-
-    def learn(self, posterior: Posterior) -> None:
-        self._known.update((candidate.place_id, (candidate.session, candidate.robot))
-                           for candidate in posterior.candidates)
-
-    def accepted(self, session: int, robot: str) -> None:
-        self._newest = (session, robot)
-
-    def of(self, place_id: int) -> tuple[int, str]:
-        return self._known.get(place_id, self._newest)
+def pair_refusal(store: FrameStore, pairs: PairCheck, detection: Detection) -> tuple[str, str] | None:
+    """(drop name, why) when a detection's frames are not the robots it names, or their cameras differ."""
+    text = f"loop closure query {detection.query_id} -> place {detection.matched_place_id}"
+    if not (store.belongs(detection.query_ns, detection.query_robot)
+            and store.belongs(detection.matched_ns, detection.matched_robot)):
+        owners = store.robot_of(detection.query_ns), store.robot_of(detection.matched_ns)
+        return "robot_mismatch", (f"{text}: the stored frames at its stamps are robots {owners[0]!r} and "
+                                  f"{owners[1]!r}, not {detection.query_robot!r} and {detection.matched_robot!r}")
+    if pairs.cameras_differ(detection.query_ns, detection.matched_ns):
+        return "cameras_differ", (f"{text}: robots {detection.query_robot!r} and {detection.matched_robot!r} have "
+                                  "different cameras (one camera is assumed for a pair)")
+    return None
 
 
 def _never_behind(_query_ns: int) -> bool:
@@ -117,19 +90,23 @@ class LoopClosureChain:
                  publish: Callable[[Closure], None], outcomes: Outcomes, *, gate: ClosureGate | None = None,
                  max_pending: int = 100, odometry_wait_s: float = 10.0, max_awaiting_odometry: int = 1000,
                  depth_wait_s: float = 2.0, behind: Callable[[int], bool] = _never_behind,
-                 too_late: Callable[[int], bool] = _never_behind, log: Callable[[str, bool], None] = _no_log) -> None:
+                 too_late: Callable[[int], bool] = _never_behind, log: Callable[[str, bool], None] = _no_log,
+                 robot_gates: Mapping[str, ClosureGate] | None = None) -> None:
+        """``gate``: the odometry gate of the one robot (every closure's); ``robot_gates``: several robots' own."""
         self.store = store
         self.pairs = PairCheck(store, config, pose_config, outcomes)
         self.outcomes = outcomes
         self.max_pending = max_pending
         self.behind, self.too_late = behind, too_late  # how far behind a live camera (verifier_node's clock)
         self.log = log
-        self.track = LoopTrack(config.track_seconds, config.track_island_seconds)
-        self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.track, publish, outcomes)
+        self.tracks = LoopTracks(config.track_seconds, config.track_island_seconds)
+        self.odometry = OdometryWait(gate, odometry_wait_s, max_awaiting_odometry, self.tracks, publish, outcomes,
+                                     robot_gates)
         self.depth_wait = DepthWait(depth_wait_s, outcomes)
         self.pending: OrderedDict[int, Detection] = OrderedDict()  # query stamp -> detection, oldest first
         self.posteriors: OrderedDict[int, Posterior] = OrderedDict()  # query stamp -> posterior
         self.place_sessions = PlaceSessions()
+        self.search = TrackingSearch(store, self.pairs, self.place_sessions, lambda: self.pairs.config)
 
     @property
     def config(self) -> VerificationConfig:
@@ -137,7 +114,7 @@ class LoopClosureChain:
 
     @property
     def needs_posteriors(self) -> bool:
-        return self.config.candidates > 1 or self.track.enabled
+        return self.config.candidates > 1 or self.tracks.enabled
 
     # ------------------------------------------------------------------------------------------ inputs
 
@@ -160,6 +137,26 @@ class LoopClosureChain:
             self.store.depths_changed(stamp_ns)
         self._verify_if_ready(stamp_ns)
         self._verify_waiting_for_depth()
+        return True
+
+    def add_frame(self, stamp_ns: int, robot: str, features: Features, depths: FrameDepths | None) -> bool:
+        """Several robots: a frame of ``robot`` as its feature server sent it (features and, with a depth camera,
+        their depths: no depth image follows). False: dropped (malformed, or its stamp is another robot's)."""
+        owner = self.store.robot_of(stamp_ns)
+        if stamp_ns in self.store and owner is not None and owner != robot:
+            self.outcomes.drop("stamp_of_another_robot", f"a frame of robot {robot!r} at stamp {stamp_ns}, already "
+                               f"stored for robot {owner!r}: not kept (frames are keyed by stamp)")
+            return False
+        try:
+            self.store.add_features(stamp_ns, features, robot)
+        except AefabmapError as exc:
+            self.outcomes.drop("bad_features", str(exc))
+            return False
+        if depths is not None and self.store.depths is not None:
+            self.store.depths.keep(stamp_ns, depths)
+            self.store.depths_changed(stamp_ns)
+        self.odometry.frame_seen(stamp_ns)
+        self._verify_if_ready(stamp_ns)
         return True
 
     def add_depth(self, stamp_ns: int, depth_m: np.ndarray) -> None:
@@ -198,9 +195,10 @@ class LoopClosureChain:
                                    "(candidates: 1 verifies without them)")
         self._verify_if_ready(query_ns)
 
-    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3) -> bool:
-        """``T_odom_base`` at ``stamp_ns``; False (ignored) unless after the previous one."""
-        return self.odometry.add_odometry(stamp_ns, pose)
+    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3, robot: str | None = None) -> bool:
+        """``T_odom_base`` at ``stamp_ns`` (of ``robot``, several robots); False (ignored) unless after the previous
+        one."""
+        return self.odometry.add_odometry(stamp_ns, pose, robot)
 
     # ---------------------------------------------------------------------------------------- decisions
 
@@ -230,6 +228,11 @@ class LoopClosureChain:
         for query_ns in self.depth_wait.waiting_among(lambda stamp: stamp in self.pending or stamp in self.posteriors):
             self._verify_if_ready(query_ns)
 
+    def _usable(self, query_ns: int) -> Callable[[int, str], bool]:
+        """Which places the query may be checked against: frames of the robot they name, through one camera."""
+        return lambda stamp_ns, robot: self.store.belongs(stamp_ns, robot) \
+            and not self.pairs.cameras_differ(query_ns, stamp_ns)
+
     def _verify(self, detection: Detection, posterior: Posterior | None) -> None:
         query_ns = detection.query_ns
         if self.too_late(query_ns):  # too far behind the camera to verify it: dropped so the chain catches up
@@ -241,10 +244,14 @@ class LoopClosureChain:
                                f"no stored features of place {detection.matched_place_id} (before this node "
                                "started, or forgotten by the store's bounds)")
             return
+        refusal = pair_refusal(self.store, self.pairs, detection)
+        if refusal is not None:
+            self.outcomes.drop(*refusal)
+            return
         candidates = [PlaceToVerify(detection.matched_place_id, detection.matched_ns, matched,
                                     detection.matched_session, detection.matched_robot)]
         if posterior is not None:
-            others = [place for _, place in ranked_places(self.store, posterior)
+            others = [place for _, place in ranked_places(self.store, posterior, self._usable(query_ns))
                       if place.place_id != detection.matched_place_id]
             candidates += others[: self.config.candidates - 1]
         try:
@@ -288,16 +295,18 @@ class LoopClosureChain:
         nearest that place; the accepted one with the most inliers is published."""
         query_ns = posterior.query_ns
         query = self.store.get(query_ns)
-        if query is None or not self.track.is_active(query_ns):
+        track = self.tracks.of(posterior.robot)
+        if query is None or not track.is_active(query_ns) or not self.store.belongs(query_ns, posterior.robot):
             return
         if self.behind(query_ns):
             self.outcomes.ok("tracking_skipped_behind")
             return
+        usable = self._usable(query_ns)
         try:
             tried: set[int] = set()
-            match = self._track_candidates(query_ns, query, posterior, tried)
+            match = self.search.candidates(track, query_ns, query, posterior, tried, usable)
             if match is None:
-                match = self._track_nearby_frames(query_ns, query, posterior, tried)
+                match = self.search.nearby_frames(track, query_ns, query, posterior, tried, usable)
         except AefabmapError as exc:
             self.outcomes.drop("unverifiable", str(exc))
             return
@@ -314,43 +323,6 @@ class LoopClosureChain:
                               place.stamp_ns, match.probability, match.log_likelihood, posterior.frame_id,
                               posterior.session, posterior.robot, place.session, place.robot)
         self._submit(detection, query, match, tracked=True)
-
-    def _track_candidates(self, query_ns: int, query: Features, posterior: Posterior, tried: set[int]) -> Match | None:
-        """The query's top candidates near the tracked place, best verified wins (their stamps go to ``tried``)."""
-        near = self.track.near(query_ns, ranked_places(self.store, posterior),
-                               lambda ranked: ranked[1].stamp_ns)[: self.config.candidates]
-        tried.update(place.stamp_ns for _, place in near)
-        outcome = rerank_by_inliers(near, lambda ranked: self.pairs.verify(query_ns, query, ranked[1].stamp_ns,
-                                                                           ranked[1].features))
-        if outcome is None:
-            return None
-        rank, place = near[outcome.winner]
-        candidate = posterior.candidates[rank]
-        return Match(place, candidate.probability, candidate.log_likelihood, outcome.verification)
-
-    def _track_nearby_frames(self, query_ns: int, query: Features, posterior: Posterior,
-                             tried: set[int]) -> Match | None:
-        """The stored frames nearest the tracked place in time, not tried yet; best verified wins."""
-        min_age_ns = round(self.config.track_min_age_seconds * 1e9)
-        places = []
-        for stamp_ns in self.track.nearby_frames(query_ns, self.store.timeline, self.config.track_frames, min_age_ns,
-                                                 usable=self.store.__contains__):
-            features = self.store.get(stamp_ns)
-            place_id = self.store.timeline.place_of(stamp_ns)
-            if stamp_ns not in tried and features is not None and place_id is not None:
-                session, robot = self.place_sessions.of(place_id)
-                places.append(PlaceToVerify(place_id, stamp_ns, features, session, robot))
-        tried.update(place.stamp_ns for place in places)
-        outcome = rerank_by_inliers(places, lambda place: self.pairs.verify(query_ns, query, place.stamp_ns,
-                                                                            place.features))
-        if outcome is None:
-            return None
-        place = places[outcome.winner]
-        # The place's posterior when it is among the query's top candidates; FAB-MAP did not rank it otherwise.
-        ranked = [candidate for candidate in posterior.candidates if candidate.place_id == place.place_id]
-        if ranked:
-            return Match(place, ranked[0].probability, ranked[0].log_likelihood, outcome.verification, True)
-        return Match(place, 0.0, float("nan"), outcome.verification, True)
 
     def _submit(self, detection: Detection, query: Features, match: Match, tracked: bool = False) -> None:
         """The closure with its relative pose, to the odometry gate."""

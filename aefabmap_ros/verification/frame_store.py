@@ -14,6 +14,11 @@ yet (without posteriors every frame is of this kind, and the store forgets the o
 creates a place when its ``current_place_id`` is newer than every place seen before: places are numbered
 in the order they are made (fabmap_node), which a reloaded timeline replays the same way.
 
+Several robots (docs/fleet.md): frames are keyed by stamp, and a frame added with its robot's name keeps it
+(``robot_of``), so a candidate naming a robot is never verified against another robot's frame of the same
+stamp (the verification chain refuses it). Frames added without a robot, and frames reloaded from a folder
+(the names are not saved), belong to any robot.
+
 Not counted in the budget: the depth images waiting for their frame's features (``FrameDepthStore``'s
 ``max_waiting_bytes``, bounded on their own) and the timeline's 16 bytes a frame.
 """
@@ -60,6 +65,7 @@ class FrameStore:
         self._roles: dict[FrameRole, dict[int, None]] = {role: {} for role in FrameRole}
         self._early_roles: dict[int, FrameRole] = {}
         self._newest_place_id = -1
+        self._robots: dict[int, str] = {}  # stamp -> robot of the frames added with one
         self.folder = folder  # saved to and reloaded from (``save``, ``load``); None: memory only
         self._feature_folder = None if folder is None else FeatureStoreFolder(folder)
         self._depth_folder = None if folder is None or self.depths is None else FrameDepthFolder(folder)
@@ -88,11 +94,23 @@ class FrameStore:
     def depths_of(self, stamp_ns: int) -> FrameDepths | None:
         return None if self.depths is None else self.depths.get(stamp_ns)
 
-    def add_features(self, stamp_ns: int, features: Features) -> Features:
-        """Store a frame's features (AefabmapError when malformed); the features as stored."""
+    def robot_of(self, stamp_ns: int) -> str | None:
+        """The robot of a stored frame; None when it was stored without one (or is not stored)."""
+        return self._robots.get(stamp_ns)
+
+    def belongs(self, stamp_ns: int, robot: str) -> bool:
+        """The frame at ``stamp_ns`` may be ``robot``'s: stored as its, or stored (or not) without a robot."""
+        owner = self._robots.get(stamp_ns)
+        return owner is None or owner == robot
+
+    def add_features(self, stamp_ns: int, features: Features, robot: str | None = None) -> Features:
+        """Store a frame's features (AefabmapError when malformed), of ``robot`` when given; the features as
+        stored."""
         if stamp_ns not in self and len(self) >= self.max_frames:
             self._evict_one(keep=stamp_ns)
         self.features.add(stamp_ns, features)
+        if robot is not None:
+            self._robots[stamp_ns] = robot
         self._set_role(stamp_ns, self._early_roles.pop(stamp_ns, FrameRole.UNKNOWN))
         self._fit_budget(keep=stamp_ns)
         stored = self.features.get(stamp_ns)
@@ -148,6 +166,7 @@ class FrameStore:
     def forget(self, stamp_ns: int) -> None:
         """Forget a frame's features and depths (its place stays in the timeline: 16 bytes)."""
         self.features.forget(stamp_ns)
+        self._robots.pop(stamp_ns, None)
         if self.depths is not None:
             self.depths.forget(stamp_ns)
         for stamps in self._roles.values():

@@ -57,15 +57,18 @@ class LoopTrack:
         self._track_ns = track_seconds * 1e9
         self._island_ns = island_seconds * 1e9
         self._last: tuple[int, int] | None = None
+        self.place_robot = ""  # robot of the last verified place: the frames near it are that robot's
 
     @property
     def enabled(self) -> bool:
         return self._track_ns > 0.0
 
-    def accept(self, query_ns: int, place_ns: int) -> None:
-        """A closure of the query stamped ``query_ns`` to the place stamped ``place_ns`` was verified."""
+    def accept(self, query_ns: int, place_ns: int, place_robot: str = "") -> None:
+        """A closure of the query stamped ``query_ns`` to the place stamped ``place_ns`` (of ``place_robot``)
+        was verified."""
         if self._last is None or query_ns >= self._last[0]:
             self._last = (query_ns, place_ns)
+            self.place_robot = place_robot
 
     def is_active(self, query_ns: int) -> bool:
         """True while ``query_ns`` is at most ``track_seconds`` after the last verified closure."""
@@ -93,6 +96,26 @@ class LoopTrack:
         self._last = None
 
 
+class LoopTracks:
+    """One LoopTrack per robot whose frames are queries (several robots, docs/fleet.md): the loop one robot is
+    revisiting says nothing of where another one is. With one robot there is one track."""
+
+    def __init__(self, track_seconds: float, island_seconds: float) -> None:
+        self._settings = (track_seconds, island_seconds)
+        self.enabled = LoopTrack(track_seconds, island_seconds).enabled  # checks the settings too
+        self._tracks: dict[str, LoopTrack] = {}
+
+    def of(self, robot: str) -> LoopTrack:
+        """The track of ``robot``'s frames (a new, inactive one for a robot not seen yet)."""
+        track = self._tracks.get(robot)
+        if track is None:
+            track = self._tracks[robot] = LoopTrack(*self._settings)
+        return track
+
+    def active(self, robot: str, query_ns: int) -> bool:
+        return robot in self._tracks and self._tracks[robot].is_active(query_ns)
+
+
 class FrameTimeline:
     """The frames seen, in stamp order, each with the place of the map it belongs to (the newest
     ``max_frames``): where loop tracking looks for the frames next to a verified place."""
@@ -106,6 +129,7 @@ class FrameTimeline:
         self._places: list[int] = []
         self._start = 0
         self._newest_saved: int | None = None  # frames stamped after it were added since the last save
+        self._late_unsaved: dict[int, int] = {}  # frames inserted before it since the last save: stamp -> place
 
     def __len__(self) -> int:
         return len(self._stamps) - self._start
@@ -114,9 +138,12 @@ class FrameTimeline:
         return isinstance(stamp_ns, int) and self.place_of(stamp_ns) is not None
 
     def add(self, stamp_ns: int, place_id: int) -> bool:
-        """Append a frame; False (ignored) unless it is newer than every frame already there."""
+        """Add a frame in stamp order; False (ignored) for a stamp already there or older than every frame kept.
+
+        Frames come in stamp order from one robot; several robots' frames interleave (each robot's in order), so
+        a frame older than the newest is put in its place."""
         if len(self) and stamp_ns <= self._stamps[-1]:
-            return False
+            return self._insert(stamp_ns, place_id)
         self._stamps.append(stamp_ns)
         self._places.append(place_id)
         if len(self) > self.max_frames:
@@ -126,13 +153,30 @@ class FrameTimeline:
                 self._start = 0
         return True
 
+    def _insert(self, stamp_ns: int, place_id: int) -> bool:
+        """A frame older than the newest: inserted in its place (a saved stretch remembers it as unsaved)."""
+        index = bisect_left(self._stamps, stamp_ns, lo=self._start)
+        if index == self._start or (index < len(self._stamps) and self._stamps[index] == stamp_ns):
+            return False
+        self._stamps.insert(index, stamp_ns)
+        self._places.insert(index, place_id)
+        if self._newest_saved is not None and stamp_ns <= self._newest_saved:
+            self._late_unsaved[stamp_ns] = place_id
+        if len(self) > self.max_frames:
+            self._start += 1
+        return True
+
     def unsaved(self) -> list[tuple[int, int]]:
         """(stamp, place) of the frames kept that were added since the last save, oldest first."""
         first = self._start if self._newest_saved is None else \
             bisect_right(self._stamps, self._newest_saved, lo=self._start)
-        return list(zip(self._stamps[first:], self._places[first:], strict=True))
+        newer = list(zip(self._stamps[first:], self._places[first:], strict=True))
+        oldest_kept = self._stamps[self._start] if len(self) else 0
+        late = sorted((stamp, place) for stamp, place in self._late_unsaved.items() if stamp >= oldest_kept)
+        return late + newer
 
     def mark_saved(self) -> None:
+        self._late_unsaved.clear()
         if len(self):
             self._newest_saved = self._stamps[-1]
 

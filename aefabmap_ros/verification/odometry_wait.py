@@ -9,12 +9,15 @@ newest frame the verifier has seen is that much newer than the closure's query -
 ``max_waiting`` closures wait (a bound on memory while odometry has stopped). How far odometry trails
 the newest frame is measured on every odometry message (``lateness_summary``), so the wait can be set
 from what a robot's own load does to it.
+
+Several robots (docs/fleet.md): each robot has its own gate on its own odometry (``robot_gates``); a closure
+inside one robot's session is judged by that robot's gate, and waits for that robot's odometry.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from enum import Enum
 
 import gtsam
@@ -24,7 +27,7 @@ from scipy.spatial.transform import Rotation
 from aefabmap_ros.io.message_values import covariance_problem
 from aefabmap_ros.verification.closures import Closure, Outcomes
 from aefabmap_ros.verification.gate import ClosureGate, GateResult
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.loop_tracking import LoopTracks
 
 LATENESS_SAMPLES = 10_000  # odometry messages whose lateness the summary describes (the newest)
 
@@ -38,12 +41,14 @@ class GateDecision(Enum):
 class OdometryWait:
     """The odometry gate on every verified closure, with the closures waiting for odometry."""
 
-    def __init__(self, gate: ClosureGate | None, wait_s: float, max_waiting: int, track: LoopTrack,
-                 publish: Callable[[Closure], None], outcomes: Outcomes) -> None:
-        self.gate = gate
+    def __init__(self, gate: ClosureGate | None, wait_s: float, max_waiting: int, tracks: LoopTracks,
+                 publish: Callable[[Closure], None], outcomes: Outcomes,
+                 robot_gates: Mapping[str, ClosureGate] | None = None) -> None:
+        self.gate = gate  # one robot's: every closure is judged by it
+        self.robot_gates = dict(robot_gates or {})  # several robots: each robot's closures by its own
         self.wait_ns = round(wait_s * 1e9)
         self.max_waiting = max_waiting
-        self.track = track
+        self.tracks = tracks
         self.publish = publish
         self.outcomes = outcomes
         self.waiting: list[Closure] = []  # in the order they were verified
@@ -58,7 +63,8 @@ class OdometryWait:
             return
         # Tracking goes on from a waiting closure as it would without the gate: every closure tracked from it
         # is verified and judged by the gate itself.
-        self.track.accept(closure.detection.query_ns, closure.detection.matched_ns)
+        detection = closure.detection
+        self.tracks.of(detection.query_robot).accept(detection.query_ns, detection.matched_ns, detection.matched_robot)
         if decision is GateDecision.PUBLISH:
             self.publish(closure)
             return
@@ -80,16 +86,21 @@ class OdometryWait:
             self.outcomes.drop("odometry_never_came", f"loop closure query {closure.detection.query_id}: no "
                                                       f"odometry up to its stamp for {self.wait_ns / 1e9:g} s")
 
-    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3) -> bool:
-        """Odometry ``T_odom_base`` at ``stamp_ns``; False (ignored) unless after the previous one. The closures
-        it reaches are decided now; the others keep waiting, in order."""
-        if self.gate is None or not self.gate.add_odometry(stamp_ns, pose):
+    def gate_of(self, robot: str) -> ClosureGate | None:
+        """The gate that judges closures of ``robot``'s queries: its own, or the one robot's."""
+        return self.robot_gates.get(robot, self.gate)
+
+    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3, robot: str | None = None) -> bool:
+        """Odometry ``T_odom_base`` at ``stamp_ns`` (of ``robot``, several robots); False (ignored) unless after the
+        previous one. The closures it reaches are decided now; the others keep waiting, in order."""
+        gate = self.gate if robot is None else self.robot_gates.get(robot)
+        if gate is None or not gate.add_odometry(stamp_ns, pose):
             return False
         if self.newest_frame_ns is not None:
             self.lateness_s.append(max(self.newest_frame_ns - stamp_ns, 0) / 1e9)
-        gate = self.gate
-        reached, self.waiting = _split(self.waiting, lambda closure: gate.reaches(closure.detection.query_ns,
-                                                                                   closure.detection.matched_ns))
+        reached, self.waiting = _split(self.waiting, lambda closure: self.gate_of(closure.detection.query_robot)
+                                       is gate and gate.reaches(closure.detection.query_ns,
+                                                                closure.detection.matched_ns))
         for closure in reached:
             if self.newest_frame_ns is not None:
                 waited_s = (self.newest_frame_ns - closure.detection.query_ns) / 1e9
@@ -107,10 +118,10 @@ class OdometryWait:
 
     def _decide(self, closure: Closure) -> GateDecision:
         """The gate on one verified closure (PUBLISH when it is off or inactive); refusals are counted."""
-        gate = self.gate
+        detection, pose = closure.detection, closure.pose.pose
+        gate = self.gate_of(detection.query_robot)
         if gate is None or not gate.active:
             return GateDecision.PUBLISH
-        detection, pose = closure.detection, closure.pose.pose
         if (detection.query_session, detection.query_robot) != (detection.matched_session, detection.matched_robot):
             # The place is another session's or robot's: this odometry (the query session's own frame) says
             # nothing of where it is. The backend tests such a closure once it joined the two graphs.

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aefabmap_ros.errors import ConfigError, ModelError
-from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack
+from aefabmap_ros.verification.loop_tracking import FrameTimeline, FrameTimelineFolder, LoopTrack, LoopTracks
 
 SECOND = 10**9
 
@@ -91,12 +91,33 @@ def test_nearest_frames_are_those_a_full_sort_by_distance_picks(stamps, max_fram
     assert all(timeline.place_of(s) is None for s in stamps[: len(stamps) - len(kept)])
 
 
-def test_a_frame_not_newer_than_the_last_is_ignored():
+def test_a_stamp_already_there_or_older_than_every_frame_is_ignored_and_one_in_between_is_inserted():
+    """Several robots' frames interleave (each robot's in order): a frame older than the newest takes its place."""
     timeline = _timeline([10, 20])
-    assert not timeline.add(20, 7) and not timeline.add(15, 7)
-    assert len(timeline) == 2 and timeline.place_of(20) == 1 and timeline.place_of(15) is None
+    assert not timeline.add(20, 7) and not timeline.add(5, 7)
+    assert timeline.add(15, 7)
+    assert timeline.frames() == [(10, 0), (15, 7), (20, 1)] and timeline.place_of(5) is None
     with pytest.raises(ConfigError, match="max_frames >= 1"):
         FrameTimeline(0)
+
+
+def test_a_frame_inserted_before_the_last_save_is_saved_next():
+    timeline = _timeline([10, 20])
+    timeline.mark_saved()
+    assert timeline.unsaved() == []
+    timeline.add(15, 7)
+    timeline.add(30, 8)
+    assert timeline.unsaved() == [(15, 7), (30, 8)]
+    timeline.mark_saved()
+    assert timeline.unsaved() == []
+
+
+def test_each_robot_has_its_own_loop_track():
+    tracks = LoopTracks(track_seconds=1.0, island_seconds=3.0)
+    tracks.of("robot1").accept(100 * SECOND, 50 * SECOND, "robot2")
+    assert tracks.active("robot1", 100 * SECOND + 1) and tracks.of("robot1").place_robot == "robot2"
+    assert not tracks.active("robot2", 100 * SECOND + 1) and not tracks.of("robot2").is_active(100 * SECOND + 1)
+    assert tracks.enabled and not LoopTracks(0.0, 3.0).enabled
 
 
 def test_nearby_frames_lie_in_the_island_and_never_in_the_recent_past():

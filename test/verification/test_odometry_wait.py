@@ -8,7 +8,7 @@ import numpy as np
 from aefabmap_ros.backend.odometry_gate import OdometryGate
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.verification.closures import Closure, CountedOutcomes, Detection
-from aefabmap_ros.verification.loop_tracking import LoopTrack
+from aefabmap_ros.verification.loop_tracking import LoopTracks
 from aefabmap_ros.verification.odometry_wait import OdometryWait
 from aefabmap_ros.verification.relative_pose import PoseOutcome, PoseStatus, RelativePose
 
@@ -23,7 +23,7 @@ def _closure(query_id: int, rotation: np.ndarray, translation: np.ndarray, covar
 
 def test_a_closure_with_a_broken_pose_or_none_is_refused_and_a_sound_one_published() -> None:
     outcomes, published = CountedOutcomes(), list[Closure]()
-    wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTrack(0.0, 0.0),
+    wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTracks(0.0, 0.0),
                         published.append, outcomes)
     for sec in (1, 2, 3):  # standing still
         assert wait.add_odometry(sec * SECOND, gtsam.Pose3())
@@ -46,7 +46,7 @@ def test_a_closure_into_another_session_or_robot_is_not_judged_by_this_odometry(
     """Odometry is the query session's own frame: standing still here says nothing of where an earlier
     session's place (or another robot's) is, so a pose far from it is not refused; within the session it is."""
     outcomes, published = CountedOutcomes(), list[Closure]()
-    wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTrack(0.0, 0.0),
+    wait = OdometryWait(OdometryGate(PoseGraphConfig(), gtsam.Pose3()), 5.0, 10, LoopTracks(0.0, 0.0),
                         published.append, outcomes)
     for sec in (1, 2, 3):  # standing still
         assert wait.add_odometry(sec * SECOND, gtsam.Pose3())
