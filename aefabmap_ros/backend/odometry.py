@@ -70,6 +70,14 @@ class OdometryBuffer:
         self._poses = [self._poses[index] for index in keep]
         self._paths = [self._paths[index] for index in keep]
 
+    def split_from(self, stamp_ns: int) -> tuple[list[int], list[gtsam.Pose3]]:
+        """Remove and return (stamps, poses) of the samples at or after ``stamp_ns``: odometry that turned out to
+        belong to a session that started then."""
+        index = bisect.bisect_left(self._stamps, stamp_ns)
+        moved = self._stamps[index:], self._poses[index:]
+        del self._stamps[index:], self._poses[index:], self._paths[index:]
+        return moved
+
     def samples(self) -> tuple[list[int], list[gtsam.Pose3], list[float]]:
         """Stamps, poses and distances travelled of the kept samples (copies), oldest first."""
         return list(self._stamps), list(self._poses), list(self._paths)

@@ -19,8 +19,9 @@ dragging the graph; one further from the graph than odometry drift can explain i
 
 Sessions. A session is one run of a robot's front end, named (robot, session number) as LoopClosure names
 it; each has its own odometry frame, its own odometry buffer and its own chain of keyframes. Odometry goes to
-the current session: the newest query session named for this graph's ``robot`` (odometry that comes before
-any closure named it is kept aside and given to the first session named). The first session given a keyframe
+the current session: the newest session named for this graph's ``robot``, by a closure or by ``start_session``
+with the stamp of the session's first frame (odometry that comes before any session is named is kept aside
+and given to the first session named). The first session given a keyframe
 is anchored (a prior at its first keyframe: map == odom there); every later session starts as a graph of its
 own, its first keyframe held by a prior at its own odometry pose, and is *unjoined*. The first closure between
 two graphs joins them: it is taken on the verifier's word (no odometry links two runs, so the odometry gate
@@ -122,15 +123,16 @@ class PoseGraph(KeyframeGraph):
             self.decided.append((closure, result))
         return result
 
-    def start_session(self, session_id: SessionId) -> None:
+    def start_session(self, session_id: SessionId, first_stamp_ns: int | None = None) -> None:
         """Make ``session_id`` the session odometry goes to from now on (``add_closure`` does it for the newest
-        query session of ``robot``; a backend told of a session's start can call it before the first closure).
+        query session of ``robot``; pose_graph_node does it as soon as a posterior names a new session).
 
-        The first session named takes the odometry that came before (it was this run's); a session named
-        later is a new run whose odometry restarted, so it starts an empty buffer, and closures still waiting
-        for the previous session's odometry are dropped (unknown_stamp): that odometry will not come. Odometry
-        between a session's start and its first closure, when the backend ran on through the change, was
-        taken as the previous session's: the new session's keyframes begin at its first odometry after."""
+        The first session named takes the odometry that came before (it was this run's). A session named later
+        is a new run whose odometry restarted: it starts an empty buffer, or, given the stamp of its first frame
+        (``first_stamp_ns``), takes the current buffer's samples from that stamp on, which came after the change
+        and are the new session's. Closures still waiting for the previous session's odometry are dropped
+        (unknown_stamp): that odometry will not come. Without ``first_stamp_ns`` odometry between a session's
+        start and its naming counts as the previous session's."""
         if self.current == session_id:
             return
         if self.current is None:
@@ -143,13 +145,19 @@ class PoseGraph(KeyframeGraph):
                     if not existing.odometry.add(stamp_ns, pose):
                         self.counts["odometry_out_of_order"] += 1
         else:
+            previous = self.sessions[self.current].odometry
+            moved = previous.split_from(first_stamp_ns) if first_stamp_ns is not None else ([], [])
+            still_waiting = [closure for closure in self._waiting if closure.query_session == session_id]
             for closure in self._waiting:
-                self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
-                self.decided.append((closure, ClosureResult.UNKNOWN_STAMP))
-            self._waiting = []
+                if closure.query_session != session_id:
+                    self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
+                    self.decided.append((closure, ClosureResult.UNKNOWN_STAMP))
+            self._waiting = still_waiting
             if session_id not in self.sessions:
                 buffer = odometry_buffer(self.config.max_odometry)
                 self.sessions[session_id] = Session(session_id, buffer, root=session_id)
+            for stamp_ns, pose in zip(*moved, strict=True):
+                self.sessions[session_id].odometry.add(stamp_ns, pose)
         self.current = session_id
 
     # -- the closure decisions ----------------------------------------------------------------------------

@@ -17,8 +17,9 @@ written): every session joined to the map, by stamp; a session not joined yet to
 graph's frame.
 
 Several sessions (backend/pose_graph.py has the model). Closures name each endpoint's (robot, session); this
-node's odometry is of robot ``robot`` (parameter, '' = the map's only robot) and belongs to the newest query
-session named for it. A closure into a session the backend never saw (no odometry, not in ``graph_file``) is
+node's odometry is of robot ``robot`` (parameter, '' = the map's only robot) and belongs to the newest session
+named for it: on ``place_posteriors`` from the session's first frame on (odometry stamped from then on moves to
+it), or by a closure's query. A closure into a session the backend never saw (no odometry, not in ``graph_file``) is
 counted as ``unknown_session`` and logged with the robot and session it names. ``map -> odom`` is the current
 session's: as ``map_frame -> odom_frame`` for the map's first session, and for a later one as ``map_frame ->
 session_odom_frame`` ('' = ``odom_frame``; ``{robot}`` and ``{session}`` in it are replaced); not published
@@ -46,7 +47,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from aefabmap_msgs.msg import LoopClosure
+from aefabmap_msgs.msg import LoopClosure, PlacePosterior
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMessage
@@ -84,6 +85,7 @@ from aefabmap_ros.nodes.gtsam_poses import (
     pose_to_gtsam,
 )
 from aefabmap_ros.nodes.messages import (
+    header_stamp_problem,
     loop_closure_pose_problem,
     loop_closure_stamp_problem,
     odometry_problem,
@@ -161,6 +163,9 @@ class PoseGraphNode(Node):
                                     depth=ODOMETRY_QOS.depth, counter=self.counter,
                                     without_it="no keyframes: the graph is built on odometry")
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
+        # fabmap_node answers every frame with its session: the backend learns a new session of its robot (a
+        # relocation while it ran) at its first frame, not at its first closure, so no odometry goes astray.
+        self.create_subscription(PlacePosterior, "place_posteriors", self._on_posterior, RESULT_QOS)
         self._path_changed_ns: int | None = None  # stamp of the newest change not published yet
         self._markers_changed_ns: int | None = None
         self.create_timer(publish_period_s, self.publish_changes)
@@ -207,6 +212,22 @@ class PoseGraphNode(Node):
             self.graph_view.on_odometry(pose)
             self.graph_saver.mark_changed()
         self._report(results, stamp_to_ns(message.header.stamp))
+
+    @node_callback
+    def _on_posterior(self, message: PlacePosterior) -> None:
+        current = self.graph.current
+        if message.query_id < 0 or message.robot != self.robot or (current is not None
+                                                                      and int(message.session) <= current[1]):
+            return
+        problem = header_stamp_problem(message.header, "PlacePosterior")
+        if problem is not None:
+            self.counter.drop("bad_posterior", problem)
+            return
+        session = (message.robot, int(message.session))
+        self.graph.start_session(session, stamp_to_ns(message.header.stamp) if current is not None else None)
+        self.get_logger().info(f"session {session[1]} of robot {session[0]!r} started at "
+                               f"{stamp_to_ns(message.header.stamp) / 1e9:.3f} s")
+        self.graph_saver.mark_changed()
 
     @node_callback
     def _on_loop_closure(self, message: LoopClosure) -> None:

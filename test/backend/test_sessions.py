@@ -26,6 +26,7 @@ from test.backend.test_pose_graph import SIDE_STEPS, square_truth, stamp
 A: SessionId = ("", 0)
 B: SessionId = ("", 1)
 B_START_NS = 10_000 * 1_000_000_000  # B runs later: its stamps are after A's
+SECOND = 1_000_000_000
 COVARIANCE = np.diag([0.02**2] * 3 + [0.005**2] * 3)
 
 
@@ -183,3 +184,22 @@ def test_an_older_or_foreign_query_session_does_not_take_the_odometry(wrong_robo
     closure = Closure(stamp(5), stamp(1), gtsam.Pose3(), COVARIANCE, query_session=named, place_session=named)
     assert graph.add_closure(closure) is ClosureResult.UNKNOWN_SESSION
     assert graph.current == ("rover", 3)
+
+
+def test_a_session_named_with_its_first_stamp_takes_the_odometry_from_then_on() -> None:
+    """A robot relocated while the backend ran: odometry restarts at the identity at the new session's first
+    frame. Named with that stamp, the new session takes exactly the samples from it on; the old keeps the rest."""
+    graph = PoseGraph(PoseGraphConfig())
+    graph.start_session(("", 0))
+    for second in range(1, 6):  # session 0 drives along x
+        graph.add_odometry(second * SECOND, gtsam.Pose3(gtsam.Rot3(), np.array([float(second), 0.0, 0.0])))
+    for second in range(6, 9):  # relocated: odometry restarted, session 1 not named yet
+        graph.add_odometry(second * SECOND, gtsam.Pose3(gtsam.Rot3(), np.array([float(second - 6), 0.0, 0.0])))
+    graph.start_session(("", 1), first_stamp_ns=6 * SECOND)
+    old_stamps, _, _ = graph.sessions[("", 0)].odometry.samples()
+    new_stamps, new_poses, _ = graph.sessions[("", 1)].odometry.samples()
+    assert old_stamps == [second * SECOND for second in range(1, 6)]
+    assert new_stamps == [second * SECOND for second in range(6, 9)]
+    np.testing.assert_allclose(new_poses[0].translation(), [0.0, 0.0, 0.0], atol=1e-12)
+    graph.add_odometry(9 * SECOND, gtsam.Pose3(gtsam.Rot3(), np.array([3.0, 0.0, 0.0])))
+    assert len(graph.sessions[("", 1)].odometry) == 4

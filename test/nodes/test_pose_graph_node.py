@@ -383,3 +383,36 @@ def test_pose_graph_node_names_later_sessions_odometry_frames() -> None:
     assert session_trajectory_path(Path("out/keyframes.tum"), ("rover", 3)) == Path("out/keyframes.rover.session3.tum")
     with pytest.raises(ConfigError, match="session_odom_frame"):
         PoseGraphNode(parameter_overrides=[Parameter("session_odom_frame", value="odom_{bad}")])
+
+
+def test_a_posterior_of_a_new_session_moves_the_odometry_from_its_first_frame_on() -> None:
+    """fabmap_node started a session while the backend ran (a relocated robot): the first posterior of that
+    session tells the backend where its odometry begins, before any closure names it; another robot's
+    posterior, an older session's and a dropped frame's (query_id -1) change nothing."""
+    node = PoseGraphNode(parameter_overrides=[Parameter("robot", value="r1")])
+    try:
+        node.graph.start_session(("r1", 0))
+        for index in range(6):
+            node._on_odometry(_odometry(index, gtsam_pose_x(float(index))))
+
+        def posterior(robot: str, session: int, index: int, query_id: int = 5) -> Any:
+            message = msg.PlacePosterior(query_id=query_id, robot=robot, session=session)
+            message.header.stamp = time_from_ns(stamp(index))
+            return message
+
+        node._on_posterior(posterior("r2", 3, 3))
+        node._on_posterior(posterior("r1", 0, 3))
+        node._on_posterior(posterior("r1", 1, 3, query_id=-1))
+        assert node.graph.current == ("r1", 0)
+        node._on_posterior(posterior("r1", 1, 4))
+        assert node.graph.current == ("r1", 1)
+        assert node.graph.sessions[("r1", 0)].odometry.samples()[0] == [stamp(i) for i in range(4)]
+        assert node.graph.sessions[("r1", 1)].odometry.samples()[0] == [stamp(4), stamp(5)]
+    finally:
+        node.destroy_node()
+
+
+def gtsam_pose_x(x: float) -> Any:
+    import gtsam
+
+    return gtsam.Pose3(gtsam.Rot3(), np.array([x, 0.0, 0.0]))
