@@ -50,9 +50,11 @@ def ranked_places(store: FrameStore, posterior: Posterior,
 
 
 class PlaceSessions:
-    """Place id -> (session, robot) of the map, learned from the candidates FAB-MAP ranks: a frame loop
-    tracking verifies names only its place. A place never ranked takes the session of the newest accepted
-    closure's place, which the frames near it in time share."""
+    """Place id -> (session, robot) of the map: a frame loop tracking verifies names only its place. Learned
+    from every posterior: the place its frame belongs to (``current_place_id``) is of the frame's own session,
+    which fabmap_node guarantees (a session's frames join only its own places), and each candidate names its
+    own. A place never seen so takes the session of the newest accepted closure's place, which the frames near
+    it in time share."""
 
     def __init__(self) -> None:
         self._known: dict[int, tuple[int, str]] = {}
@@ -61,6 +63,8 @@ class PlaceSessions:
     def learn(self, posterior: Posterior) -> None:
         self._known.update((candidate.place_id, (candidate.session, candidate.robot))
                            for candidate in posterior.candidates)
+        if posterior.query_id >= 0 and posterior.current_place_id >= 0:
+            self._known[posterior.current_place_id] = (posterior.session, posterior.robot)
 
     def accepted(self, session: int, robot: str) -> None:
         self._newest = (session, robot)
