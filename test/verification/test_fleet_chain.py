@@ -21,7 +21,7 @@ OTHER_CAMERA = CameraModel(CAMERA.matrix * np.array([[1.1], [1.1], [1.0]]))
 
 
 def _chain(gates: bool = False) -> tuple[LoopClosureChain, Outcomes, list[Closure]]:
-    outcomes, published = Outcomes(), []
+    outcomes, published = Outcomes(), list[Closure]()
     robot_gates = {robot: OdometryGate(PoseGraphConfig(), gtsam.Pose3()) for robot in ("r1", "r2")} if gates else None
     chain = LoopClosureChain(FrameStore(1000, 2**30, 500, keep_depths=True), VerificationConfig(candidates=1,
                              track_seconds=0.0), RelativePoseConfig(), published.append, outcomes,

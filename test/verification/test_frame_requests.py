@@ -28,3 +28,18 @@ def test_places_queries_and_tracked_frames_are_asked_for_once_each() -> None:
     assert requests.take() == {"robot2": [50]}
     assert outcomes.counts == {"requested_place": 2, "requested_query": 2, "requested_tracking": 1,
                                "dropped_request_for_unknown_robot": 1}
+
+
+def test_with_a_budget_places_always_go_and_queries_only_while_requests_are_left() -> None:
+    outcomes = CountedOutcomes()
+    requests = FrameRequests(["r"], outcomes, requests_per_frame=0.5)
+    stored: set[int] = set()
+    for stamp in range(1, 41):  # 40 candidate frames, the first a place: the saved-up 10, then one in two
+        requests.after_posterior(_posterior(stamp, "r", 0, candidate=True), False, stored.__contains__)
+    asked = requests.take()["r"]
+    assert asked[0] == 1 and outcomes.counts["requested_place"] == 1
+    assert len(asked) == 1 + outcomes.counts["requested_query"] and 25 <= len(asked) <= 30
+    refused = next(stamp for stamp in range(1, 41) if stamp not in asked)
+    detection = Detection(refused, 5, 0, 0, 1, 0.9, -1.0, "", 0, "r", 0, "r")
+    assert not requests.after_detection(detection, stored.__contains__)  # its query will not come: counted once
+    assert outcomes.counts["request_over_budget_query"] == 40 - len(asked)
