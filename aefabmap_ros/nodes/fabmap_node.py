@@ -22,17 +22,27 @@ begins a new session of that map; the service ``~/start_session`` (``std_srvs/Tr
 from the next frame on, for a robot that was relocated (its odometry restarted) while the node ran. Every
 posterior and candidate says its query's session and robot and each place's.
 
+Several robots (docs/fleet.md): with ``robots`` (a base station), the node takes each robot's words from
+``/<robot>/aefabmap/words`` into the one map, each frame recognised as that robot's (fabmap/robot_track.py); a
+frame is "out of order" or "already mapped" against its own robot's newest frame (clocks of different robots
+need not interleave). A robot's first frame starts its session; a message naming a robot on
+``~/start_robot_session`` (``std_msgs/String``) begins a new session of that robot from its next frame, as
+``~/start_session`` does for ``robot``.
+
 While running, the settings of ``detector.RUNTIME_SETTINGS`` (e.g. ``match_threshold``) can be
 changed with ``ros2 param set``; any other change is refused with the reason.
 """
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from aefabmap_msgs.msg import BagOfWords, LoopClosure, PlacePosterior
 from rclpy.node import Node
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from aefabmap_ros.errors import AefabmapError, ConfigError, ModelError
@@ -56,6 +66,7 @@ from aefabmap_ros.nodes.common import (
     report_when_connected,
     run_node,
 )
+from aefabmap_ros.nodes.fleet_parameters import declare_robots, robot_topic
 from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.messages import (
     header_stamp_problem,
@@ -80,6 +91,7 @@ class FabMapNode(Node):
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the words subscription.")
         robot = declare_parameter(self, "robot", "", "Name of the robot whose images this node recognises; kept "
                                   "with every session of the map ('' = a map of one robot).")
+        self.robots = declare_robots(self)
         self.future_stamps = FutureStamps(self)
         config = declare_config(self, FabMapConfig)
         if not model_dir:
@@ -105,30 +117,51 @@ class FabMapNode(Node):
                                    f"session {session.number} of robot {session.robot!r}")
             if differences:
                 self.get_logger().warning(_differences_text(map_path, differences))
-        # Frames at or before the newest saved place are already in the map: replaying them after a
+        # Frames at or before the robot's newest saved place are already in the map: replaying them after a
         # restart must not add them twice (they are answered, not recognised again).
-        self.last_stamp_ns = self._ordering_stamp(map_path)
+        self.last_stamps_ns = ({name: self._ordering_stamp(map_path, name) for name in self.robots} if self.robots
+                               else {robot: self._ordering_stamp(map_path, None)})
         self.counter = DropCounter(self)
         self.posterior_publisher = self.create_publisher(PlacePosterior, "place_posteriors", RESULT_QOS)
         self.loop_publisher = self.create_publisher(LoopClosure, "loop_closure_candidates", RESULT_QOS)
-        words = counted_subscription(self, BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth),
-                                     self.counter)
-        report_when_connected(self, words, "words")
+        self._subscribe_words(depth)
         self.map_saver = PeriodicSave(self, map_path, self.recognizer.save_map, "map", save_period_s)
         self.runtime_parameters = RuntimeParameters(self, RUNTIME_SETTINGS, self.recognizer.reconfigure)
         self.create_service(Trigger, "~/start_session", self._on_start_session)
+        self.create_subscription(String, "~/start_robot_session", self._on_start_robot_session, 10)
         self.get_logger().info(
             f"FAB-MAP 2 on vocabulary {self.vocabulary_id} ({self.vocabulary_size} words), "
             f"match threshold {config.match_threshold}, {self.recognizer.num_places} places"
         )
 
-    def _ordering_stamp(self, map_path: Path | None) -> int:
-        """The stamp later frames must follow: the newest place's, except places stamped in the future.
+    def _subscribe_words(self, depth: int) -> None:
+        """aefabmap/words of the one robot; with ``robots``, each robot's /<robot>/aefabmap/words."""
+        if not self.robots:
+            words = counted_subscription(self, BagOfWords, "aefabmap/words", self._on_words, pipeline_qos(depth),
+                                         self.counter)
+            report_when_connected(self, words, "words")
+        for name in self.robots:
+            words = counted_subscription(self, BagOfWords, robot_topic(name, "aefabmap/words"),
+                                         partial(self._on_words, robot=name), pipeline_qos(depth), self.counter)
+            report_when_connected(self, words, f"words of {name}")
+
+    @property
+    def last_stamp_ns(self) -> int:
+        """The stamp the next frame of this node's own robot must follow (-1 before any)."""
+        return self.last_stamps_ns.get(self.recognizer.robot, -1)
+
+    def _ordering_stamp(self, map_path: Path | None, robot: str | None) -> int:
+        """The stamp ``robot``'s later frames must follow (None: the one robot's, every place is its): its newest
+        place's, except places stamped in the future.
 
         Such places come from maps saved before future stamps were refused; they stay in the map (they
         are real images) but do not order later frames, or every frame would be dropped after every restart.
         """
         stamps = self.recognizer.place_stamps_ns
+        if robot is not None and len(stamps):  # several robots: each robot's own places order its frames
+            sessions = self.recognizer.sessions
+            place_robots = np.array([sessions[int(number)].robot for number in self.recognizer.place_sessions])
+            stamps = np.where(place_robots == robot, stamps, -1)
         newest, beyond = newest_stamp_up_to(stamps, self.future_stamps.limit_ns())
         if beyond:
             named = ", ".join(f"place {i} at {stamps[i] / 1e9:.0f} s" for i in beyond[:5])
@@ -149,31 +182,47 @@ class FabMapNode(Node):
         return response
 
     @node_callback
-    def _on_words(self, message: BagOfWords) -> None:
-        """Recognise one frame; every frame is answered on place_posteriors exactly once, a dropped one
-        too (``query_id`` -1), so a lockstep replay never waits its timeout on a frame that reached us."""
+    def _on_start_robot_session(self, message: String) -> None:
+        """A new session of the robot named from its next frame on (one of ``robots``, or ``robot``)."""
+        robot = message.data
+        if robot not in (self.robots or [self.recognizer.robot]):
+            self.counter.drop("unknown_robot", f"~/start_robot_session for robot {robot!r}, not one of this node's "
+                              f"robots {self.robots or [self.recognizer.robot]}")
+            return
+        session = self.recognizer.start_session(robot)
+        self.map_saver.mark_changed()
+        self.get_logger().info(f"session {session.number} of robot {robot!r} starts with its next frame")
+
+    @node_callback
+    def _on_words(self, message: BagOfWords, robot: str | None = None) -> None:
+        """Recognise one frame (of ``robot``, several robots; else of ``robot`` the parameter); every frame is
+        answered on place_posteriors exactly once, a dropped one too (``query_id`` -1), so a lockstep replay never
+        waits its timeout on a frame that reached us."""
+        robot = self.recognizer.robot if robot is None else robot
         recognition = None
         try:
-            recognition = self._recognise(message)
+            recognition = self._recognise(message, robot)
         finally:  # an unexpected exception (counted by node_callback) gets its answer as well
             answer = (unrecognised_posterior(message.header, self.recognizer.num_places,
-                                             self.recognizer.current_session)
+                                             self.recognizer.session_of(robot))
                       if recognition is None else recognition_to_posterior(recognition, message.header))
+            answer.robot = robot
             self.posterior_publisher.publish(answer)
         if recognition is not None:
             self._publish_candidate(recognition, message.header)
 
-    def _recognise(self, message: BagOfWords) -> Recognition | None:
+    def _recognise(self, message: BagOfWords, robot: str) -> Recognition | None:
         """The frame recognised (and added to the map when it makes a place); None when it was dropped."""
         problem = header_stamp_problem(message.header, "BagOfWords")
         if problem is not None:
             self.counter.drop("bad_stamp", problem)
             return None
         stamp_ns = stamp_to_ns(message.header.stamp)
-        if stamp_ns <= self.last_stamp_ns:
+        last_ns = self.last_stamps_ns[robot]
+        if stamp_ns <= last_ns:
             # After a restart, a replay's frames up to the newest saved place are already mapped.
-            self.counter.drop("out_of_order", f"stamp {stamp_ns} ns is not after the last one, {self.last_stamp_ns} ns "
-                              "(already mapped, or sent out of order)")
+            self.counter.drop("out_of_order", f"stamp {stamp_ns} ns of robot {robot!r} is not after its last one, "
+                              f"{last_ns} ns (already mapped, or sent out of order)")
             return None
         problem = self.future_stamps.problem(stamp_ns)
         if problem is not None:
@@ -181,11 +230,11 @@ class FabMapNode(Node):
             return None
         try:
             word_ids = message_to_word_ids(message, self.vocabulary_id, self.vocabulary_size)
-            recognition = self.recognizer.process(word_ids, stamp_ns)
+            recognition = self.recognizer.process(word_ids, stamp_ns, robot=robot)
         except AefabmapError as exc:
             self.counter.drop(type(exc).__name__, str(exc))
             return None
-        self.last_stamp_ns = stamp_ns
+        self.last_stamps_ns[robot] = stamp_ns
         if recognition.informative:  # the map (places, query count, belief) changed: save it
             self.map_saver.mark_changed()
         return recognition

@@ -9,14 +9,22 @@ Verification is on by default: fabmap_node publishes FAB-MAP's raw closures on
 ``loop_closures``, the topic a SLAM backend subscribes to. With verification off there is no
 verifier and fabmap_node's ``loop_closure_candidates`` is remapped to ``loop_closures``, so the
 backend's subscription stays the same (``inliers`` -1 there says "not verified").
+
+Several robots and a base station (docs/fleet.md): ``robot_side`` starts a robot's front end in the namespace
+``/<robot>`` -- feature_node, quantizer_node (its words onto ``aefabmap/robot_words``) and feature_server_node,
+which sends the base the words of every frame and the features of the frames it asks for; ``base`` starts the
+base station's fabmap_node (one map, ``robots``), verifier_node (the robots' frames on request) and, with
+``backend``, pose_graph_node. Neither flag: the single host, as always.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from aefabmap_ros.errors import ConfigError
 
@@ -40,6 +48,11 @@ VIEW_TOPICS = {
     POSTERIORS_TOPIC: "aefabmap_msgs/msg/PlacePosterior",
 }
 DETECTION_NODES = ("feature_node", "quantizer_node", "fabmap_node")  # aefabmap_pipeline runs these three
+FEATURE_SERVER_NODE = "feature_server_node"
+ROBOT_NODES = ("feature_node", "quantizer_node", FEATURE_SERVER_NODE)  # aefabmap_robot_pipeline runs these three
+# On a robot, quantizer_node's words go to the feature server, which sends them on aefabmap/words without
+# keypoint_words. The rule names its node, so in one process (robot_pipeline) it moves quantizer_node's only.
+ROBOT_WORDS_REMAP = ("quantizer_node:aefabmap/words", "aefabmap/robot_words")
 VERIFIER_NODE = "verifier_node"
 BACKEND_NODE = "pose_graph_node"
 VIEW_NODE = "closure_view_node"
@@ -71,16 +84,20 @@ class SuiteOptions:
     closures_topic: str = ""
     sensor_qos: str = ""  # verifier's and backend's camera_info/depth/odom QoS; '' = the parameter file's value
     remaps: tuple[str, ...] = ()  # further FROM:=TO remaps, given to every node
+    robot_side: bool = False  # a robot's front end for a base station, in namespace /<robot> (docs/fleet.md)
+    base: bool = False  # a base station for ``robots``
+    robots: tuple[str, ...] = ()  # the base station's robots
 
 
 @dataclass(frozen=True)
 class NodeLaunch:
     """One node: its name (also its executable and ``aefabmap_ros.nodes.<name>`` module), the
-    parameters set after the parameter file, and its topic remaps."""
+    parameters set after the parameter file, its topic remaps and its namespace ('' = the launcher's)."""
 
     name: str
     parameters: dict[str, str] = field(default_factory=dict)
     remaps: dict[str, str] = field(default_factory=dict)
+    namespace: str = ""
 
     @property
     def module(self) -> str:
@@ -127,8 +144,110 @@ def parse_remaps(remaps: tuple[str, ...]) -> dict[str, str]:
     return parsed
 
 
+# A robot name is one token of a ROS namespace: its topics live under /<robot>/.
+ROBOT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+def parse_robots(value: Any, what: str) -> list[str]:
+    """The robot names of a parameter or option value ([] for none); ConfigError for a bad or repeated name."""
+    if value is None or value == "" or (isinstance(value, list | tuple) and not value):
+        return []
+    # A string: "robot1,robot2", or "[robot1,robot2]" as a launch file passes the parameter through.
+    names = [name.strip() for name in value.strip().strip("[]").split(",")] if isinstance(value, str) \
+        else list(value)
+    bad = [name for name in names if not isinstance(name, str) or not ROBOT_NAME.fullmatch(name)]
+    if bad:
+        raise ConfigError(f"{what}: robot names must be namespace tokens (a letter, then letters, digits or _), "
+                          f"got {bad}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{what}: a robot is named twice in {names}")
+    return names
+
+
+def robot_namespace(robot: str) -> str:
+    """The namespace of a robot's nodes and topics: ``robot1`` -> ``/robot1``."""
+    return f"/{robot}"
+
+
+def namespaced_sections(content: Mapping[str, Any], namespace: str) -> dict[str, Any]:
+    """A parameter file's sections for nodes started in ``namespace``: rcl gives a section to the node whose full
+    name it is, so ``feature_node`` becomes ``/robot1/feature_node`` (keys from ``/``, e.g. ``/**``, stay)."""
+    return {(key if key.startswith("/") else f"{namespace}/{key}"): section for key, section in content.items()}
+
+
+def robots_parameter(robots: tuple[str, ...]) -> str:
+    """The ``robots`` parameter as a command-line value: ``[robot1,robot2]``."""
+    return f"[{','.join(robots)}]"
+
+
+def check_fleet_options(options: SuiteOptions) -> None:
+    """A ConfigError for a robot side or base without its robots, or both at once."""
+    if options.robot_side and options.base:
+        raise ConfigError("--robot-side and --base start the two ends of the link: one of them per host")
+    if options.robot_side and not options.robot:
+        raise ConfigError("--robot-side needs --robot NAME: its nodes and topics live in namespace /NAME")
+    if options.robot_side and (options.map_file or options.backend):
+        raise ConfigError("--robot-side runs the robot's front end only; the map and the backend are the base "
+                          "station's (--base)")
+    if (options.robot_side or options.base) and options.pictures:
+        raise ConfigError("--pictures draws on the camera's frames, which stay on the robots: not with "
+                          "--robot-side or --base")
+    if options.base and not options.robots:
+        raise ConfigError("--base needs --robots NAME,NAME,...: the robots whose words and features it takes")
+    if options.robots and not options.base:
+        raise ConfigError("--robots names a base station's robots: give --base too")
+
+
+def robot_side_nodes(options: SuiteOptions) -> list[NodeLaunch]:
+    """A robot's front end for a base station, in its namespace: features, words, and the feature server."""
+    image: dict[str, str] = {"image_qos": options.image_qos} if options.image_qos else {}
+    busy: dict[str, str] = (
+        {"drop_when_busy": str(options.image_qos not in ("reliable",)).lower()} if options.image_qos else {}
+    )
+    extra = parse_remaps(options.remaps)
+    namespace = robot_namespace(options.robot)
+    camera_info = options.camera_info_topic or camera_info_beside(options.image_topic)
+    beside = {"camera_info": camera_info} if camera_info != "camera_info" else {}
+    depth = {"depth_topic": options.depth_topic} if options.depth_topic else {}
+    sensors: dict[str, str] = {"sensor_qos": options.sensor_qos} if options.sensor_qos else {}
+    return [
+        NodeLaunch("feature_node", {"model_dir": options.model_dir, **image, **busy},
+                   {"image": options.image_topic, **extra}, namespace),
+        NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **busy}, {**extra, ROBOT_WORDS_REMAP[0]:
+                                                                                ROBOT_WORDS_REMAP[1]}, namespace),
+        NodeLaunch(FEATURE_SERVER_NODE, {"robot": options.robot, **depth, **sensors}, {**extra, **beside}, namespace),
+    ]
+
+
+def base_nodes(options: SuiteOptions) -> list[NodeLaunch]:
+    """A base station's nodes: one map for every robot, the verifier asking the robots for features, a backend."""
+    extra = parse_remaps(options.remaps)
+    robots = {"robots": robots_parameter(options.robots)}
+    fabmap: dict[str, str] = {"map_file": options.map_file} if options.map_file else {}
+    closures = options.closures_topic or CLOSURES_TOPIC
+    published = {CLOSURES_TOPIC: closures} if closures != CLOSURES_TOPIC else {}
+    sensors: dict[str, str] = {"sensor_qos": options.sensor_qos} if options.sensor_qos else {}
+    nodes = [NodeLaunch("fabmap_node", {"model_dir": options.model_dir, **fabmap, **robots},
+                        {**extra, **({} if options.verify else {CANDIDATES_TOPIC: closures})})]
+    if options.verify:
+        store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
+        nodes.append(NodeLaunch(VERIFIER_NODE, {**store, **sensors, **robots}, {**extra, **published}))
+    if options.backend:  # the example backend follows the first robot's odometry (docs/fleet.md)
+        first = options.robots[0]
+        graph = {"graph_file": str(backend_graph_path(Path(options.map_file)))} if options.map_file else {}
+        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/odom"}
+        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": first},
+                                {**extra, **odometry, **published}))
+    return nodes
+
+
 def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     """The nodes to start, in start order, with what each gets beyond the parameter file."""
+    check_fleet_options(options)
+    if options.robot_side:
+        return robot_side_nodes(options)
+    if options.base:
+        return base_nodes(options)
     image: dict[str, str] = {"image_qos": options.image_qos} if options.image_qos else {}
     # A live camera's frames may be dropped at every stage when busy, a lossless replay's at none.
     busy: dict[str, str] = (
@@ -161,6 +280,34 @@ def suite_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     if options.pictures:
         nodes.append(NodeLaunch(VIEW_NODE, {}, {"image": options.image_topic, **extra, **published}))
     return nodes
+
+
+def params_file_problem(path: Path) -> str | None:
+    """Why rcl would refuse this parameter file, found before any node starts (each node would otherwise
+    print its own traceback), or None. rcl wants ``<node name>: {ros__parameters: {...}}`` at the top."""
+    import yaml
+
+    try:
+        content = yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        return f"--params {path}: cannot read it: {exc}"
+    except yaml.YAMLError as exc:
+        return f"--params {path} is not valid YAML: {' '.join(str(exc).split())}"
+    if not isinstance(content, dict):
+        return f"--params {path} must map node names to their parameters, got {type(content).__name__}"
+    for node_name, section in content.items():
+        if not _is_parameter_section(section):
+            return f"--params {path}: section {node_name!r} must hold a 'ros__parameters:' mapping"
+    return None
+
+
+def _is_parameter_section(section: object) -> bool:
+    """``{ros__parameters: {...}}``, or a namespace level (``/ns: {node: {ros__parameters: ...}}``)."""
+    if not isinstance(section, dict) or not section:
+        return False
+    if "ros__parameters" in section:
+        return isinstance(section["ros__parameters"], dict)
+    return all(_is_parameter_section(inner) for inner in section.values())
 
 
 def compressed_topic(image_topic: str) -> str:

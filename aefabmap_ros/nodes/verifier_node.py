@@ -8,6 +8,13 @@ A thin adapter around the ROS-free decision chain (verification/chain.py) and it
 input is counted and dropped by name (``bad_features``, ``depth_size_mismatch``, ``bad_depth``,
 ``bad_camera_info``, ``bad_posterior``, ``bad_closure_stamp``, ``bad_candidate``, ``bad_odometry``,
 ``stamp_in_future``, ``odometry_out_of_order``, ``bad_stamp``, ``bad_closure_pose``).
+
+Several robots (``robots``, a base station; docs/fleet.md): instead of ``aefabmap/features``, depth and
+camera_info, the node asks each robot's feature server for the frames it will verify and takes them with their
+depths and camera (nodes/verifier_fleet.py); each robot has its own odometry gate on ``/<robot>/odom``. A
+detection is verified only against the frames of the robots it names (``robot_mismatch``), and only between
+robots with the same camera (``cameras_differ``); a frame whose stamp another robot's frame has taken is
+dropped (``stamp_of_another_robot``).
 """
 
 from __future__ import annotations
@@ -33,6 +40,8 @@ from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.gtsam_poses import pose_to_gtsam
 from aefabmap_ros.nodes.messages import header_stamp_problem, message_to_features, posterior_problem
 from aefabmap_ros.nodes.sensor_inputs import SensorInput
+from aefabmap_ros.nodes.verifier_fleet import RobotLinks
+from aefabmap_ros.nodes.verifier_fleet import candidate_refusal as fleet_candidate_refusal
 from aefabmap_ros.nodes.verifier_parameters import RUNTIME_SETTINGS, declare_verifier_parameters
 from aefabmap_ros.nodes.verifier_summary import FeatureClock, shutdown_summary, startup_summary
 from aefabmap_ros.stamps import stamp_to_ns
@@ -49,15 +58,18 @@ class VerifierNode(Node):
         p = declare_verifier_parameters(self)
         self.counter = common.DropCounter(self)
         self.publisher = self.create_publisher(LoopClosure, "loop_closures", common.RESULT_QOS)
-        self.store = FrameStore(p.max_frames, p.max_store_bytes, p.max_features, keep_depths=bool(p.depth_topic),
+        self.store = FrameStore(p.max_frames, p.max_store_bytes, p.max_features,
+                                keep_depths=bool(p.depth_topic) or bool(p.robots),
                                 folder=Path(p.store_dir) if p.store_dir else None)
         for note in self.store.load():
             self.get_logger().info(note)
         self.clock = FeatureClock(p.max_lag_s, p.drop_after_lag_s)
         self.future_stamps = FutureStamps(self)
+        gates = {robot: OdometryGate(p.drift_model, p.base_to_camera) for robot in p.robots} if p.odometry_gate else {}
         self.chain = LoopClosureChain(
             self.store, p.config, p.pose_config, self._publish, self.counter,
-            gate=OdometryGate(p.drift_model, p.base_to_camera) if p.odometry_gate else None,
+            gate=OdometryGate(p.drift_model, p.base_to_camera) if p.odometry_gate and not p.robots else None,
+            robot_gates=gates,
             max_pending=p.max_pending, odometry_wait_s=p.odometry_wait_s,
             max_awaiting_odometry=p.max_awaiting_odometry, depth_wait_s=p.depth_wait_s, behind=self.clock.behind,
             too_late=self.clock.too_late,
@@ -65,18 +77,24 @@ class VerifierNode(Node):
         self.chain.pairs.camera = p.camera
         self.camera_fixed = self.chain.pairs.camera is not None
         depth = p.queue_depth
-        features = counted_subscription(self, Features, "aefabmap/features", self._on_features, pipeline_qos(depth),
-                                        self.counter, pass_source_time=True)
-        common.report_when_connected(self, features, "features")  # a place the verifier never heard cannot be verified
-        if p.depth_topic:  # the depth images of frames feature_node skips wait for no features
+        self.links = RobotLinks(self, self.chain, list(p.robots), self.counter, depth=depth, sensor_qos=p.sensor_qos,
+                                odometry=p.odometry_gate, max_features=p.max_features,
+                                future_stamps=self.future_stamps, requests_per_frame=p.requests_per_frame,
+                                on_frame=self._on_robot_frame) if p.robots else None
+        if self.links is None:
+            features = counted_subscription(self, Features, "aefabmap/features", self._on_features,
+                                            pipeline_qos(depth), self.counter, pass_source_time=True)
+            common.report_when_connected(self, features, "features")  # a place never heard cannot be verified
+        if p.depth_topic and self.links is None:  # the depth images of frames feature_node skips wait for no features
             self.create_subscription(Header, "aefabmap/skipped_frames", self._on_skipped_frame,
                                      pipeline_qos(max(depth, 100)))
         # As deep as the features queue: a verifier behind during a revisit must not lose the candidates and
         # posteriors of the frames it has yet to reach.
         counted_subscription(self, LoopClosure, "loop_closure_candidates", self._on_loop_closure, result_qos(depth),
                              self.counter)
-        self.inputs = self._sensor_inputs(p.depth_topic, p.sensor_qos, depth, p.odometry_gate)
-        if self.chain.needs_posteriors:
+        self.inputs = (self.links.inputs if self.links is not None
+                       else self._sensor_inputs(p.depth_topic, p.sensor_qos, depth, p.odometry_gate))
+        if self.chain.needs_posteriors or self.links is not None:  # several robots: posteriors say what to ask for
             counted_subscription(self, PlacePosterior, "place_posteriors", self._on_posterior, result_qos(depth),
                                  self.counter)
         self.store_saver = common.PeriodicSave(self, self.store.folder, self.store.save, "the feature store",
@@ -110,6 +128,11 @@ class VerifierNode(Node):
         size = (int(message.image_width), int(message.image_height)) if message.image_width else None
         self.chain.add_features(stamp_ns, features, size)
         self.store_saver.mark_changed()  # depths and places come with or after it; close() checks the rest
+
+    def _on_robot_frame(self, stamp_ns: int, sent_ns: int | None) -> None:
+        """Several robots: a robot's frame was stored (its answer's send time: how far behind the verifier is)."""
+        self.clock.sent(stamp_ns, sent_ns)
+        self.store_saver.mark_changed()
 
     @node_callback
     def _on_camera_info(self, message: CameraInfo) -> None:
@@ -161,15 +184,21 @@ class VerifierNode(Node):
         if problem is not None:  # re-ranking and tracking index the four arrays by one rank
             self.counter.drop("bad_posterior", problem)
             return
-        self.chain.add_posterior(convert.posterior_from_message(message))
+        posterior = convert.posterior_from_message(message)
+        self.chain.add_posterior(posterior)
+        if self.links is not None:
+            self.links.after_posterior(posterior)
 
     @node_callback
     def _on_loop_closure(self, message: LoopClosure) -> None:
-        refusal = convert.candidate_refusal(message)
+        refusal = (convert.candidate_refusal if self.links is None else fleet_candidate_refusal)(message)
         if refusal is not None:
             self.counter.drop(*refusal)
         else:
-            self.chain.add_detection(convert.detection_from_message(message))
+            detection = convert.detection_from_message(message)
+            self.chain.add_detection(detection)
+            if self.links is not None:
+                self.links.after_detection(detection)
 
     def _publish(self, closure: Closure) -> None:
         self.publisher.publish(convert.closure_to_message(closure))

@@ -10,6 +10,10 @@ metres that is several kilometres of revisitable route.
 stamps: a verifier under load takes odometry late, and a closure must not be dropped for that. How late
 it got is printed in the shutdown summary (``odometry behind the newest frame``); see docs/verifier.md
 for the measurements the default comes from.
+
+``robots`` (a base station, docs/fleet.md): each robot's frames come from its feature server on request, with
+their depths and the robot's camera, so ``depth_topic``, ``camera_info`` and ``camera_matrix`` are not used;
+odometry comes from ``/<robot>/odom``.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from rclpy.node import Node
 from aefabmap_ros.backend.pose_graph import PoseGraphConfig
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.nodes.common import declare_config, declare_parameter
+from aefabmap_ros.nodes.fleet_parameters import declare_robots
 from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam
 from aefabmap_ros.nodes.sensor_inputs import check_sensor_qos
 from aefabmap_ros.verification.feature_store import DEFAULT_MAX_STORED_FEATURES
@@ -33,6 +38,10 @@ from aefabmap_ros.verification.relative_pose import CameraModel, RelativePoseCon
 ODOMETRY_GATE_SETTINGS = frozenset({"odometry_translation_drift", "odometry_rotation_drift_rad_per_m",
                                     "odometry_min_sigma", "loop_min_sigma_m", "loop_min_sigma_rad", "gate_chi2",
                                     "max_odometry"})
+
+REQUESTS_PER_FRAME = ("Several robots: frames asked for per frame a robot sends, on average, beyond the places "
+                      "(queries and tracked frames within it; 0 = no budget): each robot's link carries its words "
+                      "and at most this many answers per frame (docs/fleet.md).")
 
 # The geometric check's settings, read afresh for every pair: ``ros2 param set`` applies them from the
 # next closure on. The others size the store or the subscriptions at start-up and are refused.
@@ -64,6 +73,8 @@ class VerifierParameters:
     base_to_camera: gtsam.Pose3
     drift_model: PoseGraphConfig
     sensor_qos: str
+    robots: tuple[str, ...] = ()  # several robots (docs/fleet.md): each robot's frames from its feature server
+    requests_per_frame: float = 0.5  # several robots: the link's budget (verification/frame_requests.py)
 
 
 def declare_verifier_parameters(node: Node) -> VerifierParameters:
@@ -121,6 +132,8 @@ def declare_verifier_parameters(node: Node) -> VerifierParameters:
             node, "sensor_qos", "auto", "QoS of the camera_info, depth and odom subscriptions: auto (reliable, "
             "moving to best effort once a publisher offers only that, as drivers often do), best_effort "
             "(= sensor_data) or reliable."), "sensor_qos"),
+        robots=tuple(declare_robots(node)),
+        requests_per_frame=number("requests_per_frame", 0.5, REQUESTS_PER_FRAME),
     )
     _check(parameters)
     return parameters
@@ -134,10 +147,11 @@ def _check(parameters: VerifierParameters) -> None:
         raise ConfigError(f"verifier_node: drop_after_lag_s ({parameters.drop_after_lag_s}) must be 0 (never) or >= "
                           f"max_lag_s ({parameters.max_lag_s}): a closure is cut short before it is dropped")
     if too_small or parameters.max_features < 0 or not parameters.odometry_wait_s >= 0 \
-            or not parameters.depth_wait_s >= 0:
+            or not parameters.depth_wait_s >= 0 or not parameters.requests_per_frame >= 0:
         raise ConfigError(f"verifier_node: {', '.join(too_small) or 'the bounds'} must be >= 1 (max_store_mb > 0), "
                           f"max_stored_features ({parameters.max_features}), odometry_wait_s "
-                          f"({parameters.odometry_wait_s}) and depth_wait_s ({parameters.depth_wait_s}) >= 0")
+                          f"({parameters.odometry_wait_s}), depth_wait_s ({parameters.depth_wait_s}) and "
+                          f"requests_per_frame ({parameters.requests_per_frame}) >= 0")
 
 
 def _camera_from_parameter(values: list[float]) -> CameraModel | None:

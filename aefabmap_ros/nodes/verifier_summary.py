@@ -55,7 +55,9 @@ def startup_summary(p: VerifierParameters) -> str:
                    f"{config.metric_ratio:g}), {config.metric_min_view_overlap:.0%} view overlap and "
                    f"{config.metric_min_covisibility:.0%} covisibility"
                    if p.depth_topic and config.metric_min_inliers else "")
-    return (f"verifying loop closures: >= {config.min_inliers} fundamental-matrix inliers and "
+    fleet = (f"robots {', '.join(p.robots)}, each robot's frames asked for from its feature server, "
+             if p.robots else "")
+    return (f"verifying loop closures of {fleet}>= {config.min_inliers} fundamental-matrix inliers and "
             f"{config.min_inlier_ratio:.0%} of the keypoints{metric_test}, re-ranking the best {config.candidates} "
             "candidates, "
             f"tracking loops for {config.track_seconds:g} s, at most {p.max_frames} frames and "
