@@ -15,6 +15,13 @@ with SIGKILL, it leaves no node running that a relaunch would duplicate (two FAB
 map).
 
 
+Several robots and a base station (docs/fleet.md): on each robot,
+``aefabmap_launch --robot-side --robot robot1 --model M [--image-topic T --depth-topic D]`` starts its front end
+in namespace /robot1 (feature_node, quantizer_node, feature_server_node: the words of every frame go to the
+base, features only on request); on the base, ``aefabmap_launch --base --robots robot1,robot2 --model M [--map
+office.npz] [--backend]`` starts one map for all of them and the verifier, which publishes inter-robot closures
+on loop_closures.
+
 Each node process gets OMP_NUM_THREADS, OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and NUMBA_NUM_THREADS
 set to its share of the cores (cores / processes, at least 1) unless you set them yourself, so torch,
 OpenBLAS and numba in all the processes together start no more threads than the machine has cores.
@@ -27,19 +34,32 @@ import ctypes
 import functools
 import math
 import os
+import shutil
 import signal
 import stat
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import FrameType
 
 from aefabmap_ros.cli.common import ArgumentParser, run_cli
 from aefabmap_ros.errors import ConfigError
-from aefabmap_ros.nodes.launch_table import DETECTION_NODES, NodeLaunch, SuiteOptions, suite_nodes, thread_limits
+from aefabmap_ros.nodes.launch_table import (
+    DETECTION_NODES,
+    ROBOT_NODES,
+    NodeLaunch,
+    SuiteOptions,
+    namespaced_sections,
+    params_file_problem,
+    parse_robots,
+    suite_nodes,
+    thread_limits,
+)
 
 NODES = DETECTION_NODES
+LAUNCH_TEMPORARIES = Path(tempfile.gettempdir()) / f"aefabmap_launch_{os.getpid()}"  # namespaced parameter files
 
 
 def default_params_file() -> Path:
@@ -79,7 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "file's, auto: adapts to the publishers)")
     topics.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
                         help="any other topic, for every node (repeatable), e.g. place_posteriors:=/lc/posteriors")
-    parser.add_argument("--pipeline", action="store_true", help="run all three nodes in one process instead")
+    _add_fleet_arguments(parser)
+    parser.add_argument("--pipeline", action="store_true", help="run all three nodes in one process instead "
+                        "(with --robot-side: the robot's three)")
     parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
                         help="run verifier_node: only geometrically verified closures on loop_closures (default); "
                         "--no-verify: FAB-MAP's raw closures on loop_closures instead (inliers -1)")
@@ -100,10 +122,40 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _ros_args(params: Path, parameters: dict[str, str], remaps: dict[str, str]) -> list[str]:
+def _add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
+    fleet = parser.add_argument_group("several robots and a base station (docs/fleet.md)")
+    side = fleet.add_mutually_exclusive_group()
+    side.add_argument("--robot-side", action="store_true",
+                      help="this robot's front end for a base station, in namespace /<--robot>: feature_node, "
+                      "quantizer_node and feature_server_node (words every frame, features on request)")
+    side.add_argument("--base", action="store_true",
+                      help="the base station of --robots: one map (fabmap_node), the verifier asking the robots for "
+                      "features, and with --backend the example backend")
+    fleet.add_argument("--robots", default="", metavar="NAME,NAME",
+                       help="with --base: the robots, each under its namespace /NAME")
+
+
+def _ros_args(params: Path, parameters: dict[str, str], remaps: dict[str, str], namespace: str = "") -> list[str]:
     return (["--ros-args", "--params-file", str(params)]
             + [arg for name, value in parameters.items() for arg in ("-p", f"{name}:={value}")]
-            + [arg for topic, target in remaps.items() for arg in ("-r", f"{topic}:={target}")])
+            + [arg for topic, target in remaps.items() for arg in ("-r", f"{topic}:={target}")]
+            + (["-r", f"__ns:={namespace}"] if namespace else []))
+
+
+def _command(params: Path, node: NodeLaunch) -> list[str]:
+    if node.namespace:  # rcl matches a section to the node's full name: /robot1/feature_node
+        params = namespaced_params_file(params, node.namespace)
+    return [sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps, node.namespace)]
+
+
+def namespaced_params_file(params: Path, namespace: str) -> Path:
+    """A copy of the parameter file for nodes in ``namespace`` (in this launcher's temporary folder)."""
+    import yaml
+
+    path = LAUNCH_TEMPORARIES / f"{namespace.strip('/').replace('/', '_')}.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(namespaced_sections(yaml.safe_load(params.read_text()) or {}, namespace)))
+    return path
 
 
 def node_commands(args: argparse.Namespace) -> list[list[str]]:
@@ -117,19 +169,17 @@ def node_commands(args: argparse.Namespace) -> list[list[str]]:
                                      camera_info_topic=args.camera_info_topic, depth_topic=args.depth_topic,
                                      odom_topic=args.odom_topic, closures_topic=args.closures_topic,
                                      sensor_qos=args.sensor_qos or "", remaps=tuple(args.remap),
-                                     pictures=args.pictures or args.view))
+                                     pictures=args.pictures or args.view, robot_side=args.robot_side,
+                                     base=args.base, robots=tuple(parse_robots(args.robots, "--robots"))))
     view = [[sys.executable, "-m", "aefabmap_ros.cli.view", "--port", str(args.view_port)]] if args.view else []
-    if not args.pipeline:
-        return [[sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
-                for node in nodes] + view
+    if not args.pipeline or args.base:
+        return [_command(params, node) for node in nodes] + view
     # In one process, -p and -r apply to all three nodes; each uses only the names it knows.
-    detection = [node for node in nodes if node.name in NODES]
-    merged = NodeLaunch("pipeline", {k: v for node in detection for k, v in node.parameters.items()},
-                        {k: v for node in detection for k, v in node.remaps.items()})
-    return [[sys.executable, "-m", merged.module, *_ros_args(params, merged.parameters, merged.remaps)]] + [
-        [sys.executable, "-m", node.module, *_ros_args(params, node.parameters, node.remaps)]
-        for node in nodes if node.name not in NODES
-    ] + view
+    together, module = (ROBOT_NODES, "robot_pipeline") if args.robot_side else (NODES, "pipeline")
+    merged_nodes = [node for node in nodes if node.name in together]
+    merged = NodeLaunch(module, {k: v for node in merged_nodes for k, v in node.parameters.items()},
+                        {k: v for node in merged_nodes for k, v in node.remaps.items()}, merged_nodes[0].namespace)
+    return [_command(params, merged)] + [_command(params, node) for node in nodes if node.name not in together] + view
 
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -303,34 +353,6 @@ def supervise(commands: list[list[str]], stop_timeout_s: float = STOP_TIMEOUT_S)
     return exit_code
 
 
-def params_file_problem(path: Path) -> str | None:
-    """Why rcl would refuse this parameter file, found before any node starts (each node would otherwise
-    print its own traceback), or None. rcl wants ``<node name>: {ros__parameters: {...}}`` at the top."""
-    import yaml
-
-    try:
-        content = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        return f"--params {path}: cannot read it: {exc}"
-    except yaml.YAMLError as exc:
-        return f"--params {path} is not valid YAML: {' '.join(str(exc).split())}"
-    if not isinstance(content, dict):
-        return f"--params {path} must map node names to their parameters, got {type(content).__name__}"
-    for node_name, section in content.items():
-        if not _is_parameter_section(section):
-            return f"--params {path}: section {node_name!r} must hold a 'ros__parameters:' mapping"
-    return None
-
-
-def _is_parameter_section(section: object) -> bool:
-    """``{ros__parameters: {...}}``, or a namespace level (``/ns: {node: {ros__parameters: ...}}``)."""
-    if not isinstance(section, dict) or not section:
-        return False
-    if "ros__parameters" in section:
-        return isinstance(section["ros__parameters"], dict)
-    return all(_is_parameter_section(inner) for inner in section.values())
-
-
 def check_stop_timeout(stop_timeout_s: float) -> None:
     if not stop_timeout_s > 0:
         raise ConfigError(f"--stop-timeout must be > 0 seconds, got {stop_timeout_s}")
@@ -355,7 +377,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(problem)
     check_stop_timeout(args.stop_timeout)  # the arguments first, then the model's files
     check_model(args.model)
-    return supervise(node_commands(args), args.stop_timeout)
+    try:
+        return supervise(node_commands(args), args.stop_timeout)
+    finally:
+        shutil.rmtree(LAUNCH_TEMPORARIES, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:

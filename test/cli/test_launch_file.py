@@ -20,6 +20,8 @@ from test.conftest import REPO_ROOT
 
 LAUNCH_FILE = REPO_ROOT / "launch" / "aefabmap.launch.py"
 TOPIC_ARGUMENTS = ("camera_info_topic", "depth_topic", "odom_topic", "closures_topic", "sensor_qos", "robot")
+FLEET_ARGUMENTS = {"robot_side": "false", "base": "false", "robots": ""}  # several robots: docs/fleet.md
+SHIPPED_PARAMS = str(REPO_ROOT / "aefabmap_ros" / "config" / "aefabmap.yaml")
 SHARE_PARAMS = "/opt/share/aefabmap_ros/config/aefabmap.yaml"  # what the stand-in FindPackageShare resolves to
 
 
@@ -74,7 +76,7 @@ class _Node:
                  namespace: str | None = None, exec_name: str | None = None, parameters: list[Any] | None = None,
                  remappings: list[tuple[str, str]] | None = None, ros_arguments: list[str] | None = None,
                  arguments: list[str] | None = None, **kwargs: Any) -> None:
-        self.package, self.executable, self.name = package, executable, name
+        self.package, self.executable, self.name, self.namespace = package, executable, name, namespace
         self.parameters, self.remappings, self.kwargs = parameters or [], remappings or [], kwargs
 
 
@@ -134,8 +136,21 @@ def _ros2_launch(launch_file: Any, arguments: dict[str, str]) -> Started:
             for node in entity.execute(context):
                 assert isinstance(node, _Node) and node.package == "aefabmap_ros" and node.executable == node.name
                 params_file, overrides = node.parameters
-                started.append((node.name, params_file, dict(overrides), dict(node.remappings)))
+                namespace = {"__ns": node.namespace} if node.namespace else {}
+                started.append((node.name, _sections(params_file, node.namespace), dict(overrides),
+                                {**dict(node.remappings), **namespace}))
     return started
+
+
+def _sections(params_file: str, namespace: str | None) -> str:
+    """A namespaced node's parameter file is a renamed copy: compared by its sections' names and values."""
+    if not namespace:
+        return params_file
+    import yaml
+
+    with open(params_file) as source:
+        content = yaml.safe_load(source)
+    return repr(sorted((name, repr(section)) for name, section in content.items()))
 
 
 def _aefabmap_launch(argv: list[str]) -> Started:
@@ -149,7 +164,9 @@ def _aefabmap_launch(argv: list[str]) -> Started:
         parameters = dict(value.split(":=", 1) for flag, value in pairs if flag == "-p")
         remaps = dict(value.split(":=", 1) for flag, value in pairs if flag == "-r")
         assert all(flag in ("-p", "-r") for flag, _ in pairs)
-        started.append((command[2].removeprefix("aefabmap_ros.nodes."), ros_args[1], parameters, remaps))
+        namespace = remaps.get("__ns")
+        started.append((command[2].removeprefix("aefabmap_ros.nodes."), _sections(ros_args[1], namespace),
+                         parameters, remaps))
     return started
 
 
@@ -171,6 +188,11 @@ CASES = [  # (ros2 launch arguments, the same choice for aefabmap_launch)
      ["--model", "/m", "--backend", "--image-topic", "/camera/rgb/image_raw", "--camera-info-topic",
       "/camera/rgb/info", "--depth-topic", "/camera/depth_registered/image_raw", "--odom-topic",
       "/odometry/filtered", "--closures-topic", "/slam/loops", "--sensor-qos", "best_effort"]),
+    ({"model_dir": "/m", "robot_side": "true", "robot": "robot1", "depth_topic": "depth",
+      "params_file": SHIPPED_PARAMS},
+     ["--model", "/m", "--robot-side", "--robot", "robot1", "--depth-topic", "depth", "--params", SHIPPED_PARAMS]),
+    ({"model_dir": "/m", "base": "true", "robots": "robot1,robot2", "backend": "true", "map_file": "/maps/o.npz"},
+     ["--model", "/m", "--base", "--robots", "robot1,robot2", "--backend", "--map", "/maps/o.npz"]),
 ]
 
 
@@ -210,13 +232,14 @@ def test_launch_file_with_the_real_launch_packages() -> None:
     description = _load_launch_file().generate_launch_description()
     arguments = {a.name: a for a in description.entities if isinstance(a, actions.DeclareLaunchArgument)}
     assert set(arguments) == {"model_dir", "params_file", "map_file", "image_topic", "image_qos", "verify",
-                              "backend", *TOPIC_ARGUMENTS}
+                              "backend", "pictures", *TOPIC_ARGUMENTS, *FLEET_ARGUMENTS}
     context = real_launch.LaunchContext()
     assert utilities.perform_substitutions(context, arguments["verify"].default_value) == "true"
     (opaque,) = [e for e in description.entities if isinstance(e, actions.OpaqueFunction)]
     context.launch_configurations.update({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "",
                                           "image_topic": "image", "image_qos": "", "verify": "true",
-                                          "backend": "false", **dict.fromkeys(TOPIC_ARGUMENTS, "")})
+                                          "backend": "false", "pictures": "false",
+                                          **dict.fromkeys(TOPIC_ARGUMENTS, ""), **FLEET_ARGUMENTS})
     assert len(opaque.execute(context)) == 4
     context.launch_configurations["verify"] = "false"
     assert len(opaque.execute(context)) == 3
@@ -233,7 +256,7 @@ def test_launch_file_gives_every_node_its_share_of_the_thread_pools(launch_file:
     (opaque,) = [e for e in description.entities if isinstance(e, _OpaqueFunction)]
     context = _Context({"model_dir": "/m", "params_file": "/p.yaml", "map_file": "", "image_topic": "image",
                         "image_qos": "", "verify": "true", "backend": "false", "pictures": "false",
-                        **dict.fromkeys(TOPIC_ARGUMENTS, "")})
+                        **dict.fromkeys(TOPIC_ARGUMENTS, ""), **FLEET_ARGUMENTS})
     nodes = opaque.execute(context)
     share = str(threads_per_process(len(nodes)))
     for node in nodes:
