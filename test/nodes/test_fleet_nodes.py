@@ -15,7 +15,7 @@ msg = pytest.importorskip("aefabmap_msgs.msg")
 
 from builtin_interfaces.msg import Time  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
+from std_msgs.msg import Header, String  # noqa: E402
 
 from aefabmap_ros.features.extraction import Features  # noqa: E402
 from aefabmap_ros.nodes.fabmap_node import FabMapNode  # noqa: E402
@@ -85,6 +85,11 @@ def test_fabmap_node_keeps_each_robots_frames_in_order_in_one_map(revisit_data: 
                                                                               ("r2", False)]
         assert node.counter.counts["dropped_out_of_order"] == 1
         assert [s.robot for s in node.recognizer.sessions] == ["", "r1", "r2"]
+        node._on_start_robot_session(String(data="r2"))  # r2 was relocated: its next frame starts a session
+        node._on_start_robot_session(String(data="r3"))  # not one of the node's robots
+        node._on_words(_words([3, 6, 42], 9, vid), robot="r2")
+        assert (posteriors.messages[-1].robot, posteriors.messages[-1].session) == ("r2", 3)
+        assert node.counter.counts["dropped_unknown_robot"] == 1
     finally:
         node.destroy_node()
 
