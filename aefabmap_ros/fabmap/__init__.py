@@ -7,6 +7,7 @@ __all__ = [
     "consistency",
     "engines",
     "index",
+    "kernels",
     "map_file",
     "map_tools",
     "observation",

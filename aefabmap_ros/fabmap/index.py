@@ -1,21 +1,58 @@
-"""FAB-MAP 2's place storage: places as sparse word lists in a growable posting pool, an inverted index
-word -> places, and the compiled (numba) kernels of the query and of posting storage.
+"""FAB-MAP 2's place storage: places as sparse word lists, an inverted index word -> places in a growable
+posting pool, and a query's scores over every place, on as many threads as the process may use
+(fabmap/kernels.py has the compiled kernels).
 
-Places are stored sparsely (their word ids); memory grows with the number of stored words.
+Places are stored sparsely (their word ids); memory grows with the number of stored words: about 2 bytes per
+(place, word) for the word lists, 4 for the postings, and ``max_dense_words / 8`` bytes and one float64 per
+place.
 """
 
 from __future__ import annotations
 
-import time
+import os
+from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 
+from aefabmap_ros.fabmap.kernels import (
+    BYTE_BITS,
+    add_byte_tables,
+    append_places,
+    count_words,
+    move_blocks,
+    scatter_postings,
+)
+from aefabmap_ros.fabmap.kernels import warm_up_kernels as warm_up_kernels
 from aefabmap_ros.fabmap.observation import FabMapModel, QueryState
+
+# A query is split over threads only for maps this large per thread: below it a thread's start costs more
+# than it saves.
+MIN_PLACES_PER_THREAD = 32_768
+# Rows a bulk load stores at a time: its temporaries (the int32 word ids of a chunk) stay small.
+BULK_CHUNK_ROWS = 65_536
+
+
+def scoring_threads() -> int:
+    """Threads a query's scoring may use: NUMBA_NUM_THREADS when set (aefabmap_launch sets it to each
+    process's share of the cores), else the cores this process may run on."""
+    configured = os.environ.get("NUMBA_NUM_THREADS", "")
+    if configured.isdigit() and int(configured) > 0:
+        return int(configured)
+    return max(len(os.sched_getaffinity(0)), 1)
+
+
+_executors: dict[int, ThreadPoolExecutor] = {}
+
+
+def _shared_executor(threads: int) -> ThreadPoolExecutor:
+    """One pool of ``threads`` scoring threads per process, made on first use (the kernels release the GIL)."""
+    if threads not in _executors:
+        _executors[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="fabmap-scores")
+    return _executors[threads]
 
 
 class GrowableArray:
-    """A 1-D numpy buffer with amortised O(1) append (capacity doubling)."""
+    """A 1-D numpy buffer with amortised O(1) append (capacity 1.5x when full, or exactly as reserved)."""
 
     def __init__(self, dtype: np.dtype | type, capacity: int = 16) -> None:
         self._data = np.empty(max(capacity, 1), dtype=dtype)
@@ -24,12 +61,30 @@ class GrowableArray:
     def __len__(self) -> int:
         return self._size
 
+    def adopt(self, values: np.ndarray) -> None:
+        """Become ``values`` (of this array's type, 1-D, contiguous), without a copy: an empty index takes a
+        loaded map's word ids as they are, instead of holding them twice while it loads. When ``values`` are the
+        first of a larger 1-D buffer of theirs (a map read with room to grow), the buffer is the capacity."""
+        if self._size or values.dtype != self._data.dtype or values.ndim != 1 or not values.flags.c_contiguous:
+            raise ValueError("adopt needs an empty array and contiguous values of its type")
+        base = values.base
+        starts_base = (isinstance(base, np.ndarray) and base.ndim == 1 and base.dtype == values.dtype
+                       and base.flags.c_contiguous and base.size >= values.size
+                       and base.__array_interface__["data"][0] == values.__array_interface__["data"][0])
+        self._data = base if isinstance(base, np.ndarray) and starts_base else values
+        self._size = values.size
+
+    def reserve(self, capacity: int) -> None:
+        """Room for ``capacity`` values in all: a bulk load that knows its size wastes no capacity."""
+        if capacity > self._data.size:
+            grown = np.empty(capacity, dtype=self._data.dtype)
+            grown[: self._size] = self._data[: self._size]
+            self._data = grown
+
     def extend(self, values: np.ndarray) -> None:
         need = self._size + values.size
         if need > self._data.size:
-            grown = np.empty(max(need, 2 * self._data.size), dtype=self._data.dtype)
-            grown[: self._size] = self._data[: self._size]
-            self._data = grown
+            self.reserve(max(need, self._data.size + self._data.size // 2))
         self._data[self._size : need] = values
         self._size = need
 
@@ -39,122 +94,6 @@ class GrowableArray:
     @property
     def nbytes(self) -> int:
         return int(self._data.nbytes)
-
-
-# All 256 bytes as bits (256, 8): row b = the bits of b, least significant first.
-_BYTE_BITS = ((np.arange(256)[:, None] >> np.arange(8)[None, :]) & 1).astype(np.float64)
-
-
-# Compiled kernels of the FAB-MAP 2 query and of posting storage. Single-threaded on purpose (the
-# latency target is per core); cache=True keeps the compiled code in __pycache__ (or numba's user
-# cache dir when the package is read-only), so only the first process on a machine compiles them.
-
-
-@numba.njit(cache=True, nogil=True)
-def _add_byte_tables(
-    scores: np.ndarray, bits: np.ndarray, groups: np.ndarray, tables: np.ndarray, num_places: int
-) -> None:
-    """scores[p] += sum_k tables[k, bits[groups[k], p]] for p < num_places.
-
-    scores (P,) float64, bits (G, capacity) uint8, groups (K,) int64, tables (K, 256) float64.
-    Four groups per pass over ``scores``: the read-modify-write of scores, not the look-ups, bounds
-    a one-group pass.
-    """
-    n_groups = groups.size
-    k = 0
-    while k + 4 <= n_groups:
-        b0, b1, b2, b3 = bits[groups[k]], bits[groups[k + 1]], bits[groups[k + 2]], bits[groups[k + 3]]
-        t0, t1, t2, t3 = tables[k], tables[k + 1], tables[k + 2], tables[k + 3]
-        for p in range(num_places):
-            scores[p] += (t0[b0[p]] + t1[b1[p]]) + (t2[b2[p]] + t3[b3[p]])
-        k += 4
-    while k < n_groups:
-        b0, t0 = bits[groups[k]], tables[k]
-        for p in range(num_places):
-            scores[p] += t0[b0[p]]
-        k += 1
-
-
-@numba.njit(cache=True, nogil=True)
-def _scatter_postings(
-    scores: np.ndarray, pool: np.ndarray, starts: np.ndarray, lengths: np.ndarray, words: np.ndarray,
-    weights: np.ndarray,
-) -> None:
-    """scores[pool[starts[w] : starts[w] + lengths[w]]] += weight for each (w, weight) in (words, weights).
-
-    A place occurs at most once per posting, so the adds of one word never collide.
-    """
-    for k in range(words.size):
-        word = words[k]
-        weight = weights[k]
-        start = starts[word]
-        for j in range(start, start + lengths[word]):
-            scores[pool[j]] += weight
-
-
-@numba.njit(cache=True, nogil=True)
-def _move_blocks(
-    source: np.ndarray, destination: np.ndarray, old_starts: np.ndarray, new_starts: np.ndarray,
-    lengths: np.ndarray,
-) -> None:
-    """destination[new_starts[k] + j] = source[old_starts[k] + j] for j < lengths[k] (blocks must not overlap)."""
-    for k in range(lengths.size):
-        old, new = old_starts[k], new_starts[k]
-        for j in range(lengths[k]):
-            destination[new + j] = source[old + j]
-
-
-@numba.njit(cache=True, nogil=True)
-def _count_words(indices: np.ndarray, counts: np.ndarray) -> None:
-    """counts[w] += occurrences of w in indices (np.bincount would first copy int32 ids to int64)."""
-    for k in range(indices.size):
-        counts[indices[k]] += 1
-
-
-@numba.njit(cache=True, nogil=True)
-def _append_places(
-    indptr: np.ndarray, indices: np.ndarray, first_place: int, dense_slot: np.ndarray, d1: np.ndarray,
-    bits: np.ndarray, pool: np.ndarray, starts: np.ndarray, lengths: np.ndarray, defaults: np.ndarray,
-) -> None:
-    """Store places first_place + i (CSR rows i of word ids) in the bits and the (reserved) postings.
-
-    indptr (N + 1,) int64, indices int32, dense_slot (V,) int64 (-1 = posting), d1 (V,) float64,
-    bits (G, capacity) uint8, pool int32, starts/lengths (V,) int64; writes defaults (N,) float64
-    (the sum of d1 over each row, in row order as np.bincount would). Rows are visited in order, so
-    postings stay in increasing place order.
-    """
-    for i in range(indptr.size - 1):
-        place = first_place + i
-        default = 0.0
-        for j in range(indptr[i], indptr[i + 1]):
-            word = indices[j]
-            default += d1[word]
-            slot = dense_slot[word]
-            if slot >= 0:
-                bits[slot >> 3, place] |= np.uint8(1 << (slot & 7))
-            else:
-                pool[starts[word] + lengths[word]] = place
-                lengths[word] += 1
-        defaults[i] = default
-
-
-def warm_up_kernels() -> float:
-    """Load the compiled FAB-MAP 2 kernels now (compile them if the cache is cold); returns seconds taken.
-
-    Call at start-up so that the first query does not pay it: ~0.3 s per process with numba's cache
-    (its runtime initialises), ~1 s the first time on a machine or after this module changed.
-    """
-    start = time.perf_counter()
-    scores = np.zeros(1)
-    ids = np.zeros(1, dtype=np.int64)
-    pool = np.zeros(1, dtype=np.int32)
-    bits = np.zeros((1, 1), dtype=np.uint8)
-    _add_byte_tables(scores, bits, ids, np.zeros((1, 256)), 1)
-    _scatter_postings(scores, pool, ids, ids, ids, scores)
-    _move_blocks(pool, pool, ids, ids, ids)
-    _count_words(pool, ids.copy())
-    _append_places(np.zeros(1, dtype=np.int64), pool, 0, ids, scores, bits, pool, ids, ids.copy(), scores.copy())
-    return time.perf_counter() - start
 
 
 def _exclusive_cumsum(values: np.ndarray) -> np.ndarray:
@@ -167,10 +106,12 @@ class PostingPool:
     """word -> increasing place ids, all words' postings in one int32 pool (a growable CSR).
 
     Word w's posting is ``pool[starts[w] : starts[w] + lengths[w]]`` inside a block of
-    ``capacities[w]`` slots. A block that overflows moves to the free end of the pool with 1.5x
-    the capacity it needs (its old slots become garbage); when the free end runs out the live blocks
-    are repacked into a new pool a quarter larger than they need. Appends are amortised O(1) per
-    (place, word); memory is ~1.9x the stored pairs after a bulk load, at most ~4x.
+    ``capacities[w]`` slots. A block that overflows moves to the free end of the pool with room to
+    grow (its old slots become garbage): half its size again when places come one at a time, an eighth
+    after a bulk load (a map loaded from a file). When the free end runs out, the live blocks are moved
+    down over the garbage in place and the pool is resized (``ndarray.resize``: a realloc, which for a
+    large pool remaps its pages rather than copying them), with an eighth of the live size free at the end.
+    Appends are amortised O(1) per (place, word); a bulk-loaded pool is ~1.25x the stored pairs.
     """
 
     def __init__(self, vocabulary_size: int) -> None:
@@ -189,34 +130,38 @@ class PostingPool:
         start = int(self.starts[word])
         return self._pool[start : start + int(self.lengths[word])]
 
-    def reserve(self, counts: np.ndarray) -> None:
+    def reserve(self, counts: np.ndarray, bulk: bool = False) -> None:
         """Make room for ``counts[w]`` more places in each word w's posting ((V,) int64); appending is
-        then ``pool[starts[w] + lengths[w]] = place; lengths[w] += 1`` (see ``_append_places``)."""
+        then ``pool[starts[w] + lengths[w]] = place; lengths[w] += 1`` (see ``kernels.append_places``).
+        ``bulk``: the counts are a large batch's, so the blocks get an eighth to grow instead of a half."""
         need = self.lengths + counts
         moving = np.flatnonzero(need > self.capacities)
         if moving.size:
-            self._relocate(moving, need[moving])
+            self._relocate(moving, need[moving], 8 if bulk else 2)
 
-    def _relocate(self, words: np.ndarray, need: np.ndarray) -> None:
-        # 1.5x slack, also after a bulk load: the places added online next would otherwise move most
-        # postings (and repack the pool) within a few frames.
-        capacity = need + need // 2 + 4
+    def _relocate(self, words: np.ndarray, need: np.ndarray, slack_divisor: int) -> None:
+        capacity = need + need // slack_divisor + 4
         total = int(capacity.sum())
         if self._end + total > self._pool.size:
             self._repack(total)
         new_starts = self._end + _exclusive_cumsum(capacity)
-        _move_blocks(self._pool, self._pool, self.starts[words], new_starts, self.lengths[words])
+        move_blocks(self._pool, self._pool, self.starts[words], new_starts, self.lengths[words])
         self.starts[words] = new_starts
         self.capacities[words] = capacity
         self._end += total
 
     def _repack(self, reserve: int) -> None:
-        """Copy the live blocks into a new pool with ``reserve`` + a quarter of the total free at the end."""
+        """Move the live blocks down over the garbage, in place and in the order they lie (each moves to a lower
+        address, never over a block not moved yet), then resize the pool to hold ``reserve`` more slots and an
+        eighth of all of them free."""
+        held = np.flatnonzero(self.capacities > 0)
+        order = held[np.argsort(self.starts[held], kind="stable")]
+        new_starts = _exclusive_cumsum(self.capacities[order])
+        move_blocks(self._pool, self._pool, self.starts[order], new_starts, self.lengths[order])
+        self.starts[order] = new_starts
         live = int(self.capacities.sum())
-        pool = np.empty((live + reserve) * 5 // 4, dtype=np.int32)
-        new_starts = _exclusive_cumsum(self.capacities)
-        _move_blocks(self._pool, pool, self.starts, new_starts, self.lengths)
-        self._pool, self.starts, self._end = pool, new_starts, live
+        self._pool.resize(live + reserve + (live + reserve) // 8, refcheck=False)
+        self._end = live
 
     @property
     def nbytes(self) -> int:
@@ -232,7 +177,7 @@ class InvertedIndex:
     look-up per place per 8 frequent words instead of one scattered add per place holding each
     word). Other words are postings in a :class:`PostingPool`. Memory is proportional to the number
     of stored (place, word) pairs: uint16/int32 word ids, int32 postings, one float64 default and
-    ``max_dense_words / 8`` bytes per place (arrays grow by doubling / 1.5x).
+    ``max_dense_words / 8`` bytes per place.
     """
 
     def __init__(self, model: FabMapModel, dense_min_marginal: float = 0.15, max_dense_words: int = 1024) -> None:
@@ -265,8 +210,9 @@ class InvertedIndex:
         return self._word_data.view()[ptr[index] : ptr[index + 1]].astype(np.int64)
 
     def word_csr(self) -> tuple[np.ndarray, np.ndarray]:
-        """(indptr (P + 1,) int64, indices int64) of all places' words."""
-        return self._word_ptr.view().copy(), self._word_data.view().astype(np.int64)
+        """(indptr (P + 1,) int64, indices) of all places' words: views, the ids in their stored type (uint16
+        when the vocabulary fits, else int32), so saving a large map copies nothing."""
+        return self._word_ptr.view(), self._word_data.view()
 
     def add(self, word_ids: np.ndarray) -> int:
         """Append one place (validated sorted unique word ids); returns its index."""
@@ -275,30 +221,57 @@ class InvertedIndex:
         return index
 
     def add_many(self, indptr: np.ndarray, indices: np.ndarray) -> None:
-        """Append places given as CSR rows (indices sorted unique per row, in range).
+        """Append places given as CSR rows (indices sorted unique per row, in range, any integer type).
 
-        One compiled pass over the (place, word) pairs; besides the index itself it allocates only
-        (V,) and (rows,) arrays (and an int32 copy of ``indices`` if they are not int32 already), so
-        loading a large map does not need several times its size in temporaries.
+        Every array is sized once for the whole batch; the rows are then stored a chunk at a time in one
+        compiled pass over the (place, word) pairs, so a large map loads without temporaries of its size.
         """
         n_new = indptr.size - 1
         first = self.num_places
         indptr = np.ascontiguousarray(indptr, dtype=np.int64)
-        indices = np.ascontiguousarray(indices, dtype=np.int32)
+        bulk = n_new >= 256
         counts = np.zeros(self._model.vocabulary_size, dtype=np.int64)
-        _count_words(indices, counts)
+        for start in range(0, n_new, BULK_CHUNK_ROWS):
+            end = min(start + BULK_CHUNK_ROWS, n_new)
+            count_words(np.ascontiguousarray(indices[indptr[start]:indptr[end]], dtype=np.int32), counts)
         counts[self._dense_slot >= 0] = 0
-        self._postings.reserve(counts)
+        self._postings.reserve(counts, bulk)
         self._reserve_bits(first, first + n_new)
-        defaults = np.empty(n_new)
+        pairs = indices[indptr[0]:indptr[-1]]
+        adopted = first == 0 and pairs.dtype == self._word_data.view().dtype and pairs.flags.c_contiguous
+        if adopted:
+            self._word_data.adopt(pairs)
+        elif bulk:
+            self._word_data.reserve(len(self._word_data) + pairs.size)
+        if bulk:
+            self._word_ptr.reserve(len(self._word_ptr) + n_new)
+            self._defaults.reserve(first + n_new)
+        for start in range(0, n_new, BULK_CHUNK_ROWS):
+            end = min(start + BULK_CHUNK_ROWS, n_new)
+            self._append_rows(indptr[start:end + 1], indices[indptr[start]:indptr[end]], first + start, adopted)
+
+    def _append_rows(self, indptr: np.ndarray, indices: np.ndarray, first: int, words_stored: bool) -> None:
+        """Store one chunk of rows. A large chunk is shared by the scoring threads: the postings are split
+        between them by word (each appends its own words' only), the bits and defaults are the first's."""
+        rows = np.ascontiguousarray(indices, dtype=np.int32)
+        local = indptr - indptr[0]
+        defaults = np.empty(local.size - 1)
         postings = self._postings
-        _append_places(
-            indptr, indices, first, self._dense_slot, self._model.d1, self._bits,
-            postings.pool, postings.starts, postings.lengths, defaults,
-        )
+        parts = max(1, min(scoring_threads(), rows.size // (MIN_PLACES_PER_THREAD * 16)))
+        owner = np.arange(self._model.vocabulary_size, dtype=np.int64) % parts
+
+        def append(part: int) -> None:
+            append_places(local, rows, first, self._dense_slot, self._model.d1, self._bits, postings.pool,
+                          postings.starts, postings.lengths, defaults, owner, part)
+
+        if parts == 1:
+            append(0)
+        else:
+            list(_shared_executor(parts).map(append, range(parts)))
         self._defaults.extend(defaults)
-        self._word_data.extend(indices)  # cast to the stored dtype on copy
-        self._word_ptr.extend(self._word_ptr.view()[-1] + (indptr[1:] - indptr[0]))
+        if not words_stored:
+            self._word_data.extend(rows)  # cast to the stored dtype on copy
+        self._word_ptr.extend(self._word_ptr.view()[-1] + local[1:])
 
     def posting(self, word: int) -> np.ndarray:
         """(n,) int64 increasing ids of the places holding ``word`` (whether stored as bits or a posting)."""
@@ -322,25 +295,46 @@ class InvertedIndex:
             grown[:, :filled] = self._bits[:, :filled]
             self._bits = grown
 
-    def scores(self, state: QueryState) -> np.ndarray:
-        """(P,) float64 FAB-MAP 2 log-likelihood of every place relative to an empty place."""
-        scores = self._defaults.view().copy()
+    def scores(self, state: QueryState, threads: int | None = None) -> np.ndarray:
+        """(P,) float64 FAB-MAP 2 log-likelihood of every place relative to an empty place.
+
+        The places are split in contiguous ranges over ``threads`` (default ``scoring_threads()``; at least
+        ``MIN_PLACES_PER_THREAD`` places each); every place's score is summed in the same order whatever the
+        split, so the result does not depend on it.
+        """
+        num_places = self.num_places
+        scores = np.empty(num_places)
+        groups, tables = self._byte_tables(state)
+        sparse = self._dense_slot[state.touched] < 0
+        words, weights = state.touched[sparse], state.corrections[sparse]
+        defaults, postings = self._defaults.view(), self._postings
+
+        def score_range(first: int, end: int) -> None:
+            part = scores[first:end]
+            part[:] = defaults[first:end]
+            add_byte_tables(part, self._bits, groups, tables, first, end)
+            scatter_postings(part, postings.pool, postings.starts, postings.lengths, words, weights, first, end)
+
+        count = max(1, min(threads or scoring_threads(), num_places // MIN_PLACES_PER_THREAD))
+        bounds = np.linspace(0, num_places, count + 1).astype(np.int64)
+        if count == 1:
+            score_range(0, num_places)
+        else:
+            list(_shared_executor(count).map(score_range, bounds[:-1].tolist(), bounds[1:].tolist()))
+        return scores
+
+    def _byte_tables(self, state: QueryState) -> tuple[np.ndarray, np.ndarray]:
+        """The groups of frequent words the query touches and, per group, the 256-entry table of corrections:
+        tables[k, b] is the sum of the corrections of group groups[k]'s words whose bits are set in byte b."""
         slots = self._dense_slot[state.touched]
         dense = slots >= 0
-        if np.any(dense):
-            weights = np.zeros(8 * self._bits.shape[0])
-            weights[slots[dense]] = state.corrections[dense]
-            group_weights = weights.reshape(-1, 8)
-            groups = np.flatnonzero(np.any(group_weights != 0, axis=1))
-            # tables[k, b]: sum of the corrections of group groups[k]'s words whose bits are set in byte b.
-            tables = np.ascontiguousarray(group_weights[groups] @ _BYTE_BITS.T)
-            _add_byte_tables(scores, self._bits, groups, tables, scores.size)
-        sparse = ~dense
-        postings = self._postings
-        _scatter_postings(
-            scores, postings.pool, postings.starts, postings.lengths, state.touched[sparse], state.corrections[sparse]
-        )
-        return scores
+        if not np.any(dense):
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 256))
+        weights = np.zeros(8 * self._bits.shape[0])
+        weights[slots[dense]] = state.corrections[dense]
+        group_weights = weights.reshape(-1, 8)
+        groups = np.flatnonzero(np.any(group_weights != 0, axis=1))
+        return groups, np.ascontiguousarray(group_weights[groups] @ BYTE_BITS.T)
 
     @property
     def nbytes(self) -> int:

@@ -24,6 +24,7 @@ MAP_FORMAT_VERSION = 2
 _MAP_KEYS = ("vocabulary_id", "vocabulary_size", "word_indptr", "word_indices", "place_stamps_ns", "place_frames",
              "next_query_id", "previous_posterior", "has_previous_posterior")
 _SESSION_KEYS = ("place_sessions", "session_robots", "session_first_queries")
+_CHECK_CHUNK_ROWS = 65_536
 
 ConfigDifferences = dict[str, tuple[Any, Any]]  # setting -> (value the map was made with, value now)
 
@@ -58,7 +59,9 @@ def write_map(path: Path, arrays: dict[str, np.ndarray]) -> None:
 def read_map(path: Path, vocabulary_id: str, vocabulary_size: int) -> dict[str, np.ndarray]:
     """A map's arrays, checked: VocabularyMismatchError for another vocabulary, ModelError when missing,
     corrupt or of another format version."""
-    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, (1, MAP_FORMAT_VERSION))
+    # The word ids are read with an eighth to spare: the index adopts them and grows into that room online.
+    arrays = read_versioned_npz(path, "map file", "place map", _MAP_KEYS, (1, MAP_FORMAT_VERSION),
+                                room={"word_indices": 0.125})
     if int(arrays["format_version"]) == 1:
         arrays = _with_one_session(arrays)
     return _validated_state(path, arrays, vocabulary_id, vocabulary_size)
@@ -81,12 +84,19 @@ def _with_one_session(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _unsorted_within_rows(indptr: np.ndarray, indices: np.ndarray) -> bool:
-    """True if some CSR row's indices are not strictly increasing (vectorised over all rows)."""
-    not_increasing = np.diff(indices) <= 0
-    crossings = indptr[1:-1] - 1  # diff positions that compare the last of a row with the next row
-    crossings = crossings[(crossings >= 0) & (crossings < not_increasing.size)]
-    not_increasing[crossings] = False
-    return bool(np.any(not_increasing))
+    """True if some CSR row's indices are not strictly increasing (vectorised, a chunk of rows at a time so that
+    a million-place map needs no temporaries of its size)."""
+    rows = indptr.size - 1
+    for first in range(0, rows, _CHECK_CHUNK_ROWS):
+        end = min(first + _CHECK_CHUNK_ROWS, rows)
+        chunk = indices[indptr[first]:indptr[end]].astype(np.int64)
+        not_increasing = np.diff(chunk) <= 0
+        crossings = indptr[first + 1:end] - indptr[first] - 1  # positions comparing a row's last with the next's
+        crossings = crossings[(crossings >= 0) & (crossings < not_increasing.size)]
+        not_increasing[crossings] = False
+        if np.any(not_increasing):
+            return True
+    return False
 
 
 def _validated_state(path: Path, arrays: dict[str, np.ndarray], vocabulary_id: str, vocabulary_size: int
@@ -102,14 +112,16 @@ def _validated_state(path: Path, arrays: dict[str, np.ndarray], vocabulary_id: s
             f"map file {path} has {int(arrays['vocabulary_size'])} words, the model {vocabulary_size}"
         )
     indptr = arrays["word_indptr"].astype(np.int64)
-    indices = arrays["word_indices"].astype(np.int64)
+    indices = arrays["word_indices"]  # any integer type, kept (a million places' uint16 ids are 600 MB)
     n_places = indptr.size - 1
     stamps, frames = arrays["place_stamps_ns"], arrays["place_frames"]
     previous = arrays["previous_posterior"].astype(np.float64)
     problems = []
     if n_places < 0 or indptr[0] != 0 or np.any(np.diff(indptr) < 0) or indptr[-1] != indices.size:
         problems.append("inconsistent word_indptr")
-    elif indices.size and (indices.min() < 0 or indices.max() >= vocabulary_size):
+    elif not np.issubdtype(indices.dtype, np.integer):
+        problems.append(f"word ids of type {indices.dtype}, not integers")
+    elif indices.size and (int(indices.min()) < 0 or int(indices.max()) >= vocabulary_size):
         problems.append("word ids out of range")
     elif _unsorted_within_rows(indptr, indices):
         problems.append("word ids not sorted unique per place")

@@ -285,7 +285,7 @@ class PlaceRecognizer:
             "vocabulary_id": np.array(self.vocabulary_id),
             "vocabulary_size": np.array(self.vocabulary_size, dtype=np.int64),
             "word_indptr": indptr,
-            "word_indices": indices.astype(np.int32),  # V < 2^31: half the file of int64, read back as any int
+            "word_indices": indices,  # uint16 when the vocabulary fits, else int32: as the index stores them
             "next_query_id": np.array(self._next_query_id, dtype=np.int64),
             "previous_posterior": np.zeros(0) if previous is None else previous,
             "has_previous_posterior": np.array(previous is not None),

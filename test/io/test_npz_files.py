@@ -38,3 +38,30 @@ def test_refusals_name_the_file_and_the_reason(tmp_path: Path) -> None:
     np.savez(pickled, format_version=np.array(3), values=np.array([{"a": 1}], dtype=object))
     with pytest.raises(ModelError, match="cannot read test file"):  # object arrays need pickle: refused
         _read(pickled)
+
+
+def test_an_array_read_with_room_is_the_start_of_a_larger_buffer(tmp_path):
+    """Read with room, a 1-D array equals the saved one and sits at the start of a buffer an eighth larger, which
+    a growable array adopts as its capacity: the index grows into it without copying the loaded map."""
+    from aefabmap_ros.fabmap.index import GrowableArray
+
+    path = tmp_path / "state.npz"
+    values = np.arange(800, dtype=np.uint16)
+    write_npz_atomically(path, {"format_version": np.array(3), "values": values, "other": np.eye(2)})
+    arrays = read_versioned_npz(path, "test file", "test state", ("values",), 3, room={"values": 0.125})
+    np.testing.assert_array_equal(arrays["values"], values)
+    np.testing.assert_array_equal(arrays["other"], np.eye(2))
+    assert arrays["values"].base is not None and arrays["values"].base.size == 900
+    grown = GrowableArray(np.uint16)
+    grown.adopt(arrays["values"])
+    grown.extend(np.array([7, 8], dtype=np.uint16))
+    assert grown.nbytes == 900 * 2  # grew into the room, no new buffer
+    np.testing.assert_array_equal(grown.view(), np.concatenate([values, [7, 8]]))
+
+
+def test_a_truncated_array_read_with_room_is_refused_by_name(tmp_path):
+    path = tmp_path / "state.npz"
+    write_npz_atomically(path, {"format_version": np.array(3), "values": np.arange(5000, dtype=np.int32)})
+    path.write_bytes(path.read_bytes()[:-3000])
+    with pytest.raises(ModelError, match="cannot read test file"):
+        read_versioned_npz(path, "test file", "test state", ("values",), 3, room={"values": 0.125})
