@@ -7,6 +7,7 @@ average is printed first: latencies on a shared machine are only comparable at s
 thread CPU time of process() is less sensitive to other jobs (it still pays for shared caches).
 
     python -m aefabmap_ros.cli.bench_fabmap [--quick]
+    aefabmap_bench fabmap --places 1000000     # one large map as fabmap_node loads it (cli/bench_large_map.py)
 """
 
 from __future__ import annotations
@@ -171,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--words-per-image", type=int, default=400, help="draws per image (distinct ~ 3/4)")
     parser.add_argument("--zipf-exponent", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--places", type=int, default=None,
+                        help="instead: one map of this many places, saved, loaded by a fresh process and queried")
+    parser.add_argument("--queries", type=int, default=200, help="with --places: queries answered")
     return parser
 
 
@@ -187,6 +191,12 @@ def _run(args: argparse.Namespace) -> int:
     vocabulary_size = args.vocabulary_size or vocabulary_size
     if vocabulary_size < 2 or args.words_per_image < 1:
         raise AefabmapError("--vocabulary-size must be >= 2 and --words-per-image >= 1")
+    if args.places is not None:
+        if args.places < 1 or args.queries < 1:
+            raise AefabmapError("--places and --queries must be >= 1")
+        from aefabmap_ros.cli.bench_large_map import run
+
+        return run(args.places, vocabulary_size, args.words_per_image, args.queries, args.seed)
     load_1min, load_5min, _ = os.getloadavg()
     print(f"Load average {load_1min:.2f} (1 min) {load_5min:.2f} (5 min) on {os.cpu_count()} CPUs")
     images = ZipfImages(vocabulary_size, args.words_per_image, args.zipf_exponent, args.seed)
