@@ -8,7 +8,10 @@ base goes through it, and only this:
 - the features of the frames the base asks for on ``aefabmap/feature_requests`` (``FeatureRequest``), on
   ``aefabmap/requested_features`` (``RequestedFeatures``): the strongest ``max_features`` keypoints'
   positions and descriptors, and, with ``depth_topic``, their depths and a coarse depth grid sampled here (no
-  depth image crosses the link), with the camera's intrinsics from ``camera_info``.
+  depth image crosses the link), with the camera's intrinsics from ``camera_info``;
+- the robot's odometry (``odom``) thinned to ``odometry_rate_hz`` by stamp on ``aefabmap/odom``, for the
+  base's odometry gate (a 50-200 Hz odometry stream would be 35-140 kB/s; the gate interpolates between
+  messages, and 10 Hz leaves it a message within 0.1 s of every frame).
 
 It keeps the robot's recent frames (``aefabmap/features``; with ``depth_topic``, their depths) within
 ``max_store_mb`` and ``max_stored_frames``, oldest forgotten first (verification/feature_server.py). Requests
@@ -22,6 +25,7 @@ from __future__ import annotations
 from typing import Any
 
 from aefabmap_msgs.msg import BagOfWords, FeatureRequest, Features, RequestedFeatures
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
@@ -66,13 +70,15 @@ class FeatureServerNode(Node):
                                         "each keypoint's depth and a coarse grid go with the features ('' = none).")
         wait_s = float(declare_parameter(self, "wait_s", 2.0, "A request waits this long (stamp time: the newest "
                                          "frame is that much newer) for its frame's features and depth."))
-        policy = check_sensor_qos(declare_parameter(self, "sensor_qos", "auto", "QoS of the camera_info and depth "
-                                                    "subscriptions: auto, best_effort (= sensor_data) or reliable."),
-                                  "sensor_qos")
+        policy = check_sensor_qos(declare_parameter(
+            self, "sensor_qos", "auto", "QoS of the camera_info, depth and odom subscriptions: auto, best_effort "
+            "(= sensor_data) or reliable."), "sensor_qos")
+        odometry_hz = float(declare_parameter(self, "odometry_rate_hz", 10.0, "Odometry forwarded to the base on "
+                                              "aefabmap/odom at most this often, by stamp (0 = none)."))
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of the subscriptions and publications.")
-        if max_frames < 1 or not max_mb > 0 or max_features < 0:
+        if max_frames < 1 or not max_mb > 0 or max_features < 0 or not odometry_hz >= 0:
             raise ConfigError(f"feature_server_node: max_stored_frames ({max_frames}) must be >= 1, max_store_mb "
-                              f"({max_mb}) > 0 and max_features ({max_features}) >= 0")
+                              f"({max_mb}) > 0, max_features ({max_features}) and odometry_rate_hz >= 0")
         self.counter = common.DropCounter(self)
         store = FrameStore(max_frames, round(max_mb * 2**20), max_features, keep_depths=bool(depth_topic))
         self.server = FeatureServer(store, self.counter, wait_s)
@@ -94,6 +100,13 @@ class FeatureServerNode(Node):
                                            counter=self.counter, without_it="answers carry no depth (no metric "
                                            "poses or metric test at the base)"))
             self.create_subscription(Header, "aefabmap/skipped_frames", self._on_skipped_frame, pipeline_qos(100))
+        self.odometry_period_ns = round(1e9 / odometry_hz) if odometry_hz else 0
+        self.last_odometry_ns: int | None = None
+        self.odometry_publisher = self.create_publisher(Odometry, "aefabmap/odom", common.ODOMETRY_QOS)
+        if odometry_hz:
+            self.inputs.append(SensorInput(self, Odometry, "odom", self._on_odometry, policy=policy,
+                                           depth=common.ODOMETRY_QOS.depth, counter=self.counter,
+                                           without_it="the base has no odometry gate for this robot"))
         self.get_logger().info(f"serving robot {self.robot!r}'s frames to the base: words every frame, features on "
                                f"request (at most {max_features or 'all'} keypoints, {max_mb:g} MiB kept"
                                f"{', with depth' if depth_topic else ''})")
@@ -144,6 +157,19 @@ class FeatureServerNode(Node):
             self._send(self.server.add_depth(stamp_to_ns(message.header.stamp), depth_message_to_metres(message)))
         except AefabmapError as exc:
             self.counter.drop("bad_depth", str(exc))
+
+    @node_callback
+    def _on_odometry(self, message: Odometry) -> None:
+        """Forward one message per odometry period (by stamp): the first at or after the period's start."""
+        if header_stamp_problem(message.header, "odometry") is not None:
+            self.counter.drop("bad_odometry", "odometry stamp is not a ROS time")
+            return
+        stamp_ns = stamp_to_ns(message.header.stamp)
+        if self.last_odometry_ns is None or stamp_ns - self.last_odometry_ns >= self.odometry_period_ns \
+                or stamp_ns < self.last_odometry_ns:  # a restarted source starts again
+            self.last_odometry_ns = stamp_ns
+            self.odometry_publisher.publish(message)
+            self.counter.ok("odometry_forwarded")
 
     @node_callback
     def _on_skipped_frame(self, message: Header) -> None:

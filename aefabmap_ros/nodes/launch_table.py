@@ -210,12 +210,14 @@ def robot_side_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     beside = {"camera_info": camera_info} if camera_info != "camera_info" else {}
     depth = {"depth_topic": options.depth_topic} if options.depth_topic else {}
     sensors: dict[str, str] = {"sensor_qos": options.sensor_qos} if options.sensor_qos else {}
+    odometry = {"odom": options.odom_topic} if options.odom_topic else {}
     return [
         NodeLaunch("feature_node", {"model_dir": options.model_dir, **image, **busy},
                    {"image": options.image_topic, **extra}, namespace),
         NodeLaunch("quantizer_node", {"model_dir": options.model_dir, **busy}, {**extra, ROBOT_WORDS_REMAP[0]:
                                                                                 ROBOT_WORDS_REMAP[1]}, namespace),
-        NodeLaunch(FEATURE_SERVER_NODE, {"robot": options.robot, **depth, **sensors}, {**extra, **beside}, namespace),
+        NodeLaunch(FEATURE_SERVER_NODE, {"robot": options.robot, **depth, **sensors},
+                   {**extra, **beside, **odometry}, namespace),
     ]
 
 
@@ -235,7 +237,7 @@ def base_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     if options.backend:  # the example backend follows the first robot's odometry (docs/fleet.md)
         first = options.robots[0]
         graph = {"graph_file": str(backend_graph_path(Path(options.map_file)))} if options.map_file else {}
-        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/odom"}
+        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/aefabmap/odom"}  # the server's
         nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": first},
                                 {**extra, **odometry, **published}))
     return nodes

@@ -3,7 +3,8 @@
 Per robot: it asks the robot's feature server for frames on ``/<robot>/aefabmap/feature_requests`` (which
 ones: verification/frame_requests.py), takes the answers from ``/<robot>/aefabmap/requested_features`` (the
 features with their depths and the robot's camera; no depth image or camera_info crosses the link), and,
-with ``odometry_gate``, the robot's odometry from ``/<robot>/odom`` for that robot's own gate.
+with ``odometry_gate``, the robot's odometry as its feature server thins it (``/<robot>/aefabmap/odom``) for that
+robot's own gate.
 
 A candidate between two robots may match a place stamped after its query (``candidate_refusal``): the other
 robot made it before FAB-MAP took this robot's frame, later in stamp time by at most the link's delay (or by
@@ -44,6 +45,7 @@ from aefabmap_ros.verification.frame_requests import FrameRequests
 
 REQUESTS_TOPIC = "aefabmap/feature_requests"
 REQUESTED_FEATURES_TOPIC = "aefabmap/requested_features"
+ODOMETRY_TOPIC = "aefabmap/odom"  # the robot's odometry, thinned by its feature server
 
 
 class RobotLinks:
@@ -68,7 +70,7 @@ class RobotLinks:
             common.report_when_connected(node, answers, f"requested features of {robot}")
             if odometry:
                 self.inputs.append(SensorInput(
-                    node, Odometry, robot_topic(robot, "odom"), partial(self._on_odometry, robot=robot),
+                    node, Odometry, robot_topic(robot, ODOMETRY_TOPIC), partial(self._on_odometry, robot=robot),
                     policy=sensor_qos, depth=common.ODOMETRY_QOS.depth, counter=counter,
                     without_it=f"closures within {robot}'s sessions are published without its odometry gate"))
 

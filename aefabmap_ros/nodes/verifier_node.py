@@ -11,7 +11,7 @@ input is counted and dropped by name (``bad_features``, ``depth_size_mismatch``,
 
 Several robots (``robots``, a base station; docs/fleet.md): instead of ``aefabmap/features``, depth and
 camera_info, the node asks each robot's feature server for the frames it will verify and takes them with their
-depths and camera (nodes/verifier_fleet.py); each robot has its own odometry gate on ``/<robot>/odom``. A
+depths and camera (nodes/verifier_fleet.py); each robot has its own odometry gate on ``/<robot>/aefabmap/odom``. A
 detection is verified only against the frames of the robots it names (``robot_mismatch``), and only between
 robots with the same camera (``cameras_differ``); a frame whose stamp another robot's frame has taken is
 dropped (``stamp_of_another_robot``).

@@ -13,7 +13,7 @@ for the measurements the default comes from.
 
 ``robots`` (a base station, docs/fleet.md): each robot's frames come from its feature server on request, with
 their depths and the robot's camera, so ``depth_topic``, ``camera_info`` and ``camera_matrix`` are not used;
-odometry comes from ``/<robot>/odom``.
+odometry comes from ``/<robot>/aefabmap/odom`` (the robot's, thinned by its feature server).
 """
 
 from __future__ import annotations

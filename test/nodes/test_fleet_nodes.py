@@ -73,6 +73,21 @@ def test_the_feature_server_forwards_words_without_keypoint_words_and_answers_re
         node.destroy_node()
 
 
+def test_the_feature_server_forwards_odometry_thinned_by_stamp() -> None:
+    from nav_msgs.msg import Odometry
+
+    node = FeatureServerNode(parameter_overrides=_params(robot="robot1", odometry_rate_hz=10.0))
+    try:
+        forwarded = Captured(node.odometry_publisher)
+        for millis in range(0, 1000, 20):  # 50 Hz for a second
+            message = Odometry()
+            message.header.stamp = Time(sec=100, nanosec=millis * 1_000_000)
+            node._on_odometry(message)
+        assert [m.header.stamp.nanosec // 1_000_000 for m in forwarded.messages] == list(range(0, 1000, 100))
+    finally:
+        node.destroy_node()
+
+
 def test_fabmap_node_keeps_each_robots_frames_in_order_in_one_map(revisit_data: RevisitData) -> None:
     node = FabMapNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), robots=["r1", "r2"]))
     try:

@@ -20,13 +20,13 @@ def _by_name(options: SuiteOptions) -> dict[str, NodeLaunch]:
 
 def test_the_robot_side_runs_the_front_end_and_the_feature_server_in_the_robots_namespace() -> None:
     nodes = _by_name(SuiteOptions(model_dir="/m", robot="robot1", robot_side=True, image_topic="/cam/image_raw",
-                                  depth_topic="/cam/depth", image_qos="best_effort"))
+                                  depth_topic="/cam/depth", image_qos="best_effort", odom_topic="/odometry/filtered"))
     assert list(nodes) == ["feature_node", "quantizer_node", "feature_server_node"]
     assert {node.namespace for node in nodes.values()} == {"/robot1"}
     assert nodes["feature_node"].remaps == {"image": "/cam/image_raw"}
     assert nodes["quantizer_node"].remaps == {"quantizer_node:aefabmap/words": "aefabmap/robot_words"}
     assert nodes["feature_server_node"].parameters == {"robot": "robot1", "depth_topic": "/cam/depth"}
-    assert nodes["feature_server_node"].remaps == {"camera_info": "/cam/camera_info"}
+    assert nodes["feature_server_node"].remaps == {"camera_info": "/cam/camera_info", "odom": "/odometry/filtered"}
 
 
 def test_the_base_runs_one_map_and_the_verifier_for_every_robot() -> None:
@@ -37,7 +37,7 @@ def test_the_base_runs_one_map_and_the_verifier_for_every_robot() -> None:
         == "[robot1,robot2]"
     assert nodes["verifier_node"].parameters["store_dir"] == "/maps/o.features"
     assert nodes["pose_graph_node"].parameters["robot"] == "robot1"
-    assert nodes["pose_graph_node"].remaps == {"odom": "/robot1/odom"}
+    assert nodes["pose_graph_node"].remaps == {"odom": "/robot1/aefabmap/odom"}  # as robot1's server thins it
     assert all(not node.namespace for node in nodes.values())
     raw = _by_name(SuiteOptions(model_dir="/m", base=True, robots=("robot1",), verify=False))
     assert list(raw) == ["fabmap_node"] and raw["fabmap_node"].remaps == {"loop_closure_candidates": "loop_closures"}
