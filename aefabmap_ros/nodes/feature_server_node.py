@@ -49,8 +49,8 @@ from aefabmap_ros.verification.frame_store import FrameStore
 ROBOT_WORDS_TOPIC = "aefabmap/robot_words"  # quantizer_node's words on the robot (remapped from aefabmap/words)
 REQUESTS_TOPIC = "aefabmap/feature_requests"
 REQUESTED_FEATURES_TOPIC = "aefabmap/requested_features"
-# Keypoints sent per frame by default: ~33 KiB an answer with depth, so that at the base's default budget (half
-# a request per frame) a robot's link carries under 20 kB a frame (docs/fleet.md).
+# Keypoints sent per frame by default: ~33 kB an answer with depth, so that at the base's default budget (0.4
+# requests a frame) a robot's link carries under 20 kB a frame, DDS's own traffic included (docs/fleet.md).
 LINK_MAX_FEATURES = 300
 
 

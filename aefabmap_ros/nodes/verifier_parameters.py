@@ -74,7 +74,7 @@ class VerifierParameters:
     drift_model: PoseGraphConfig
     sensor_qos: str
     robots: tuple[str, ...] = ()  # several robots (docs/fleet.md): each robot's frames from its feature server
-    requests_per_frame: float = 0.5  # several robots: the link's budget (verification/frame_requests.py)
+    requests_per_frame: float = 0.4  # several robots: the link's budget (verification/frame_requests.py)
 
 
 def declare_verifier_parameters(node: Node) -> VerifierParameters:
@@ -133,7 +133,7 @@ def declare_verifier_parameters(node: Node) -> VerifierParameters:
             "moving to best effort once a publisher offers only that, as drivers often do), best_effort "
             "(= sensor_data) or reliable."), "sensor_qos"),
         robots=tuple(declare_robots(node)),
-        requests_per_frame=number("requests_per_frame", 0.5, REQUESTS_PER_FRAME),
+        requests_per_frame=number("requests_per_frame", 0.4, REQUESTS_PER_FRAME),
     )
     _check(parameters)
     return parameters

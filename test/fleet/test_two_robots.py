@@ -229,7 +229,7 @@ def test_two_robots_share_one_map_at_a_base_station_over_small_links(
     params = tmp_path / "params.yaml"
     params.write_text(PARAMS.format(max_features=int(os.environ.get("AEFABMAP_FLEET_MAX_FEATURES", "300")),
                                     requests_per_frame=float(os.environ.get("AEFABMAP_FLEET_REQUESTS_PER_FRAME",
-                                                                            "0.5"))))
+                                                                            "0.4"))))
     model = str(revisit_data.model_dir)
     base_env = _environment(robots)
     go = tmp_path / "go"
