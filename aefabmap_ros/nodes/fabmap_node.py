@@ -101,6 +101,8 @@ class FabMapNode(Node):
             raise ModelError(f"parameter model_dir={model_dir!r}: the model has no Chow-Liu tree / new-place samples")
         self.vocabulary_id = model.vocabulary_id
         self.vocabulary_size = model.quantizer.size
+        if self.robots and robot not in self.robots:  # a base station's own robot is its first: no empty session
+            robot = self.robots[0]
         self.recognizer = PlaceRecognizer(
             ChowLiuTree.from_matrix(model.tree_matrix), model.new_place_samples, config, model.vocabulary_id, robot
         )

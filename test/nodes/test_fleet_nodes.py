@@ -99,11 +99,12 @@ def test_fabmap_node_keeps_each_robots_frames_in_order_in_one_map(revisit_data: 
         assert [(p.robot, p.query_id >= 0) for p in posteriors.messages] == [("r1", True), ("r2", True),
                                                                               ("r2", False)]
         assert node.counter.counts["dropped_out_of_order"] == 1
-        assert [s.robot for s in node.recognizer.sessions] == ["", "r1", "r2"]
+        assert [s.robot for s in node.recognizer.sessions] == ["r1", "r2"]  # no empty session of robot ''
+
         node._on_start_robot_session(String(data="r2"))  # r2 was relocated: its next frame starts a session
         node._on_start_robot_session(String(data="r3"))  # not one of the node's robots
         node._on_words(_words([3, 6, 42], 9, vid), robot="r2")
-        assert (posteriors.messages[-1].robot, posteriors.messages[-1].session) == ("r2", 3)
+        assert (posteriors.messages[-1].robot, posteriors.messages[-1].session) == ("r2", 2)
         assert node.counter.counts["dropped_unknown_robot"] == 1
     finally:
         node.destroy_node()
