@@ -34,8 +34,16 @@ if TYPE_CHECKING:
 TOP = 5  # places whose agreement with FAB-MAP 1 is checked, per query
 
 
-def _peak_rss_mib(who: int = resource.RUSAGE_SELF) -> float:
-    return resource.getrusage(who).ru_maxrss / 1024.0
+def _peak_rss_mib() -> float:
+    """This process's peak RSS: VmHWM, which starts afresh at exec (getrusage's maxrss would carry the builder's
+    peak into the loading child on Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def build(places: int, vocabulary_size: int, words_per_image: int, seed: int, folder: Path) -> dict[str, float]:
