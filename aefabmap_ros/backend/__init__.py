@@ -10,5 +10,6 @@ __all__ = [
     "odometry",
     "odometry_gate",
     "pose_graph",
+    "robot_feeds",
     "sessions",
 ]

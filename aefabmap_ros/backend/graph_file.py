@@ -13,10 +13,13 @@ What it holds, and why each part is needed to go on where the last run stopped:
   even if the drift parameters changed since;
 * the counts, the factorization (QR once Cholesky failed on this graph) and the anchor.
 
-Not saved: the closures waiting for odometry (the next run's odometry restarts) and the decided closures a
-viewer draws. A reload rebuilds iSAM2 from the saved factors at the saved estimate. A file that cannot be
-read, of another version, or inconsistent (a factor naming a key no keyframe has, stamps out of order, a
-rotation that is not one) is refused with one ModelError naming it.
+Not saved: the closures waiting for odometry (the next run's odometry restarts), the decided closures a
+viewer draws, and per robot its current session and the odometry before one was named (backend/robot_feeds.py):
+after a restart each robot's next posterior or closure names its session again. Sessions are saved whatever
+their robot, so a base station's graph of several robots reloads as one of a single robot does. A reload
+rebuilds iSAM2 from the saved factors at the saved estimate. A file that cannot be read, of another version,
+or inconsistent (a factor naming a key no keyframe has, stamps out of order, a rotation that is not one) is
+refused with one ModelError naming it.
 """
 
 from __future__ import annotations

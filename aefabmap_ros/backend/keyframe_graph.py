@@ -10,7 +10,9 @@ that tie them, and, for a closure between two graphs, the join. The factors and 
 * a closure adds a ``BetweenFactor`` from the query keyframe to the matched place's, behind a Cauchy kernel;
 * the first closure between two graphs joins them: the moved graph loses its prior and all its keyframes are
   moved, rigidly, onto the other's frame through the closure (query keyframe = place keyframe * closure^-1)
-  before iSAM2 sees them.
+  before iSAM2 sees them. The anchored graph (the map frame) never moves: it is the first graph given a
+  keyframe that ``_may_anchor`` allows (the place's of a closure before the query's), and the graph a closure
+  joins to it is the one moved.
 """
 
 from __future__ import annotations
@@ -27,6 +29,11 @@ Endpoints = tuple[tuple[Session, int], tuple[Session, int]]  # (session, stamp) 
 
 class KeyframeGraph(FactorGraph):
     """A closure's keyframes and factors into the graph, in one iSAM2 update (module docstring)."""
+
+    def _may_anchor(self, root: SessionId) -> bool:
+        """Whether the graph rooted at that session may become the anchored one (the map frame): any may here;
+        the pose graph keeps the map frame for its own robot's sessions."""
+        return True
 
     def _add_loop(self, endpoints: Endpoints, loop: FactorRecord) -> bool:
         """A loop factor with ``loop``'s pose, covariance and Cauchy scale between the endpoints' keyframes (made
@@ -55,11 +62,11 @@ class KeyframeGraph(FactorGraph):
         values = gtsam.Values()
         removed: list[int] = []
         (query, _), (place, _) = endpoints
+        if self.anchor is None:  # the place's graph, else the query's, if it may hold the map frame
+            self.anchor = next((root for root in (place.root, query.root) if self._may_anchor(root)), None)
         moving = None  # the root of the graph this closure moves onto the other's, when it joins two
         if query.root != place.root:
             moving = place.root if query.root == self.anchor else query.root
-        if self.anchor is None:
-            self.anchor = place.root if moving == query.root else query.root
         for session in (query,) if query is place else (query, place):
             if not session.keyframes and session.odometry.first_ns is not None:
                 # A session's first keyframe, at its first odometry pose; a prior there holds its graph (map ==

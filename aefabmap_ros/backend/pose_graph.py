@@ -9,6 +9,7 @@ the graph. The parts, each in its module:
 * backend/factors.py: the factors as the graph records them, and the noise of odometry and loop factors;
 * backend/factor_graph.py: the factors' bookkeeping and iSAM2 (updated, rebuilt by QR when Cholesky fails);
 * backend/keyframe_graph.py: a closure's keyframes (odometry interpolated, chains split), factors and joins;
+* backend/robot_feeds.py: per robot, the session its odometry goes to and the odometry before one is named;
 * here: odometry buffered by stamp, strictly increasing; the sessions named; every closure checked (its
   covariance, its sessions, its stamps, its agreement with the graph) and added, kept waiting for odometry
   or refused (``ClosureResult``); what the graph gives back (trajectories, map -> odom).
@@ -18,12 +19,16 @@ pose and covariance, behind a robust kernel (Cauchy) so that one wrong closure i
 dragging the graph; one further from the graph than odometry drift can explain is refused (the gate).
 
 Sessions. A session is one run of a robot's front end, named (robot, session number) as LoopClosure names
-it; each has its own odometry frame, its own odometry buffer and its own chain of keyframes. Odometry goes to
-the current session: the newest session named for this graph's ``robot``, by a closure or by ``start_session``
-with the stamp of the session's first frame (odometry that comes before any session is named is kept aside
-and given to the first session named). The first session given a keyframe
-is anchored (a prior at its first keyframe: map == odom there); every later session starts as a graph of its
-own, its first keyframe held by a prior at its own odometry pose, and is *unjoined*. The first closure between
+it; each has its own odometry frame, its own odometry buffer and its own chain of keyframes. A robot's
+odometry goes to its current session: the newest session named for that robot, by a closure's query or by
+``start_session`` with the stamp of the session's first frame (odometry that comes before any session of the
+robot is named is kept aside and given to its first session named). Any number of robots feed one graph
+(``add_odometry(..., robot=)``; backend/robot_feeds.py keeps each one's current session and early odometry);
+without a robot named it is the graph's own ``robot``, the single robot of a single host. The first session
+of ``robot`` given a keyframe is anchored (a prior at its first keyframe: map == odom there); every other
+session -- a later run, or another robot's -- starts as a graph of its own, its first keyframe held by a
+prior at its own odometry pose, and is *unjoined*. Another robot is just another odometry frame: its graph
+joins the map at its first closure into it, as a later session does. The first closure between
 two graphs joins them: it is taken on the verifier's word (no odometry links two runs, so the odometry gate
 cannot apply), the moved graph loses its prior and all its keyframes are moved, rigidly, onto the other's
 frame through the closure (query keyframe = place keyframe * closure^-1) before iSAM2 sees them. Closures
@@ -58,7 +63,8 @@ from aefabmap_ros.backend.graph_types import (
 )
 from aefabmap_ros.backend.keyframe_graph import KeyframeGraph
 from aefabmap_ros.backend.odometry import OdometryBuffer, odometry_disagreement
-from aefabmap_ros.backend.sessions import Session, odometry_buffer
+from aefabmap_ros.backend.robot_feeds import RobotFeeds
+from aefabmap_ros.backend.sessions import Session
 from aefabmap_ros.io.message_values import covariance_problem
 
 __all__ = [
@@ -82,36 +88,50 @@ MAX_DECIDED_KEPT = 5000
 
 class PoseGraph(KeyframeGraph):
     """Keyframes at closure endpoints, odometry and robust loop factors, optimised by iSAM2 on every closure;
-    one odometry frame and keyframe chain per session (module docstring)."""
+    one odometry frame and keyframe chain per session, the odometry of any number of robots (module docstring)."""
 
     def __init__(self, config: PoseGraphConfig, robot: str = "") -> None:
         super().__init__(config)
-        self.robot = robot  # the robot whose odometry add_odometry receives
-        self.current: SessionId | None = None  # the session add_odometry's samples belong to, once a closure named it
-        self._unnamed_odometry = odometry_buffer(config.max_odometry)  # odometry before any closure named its session
+        self.robot = robot  # the robot add_odometry's samples are of unless named, whose sessions anchor the map
+        self.feeds = RobotFeeds(config.max_odometry)  # per robot: its current session, its odometry before one
         self.counts: Counter[str] = Counter()
         # The latest closures decided (added or refused, not waiting): what a viewer draws as loop edges.
         self.decided: deque[tuple[Closure, ClosureResult]] = deque(maxlen=MAX_DECIDED_KEPT)
         self._waiting: list[Closure] = []
 
     @property
+    def current(self) -> SessionId | None:
+        """The session ``robot``'s odometry belongs to, once a closure or ``start_session`` named it."""
+        return self.feeds.current(self.robot)
+
+    @property
     def odometry(self) -> OdometryBuffer:
-        """The odometry ``add_odometry`` fills: the current session's (or the one no closure named yet)."""
-        return self._unnamed_odometry if self.current is None else self.sessions[self.current].odometry
+        """The odometry ``add_odometry`` fills for ``robot``: its current session's (or the one before any is named)."""
+        return self.feeds.buffer(self.robot, self.sessions)
+
+    def follow(self, robot: str) -> None:
+        """Take ``robot``'s odometry: a closure naming a newer session of it makes that its current one, and the
+        closure waits for its odometry (without this, only once its odometry came or a session was started)."""
+        self.feeds.follow(robot)
+
+    def current_session(self, robot: str) -> SessionId | None:
+        """The session that robot's odometry goes to (None before one is named)."""
+        return self.feeds.current(robot)
 
     # -- input --------------------------------------------------------------------------------------------
 
-    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3) -> list[ClosureResult]:
-        """Buffer one odometry pose of the current session; closures waiting for it are retried (their results
-        returned)."""
-        if not self.odometry.add(stamp_ns, pose):
+    def add_odometry(self, stamp_ns: int, pose: gtsam.Pose3, robot: str | None = None) -> list[ClosureResult]:
+        """Buffer one odometry pose of ``robot``'s current session (default: the graph's ``robot``); closures
+        waiting for it are retried (their results returned)."""
+        if not self.feeds.buffer(self.robot if robot is None else robot, self.sessions).add(stamp_ns, pose):
             self.counts["odometry_out_of_order"] += 1
             return []
         self.counts["odometry"] += 1
-        ready = [closure for closure in self._waiting if closure.query_ns <= stamp_ns]
-        if not ready:
+        still = [self._waits(closure) for closure in self._waiting]
+        if all(still):
             return []
-        self._waiting = [closure for closure in self._waiting if closure.query_ns > stamp_ns]
+        ready = [closure for closure, waits in zip(self._waiting, still, strict=True) if not waits]
+        self._waiting = [closure for closure, waits in zip(self._waiting, still, strict=True) if waits]
         return [self.add_closure(closure) for closure in ready]
 
     def add_closure(self, closure: Closure) -> ClosureResult:
@@ -124,59 +144,66 @@ class PoseGraph(KeyframeGraph):
         return result
 
     def start_session(self, session_id: SessionId, first_stamp_ns: int | None = None) -> None:
-        """Make ``session_id`` the session odometry goes to from now on (``add_closure`` does it for the newest
-        query session of ``robot``; pose_graph_node does it as soon as a posterior names a new session).
+        """Make ``session_id`` the session its robot's odometry goes to from now on (``add_closure`` does it for
+        the newest query session of a followed robot; pose_graph_node does it as soon as a posterior names a new
+        session). Other robots' sessions are left as they are.
 
-        The first session named takes the odometry that came before (it was this run's). A session named later
-        is a new run whose odometry restarted: it starts an empty buffer, or, given the stamp of its first frame
-        (``first_stamp_ns``), takes the current buffer's samples from that stamp on, which came after the change
-        and are the new session's. Closures still waiting for the previous session's odometry are dropped
-        (unknown_stamp): that odometry will not come. Without ``first_stamp_ns`` odometry between a session's
-        start and its naming counts as the previous session's."""
-        if self.current == session_id:
+        The robot's first session named takes the odometry that came before (it was this run's). A session
+        named later is a new run whose odometry restarted: it starts an empty buffer, or, given the stamp of its
+        first frame (``first_stamp_ns``), takes the current buffer's samples from that stamp on, which came
+        after the change and are the new session's (backend/robot_feeds.py). Closures still waiting for the
+        previous session's odometry are dropped (unknown_stamp): that odometry will not come. Without
+        ``first_stamp_ns`` odometry between a session's start and its naming counts as the previous session's."""
+        previous = self.feeds.current(session_id[0])
+        if previous == session_id:
             return
-        if self.current is None:
-            buffer, self._unnamed_odometry = self._unnamed_odometry, odometry_buffer(self.config.max_odometry)
-            existing = self.sessions.get(session_id)
-            if existing is None:
-                self.sessions[session_id] = Session(session_id, buffer, root=session_id)
-            else:  # a reloaded session continues (only the backend restarted): same odometry frame
-                for stamp_ns, pose, _ in zip(*buffer.samples(), strict=True):
-                    if not existing.odometry.add(stamp_ns, pose):
-                        self.counts["odometry_out_of_order"] += 1
-        else:
-            previous = self.sessions[self.current].odometry
-            moved = previous.split_from(first_stamp_ns) if first_stamp_ns is not None else ([], [])
-            still_waiting = [closure for closure in self._waiting if closure.query_session == session_id]
-            for closure in self._waiting:
-                if closure.query_session != session_id:
-                    self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
-                    self.decided.append((closure, ClosureResult.UNKNOWN_STAMP))
-            self._waiting = still_waiting
-            if session_id not in self.sessions:
-                buffer = odometry_buffer(self.config.max_odometry)
-                self.sessions[session_id] = Session(session_id, buffer, root=session_id)
-            for stamp_ns, pose in zip(*moved, strict=True):
-                self.sessions[session_id].odometry.add(stamp_ns, pose)
-        self.current = session_id
+        rejected = self.feeds.start(session_id, self.sessions, first_stamp_ns)
+        if rejected:
+            self.counts["odometry_out_of_order"] += rejected
+        if previous is None:
+            return
+        kept = []
+        for closure in self._waiting:
+            if closure.query_session != session_id and self._waits_on(closure, previous):
+                self.counts[ClosureResult.UNKNOWN_STAMP.value] += 1
+                self.decided.append((closure, ClosureResult.UNKNOWN_STAMP))
+            else:
+                kept.append(closure)
+        self._waiting = kept
+
+    def _waits_on(self, closure: Closure, session_id: SessionId) -> bool:
+        """Whether an endpoint of the closure in that session is newer than the session's odometry."""
+        last = self.sessions[session_id].odometry.last_ns
+        return any(named == session_id and (last is None or stamp_ns > last)
+                   for named, stamp_ns in ((closure.query_session, closure.query_ns),
+                                           (closure.place_session, closure.place_ns)))
+
+    def _waits(self, closure: Closure) -> bool:
+        """Whether the closure still waits for odometry: an endpoint in a robot's current session (its odometry
+        still coming) is newer than that session's odometry."""
+        return any(self.feeds.is_current(named) and self._waits_on(closure, named)
+                   for named in {closure.query_session, closure.place_session})
 
     # -- the closure decisions ----------------------------------------------------------------------------
+
+    def _may_anchor(self, root: SessionId) -> bool:
+        """Only ``robot``'s sessions hold the map frame: other robots' graphs join it, whichever closes first."""
+        return root[0] == self.robot
 
     def _add_closure(self, closure: Closure) -> ClosureResult:
         covariance = np.asarray(closure.covariance, dtype=np.float64)
         if covariance.shape != (6, 6) or covariance_problem(covariance) is not None:
             return ClosureResult.BAD_COVARIANCE
         named = closure.query_session
-        if named[0] == self.robot and (self.current is None or named[1] > self.current[1]):
+        current = self.feeds.current(named[0])
+        if (named[0] == self.robot or self.feeds.follows(named[0])) and (current is None or named[1] > current[1]):
             self.start_session(named)
         query, place = self.sessions.get(closure.query_session), self.sessions.get(closure.place_session)
         if query is None or place is None:
             return ClosureResult.UNKNOWN_SESSION
         endpoints = ((query, closure.query_ns), (place, closure.place_ns))
         # No odometry yet waits too: a backend's callbacks may take a closure before the odometry queued ahead of it.
-        current_stamps = [stamp_ns for session, stamp_ns in endpoints if session.id == self.current]
-        last = self.odometry.last_ns
-        if current_stamps and (last is None or max(current_stamps) > last):
+        if self._waits(closure):
             self._waiting.append(closure)
             if len(self._waiting) > self.config.max_waiting:
                 self._waiting.pop(0)
