@@ -1,6 +1,6 @@
 """pose_graph_node: an EXAMPLE SLAM backend on ``/loop_closures`` (the pattern to copy into your own).
 
-Subscribes to odometry (``odom``, ``nav_msgs/Odometry``, strictly increasing stamps) and to
+Subscribes to odometry (``odom``, ``nav_msgs/Odometry``, strictly increasing stamps per robot) and to
 ``loop_closures``; every closure with a relative pose adds a keyframe at each endpoint (odometry
 interpolated at the image stamps) and a robust loop factor, and the graph is re-optimised with
 iSAM2 (backend/pose_graph.py has the model). Publishes ``map -> odom`` after every added closure: on
@@ -24,10 +24,19 @@ counted as ``unknown_session`` and logged with the robot and session it names. `
 session's: as ``map_frame -> odom_frame`` for the map's first session, and for a later one as ``map_frame ->
 session_odom_frame`` ('' = ``odom_frame``; ``{robot}`` and ``{session}`` in it are replaced); not published
 while the current session is not joined to the map (its map frame is undefined: logged once per session,
-counted as ``map_to_odom_unjoined``). With ``graph_file`` set the graph (sessions, keyframes, odometry,
-factors; backend/graph_file.py) is reloaded at start -- a file that cannot be used stops the node with one
-error naming it, and is left as it was -- and saved atomically on shutdown and every ``save_period_s`` when it
-changed.
+counted as ``map_to_odom_unjoined``; nodes/graph_view.py). With ``graph_file`` set the graph (sessions,
+keyframes, odometry, factors; backend/graph_file.py) is reloaded at start -- a file that cannot be used stops the
+node with one error naming it, and is left as it was -- and saved atomically on shutdown and every
+``save_period_s`` when it changed.
+
+Several robots (a base station, docs/fleet.md): with ``robots`` each robot's odometry comes on
+``/<robot>/aefabmap/odom`` (as its feature server thins it; ``odom`` is not subscribed) and goes to that robot's
+newest session, named by its posteriors or a closure's query; ``robot`` is the first of them unless it is one of
+them, and its first session is the map's anchor. Another robot's sessions are graphs of their own until a closure
+joins them to the map. ``map -> odom`` goes out for every robot's current joined session, all in one message,
+each as ``map_frame -> session_odom_frame`` ('' = ``{robot}/odom``: each robot's odometry has its own frame);
+``trajectory_file`` holds every robot's joined sessions in the one map frame, the markers' odometry path is
+``robot``'s.
 
 The closures' poses are between camera frames, odometry is of its child (base) frame: parameter
 ``base_to_camera`` ([x, y, z, qx, qy, qz, qw], the camera's pose in the base frame, T_base_camera;
@@ -44,13 +53,15 @@ or the graph cannot be written at shutdown.
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from aefabmap_msgs.msg import LoopClosure, PlacePosterior
-from geometry_msgs.msg import PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMessage
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from aefabmap_ros.backend.graph_file import load_graph, save_graph
@@ -75,15 +86,11 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.fleet_parameters import robot_topic
 from aefabmap_ros.nodes.future_stamps import FutureStamps
-from aefabmap_ros.nodes.graph_view import GraphView
-from aefabmap_ros.nodes.gtsam_poses import (
-    extrinsic_to_gtsam,
-    gtsam_to_pose,
-    gtsam_to_poses,
-    loop_closure_pose,
-    pose_to_gtsam,
-)
+from aefabmap_ros.nodes.graph_view import GraphView, MapToOdom, session_frame
+from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, gtsam_to_poses, loop_closure_pose, pose_to_gtsam
+from aefabmap_ros.nodes.launch_table import parse_robots
 from aefabmap_ros.nodes.messages import (
     header_stamp_problem,
     loop_closure_pose_problem,
@@ -94,11 +101,7 @@ from aefabmap_ros.nodes.messages import (
 from aefabmap_ros.nodes.sensor_inputs import SensorInput, check_sensor_qos
 from aefabmap_ros.stamps import stamp_to_ns
 
-try:  # /tf needs tf2_msgs, which the PyPI ROS wheels used here do not ship
-    from tf2_msgs.msg import TFMessage
-except ImportError:  # pragma: no cover - depends on the installation
-    TFMessage = None
-
+ROBOT_ODOMETRY_TOPIC = "aefabmap/odom"  # a robot's odometry on a base station, as its feature server thins it
 _DROPPED = {ClosureResult.UNKNOWN_STAMP, ClosureResult.UNKNOWN_SESSION, ClosureResult.BAD_COVARIANCE,
             ClosureResult.INCONSISTENT, ClosureResult.NO_POSE, ClosureResult.SOLVER_FAILED}
 
@@ -111,9 +114,15 @@ def session_trajectory_path(trajectory_file: Path, session_id: SessionId) -> Pat
     return trajectory_file.with_name(f"{trajectory_file.stem}{robot_part}.session{number}{trajectory_file.suffix}")
 
 
-def session_frame(template: str, session_id: SessionId) -> str:
-    """``session_odom_frame`` for a session: ``{robot}`` and ``{session}`` replaced."""
-    return template.format(robot=session_id[0], session=session_id[1])
+def declare_robots(node: Node) -> list[str]:
+    """Parameter ``robots`` (a string array, dynamically typed: YAML's ``[]`` has no element type)."""
+    description = ("Robots whose odometry this node takes, each on /<robot>/aefabmap/odom as its feature server "
+                   "thins it (a base station, docs/fleet.md); [] = one robot, robot, on odom.")
+    try:
+        node.declare_parameter("robots", [], ParameterDescriptor(description=description, dynamic_typing=True))
+    except Exception as exc:  # rclpy's parameter exceptions
+        raise ConfigError(f"parameter 'robots': {exc}") from exc
+    return parse_robots(node.get_parameter("robots").value, "pose_graph_node: parameter robots")
 
 
 class PoseGraphNode(Node):
@@ -133,35 +142,31 @@ class PoseGraphNode(Node):
             "when the graph changed (seconds, > 0; map -> odom goes out on every added closure)."))
         if not publish_period_s > 0:
             raise ConfigError(f"pose_graph_node: publish_period_s must be > 0, got {publish_period_s}")
-        self.robot = str(declare_parameter(
+        self.robots = declare_robots(self)
+        robot = str(declare_parameter(
             self, "robot", "", "The robot whose odometry this node receives ('' = the map's only robot): its newest "
-            "query session in the closures is the session the odometry belongs to."))
-        self.session_odom_frame = str(declare_parameter(
+            "query session in the closures is the session the odometry belongs to. With robots, the one whose "
+            "first session is the map's anchor (the first of robots unless it is one of them)."))
+        self.robot = robot if not self.robots or robot in self.robots else self.robots[0]
+        session_odom_frame = str(declare_parameter(
             self, "session_odom_frame", "", "Odometry frame of a session other than the map's first, the child of "
-            "its map -> odom ('' = odom_frame; {robot} and {session} are replaced, e.g. odom_{session})."))
+            "its map -> odom ('' = odom_frame; {robot} and {session} are replaced, e.g. odom_{session}). With "
+            "robots, every session's ('' = {robot}/odom)."))
         try:
-            session_frame(self.session_odom_frame, ("", 0))
+            session_frame(session_odom_frame, ("", 0))
         except (KeyError, IndexError, ValueError) as exc:
-            raise ConfigError(f"pose_graph_node: session_odom_frame {self.session_odom_frame!r} is not a frame "
+            raise ConfigError(f"pose_graph_node: session_odom_frame {session_odom_frame!r} is not a frame "
                               f"name with {{robot}} / {{session}} fields: {exc}") from exc
         self.graph = self._graph_from_file(declare_config(self, PoseGraphConfig))
-        self._unpublished_sessions: set[SessionId] = set()  # unjoined sessions whose map -> odom was withheld
         self.future_stamps = FutureStamps(self)
         self.counter = DropCounter(self)
         self.path_publisher = self.create_publisher(PathMessage, "pose_graph/path", RESULT_QOS)
         self.graph_view = GraphView(self, self.map_frame)
-        if TFMessage is not None:
-            self.tf_publisher = self.create_publisher(TFMessage, "/tf", RESULT_QOS)
-        else:
-            self.tf_publisher = self.create_publisher(TransformStamped, "pose_graph/map_to_odom", RESULT_QOS)
-        sensor_qos = check_sensor_qos(declare_parameter(
-            self, "sensor_qos", "auto",
-            "QoS of the odom subscription: auto (reliable, moving to best effort once a publisher offers only that, "
-            "as drivers often do), best_effort (= sensor_data) or reliable.",
-        ), "sensor_qos")
-        self.odometry = SensorInput(self, Odometry, "odom", self._on_odometry, policy=sensor_qos,
-                                    depth=ODOMETRY_QOS.depth, counter=self.counter,
-                                    without_it="no keyframes: the graph is built on odometry")
+        self.map_to_odom = MapToOdom(self, self.counter, map_frame=self.map_frame, odom_frame=self.odom_frame,
+                                     session_odom_frame=session_odom_frame, robots=self.robots)
+        self.tf_publisher = self.map_to_odom.publisher
+        self.odometry_inputs = self._subscribe_odometry()
+        self.odometry = self.odometry_inputs[0]
         self.create_subscription(LoopClosure, "loop_closures", self._on_loop_closure, RESULT_QOS)
         # fabmap_node answers every frame with its session: the backend learns a new session of its robot (a
         # relocation while it ran) at its first frame, not at its first closure, so no odometry goes astray.
@@ -169,7 +174,22 @@ class PoseGraphNode(Node):
         self._path_changed_ns: int | None = None  # stamp of the newest change not published yet
         self._markers_changed_ns: int | None = None
         self.create_timer(publish_period_s, self.publish_changes)
-        self.get_logger().info("pose graph (example backend): odometry on odom, closures on loop_closures")
+        self.get_logger().info(f"pose graph (example backend): odometry on "
+                               f"{', '.join(odometry.topic for odometry in self.odometry_inputs)}, closures on "
+                               "loop_closures")
+
+    def _subscribe_odometry(self) -> list[SensorInput]:
+        """``odom`` for ``robot``; with ``robots``, each robot's as its feature server thins it."""
+        sensor_qos = check_sensor_qos(declare_parameter(
+            self, "sensor_qos", "auto",
+            "QoS of the odom subscriptions: auto (reliable, moving to best effort once a publisher offers only "
+            "that, as drivers often do), best_effort (= sensor_data) or reliable.",
+        ), "sensor_qos")
+        topics = {robot: robot_topic(robot, ROBOT_ODOMETRY_TOPIC) for robot in self.robots} or {self.robot: "odom"}
+        return [SensorInput(self, Odometry, topic, partial(self._on_odometry, robot=robot), policy=sensor_qos,
+                            depth=ODOMETRY_QOS.depth, counter=self.counter,
+                            without_it=f"no keyframes of {robot or 'the robot'}: the graph is built on odometry")
+                for robot, topic in topics.items()]
 
     def _graph_from_file(self, config: PoseGraphConfig) -> PoseGraph:
         """The graph saved at parameter ``graph_file`` (a fresh one without it), and its periodic save."""
@@ -189,12 +209,16 @@ class PoseGraphNode(Node):
                 graph = load_graph(graph_path, config, self.robot)
                 self.get_logger().info(f"reloaded {len(graph.sessions)} session(s), {len(graph.keyframes)} "
                                        f"keyframes from {graph_path}")
+        for robot in self.robots:  # a closure into a robot's new session waits for its odometry
+            graph.follow(robot)
         self.graph_saver = PeriodicSave(self, graph_path, lambda path: save_graph(self.graph, path), "pose graph",
                                         save_period_s)
         return graph
 
     @node_callback
-    def _on_odometry(self, message: Odometry) -> None:
+    def _on_odometry(self, message: Odometry, robot: str | None = None) -> None:
+        """One odometry message of ``robot`` (default: the node's ``robot``)."""
+        robot = self.robot if robot is None else robot
         problem = odometry_problem(message)
         if problem is not None:
             self.counter.drop("bad_odometry", problem)
@@ -205,19 +229,21 @@ class PoseGraphNode(Node):
             return
         before = self.graph.counts["odometry_out_of_order"]
         pose = pose_to_gtsam(message.pose.pose)
-        results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose)
+        results = self.graph.add_odometry(stamp_to_ns(message.header.stamp), pose, robot)
         if self.graph.counts["odometry_out_of_order"] > before:
-            self.counter.drop("odometry_out_of_order", "odometry stamp not after the previous one")
+            self.counter.drop("odometry_out_of_order", f"odometry of {robot or 'the robot'} stamp not after the "
+                              "previous one")
         else:
-            self.graph_view.on_odometry(pose)
+            if robot == self.robot:  # the markers' odometry path: the map's first robot's, in its odom frame
+                self.graph_view.on_odometry(pose)
             self.graph_saver.mark_changed()
         self._report(results, stamp_to_ns(message.header.stamp))
 
     @node_callback
     def _on_posterior(self, message: PlacePosterior) -> None:
-        current = self.graph.current
-        if message.query_id < 0 or message.robot != self.robot or (current is not None
-                                                                      and int(message.session) <= current[1]):
+        current = self.graph.current_session(message.robot)
+        if message.query_id < 0 or message.robot not in (self.robots or [self.robot]) or (
+                current is not None and int(message.session) <= current[1]):
             return
         problem = header_stamp_problem(message.header, "PlacePosterior")
         if problem is not None:
@@ -270,7 +296,7 @@ class PoseGraphNode(Node):
             else:
                 self.counter.ok(result.value)
         if ClosureResult.ADDED in results:
-            self._publish_map_to_odom(stamp_ns)
+            self.map_to_odom.publish(self.graph, stamp_ns)
             self._path_changed_ns = stamp_ns
         if any(result is not ClosureResult.WAITING for result in results):  # a loop edge to draw
             self._markers_changed_ns = stamp_ns
@@ -297,30 +323,6 @@ class PoseGraphNode(Node):
             path.poses.append(entry)
         self.path_publisher.publish(path)
 
-    def _publish_map_to_odom(self, stamp_ns: int) -> None:
-        """The current session's map -> odom; withheld (once logged) while that session is not joined to the map."""
-        session_id = self.graph.current if self.graph.current is not None else self.graph.anchor
-        if session_id is None:
-            return
-        if not self.graph.is_joined(*session_id):
-            self.counter.ok("map_to_odom_unjoined")
-            if session_id not in self._unpublished_sessions:
-                self._unpublished_sessions.add(session_id)
-                self.get_logger().info(
-                    f"map -> odom of session {session_id[1]} of robot {session_id[0]!r} not published: no closure has "
-                    "joined it to the map yet, so its map frame is undefined (its graph is optimised on its own)")
-            return
-        transform = TransformStamped()
-        transform.header.frame_id, transform.header.stamp = self.map_frame, time_from_ns(stamp_ns)
-        transform.child_frame_id = (self.odom_frame if session_id == self.graph.anchor or not self.session_odom_frame
-                                    else session_frame(self.session_odom_frame, session_id))
-        pose = gtsam_to_pose(self.graph.map_to_odom(*session_id))
-        transform.transform.translation.x = pose.position.x
-        transform.transform.translation.y = pose.position.y
-        transform.transform.translation.z = pose.position.z
-        transform.transform.rotation = pose.orientation
-        self.tf_publisher.publish(TFMessage(transforms=[transform]) if TFMessage is not None else transform)
-
     def close(self) -> bool:
         """Save the graph and write the keyframe trajectories; False (the process then exits 1) when either
         cannot be written."""
@@ -343,7 +345,7 @@ class PoseGraphNode(Node):
                     self.get_logger().error(f"FINAL SAVE FAILED: the keyframe trajectory not written to "
                                             f"{path} ({type(exc).__name__}: {exc})")
         self.get_logger().info(f"pose_graph_node: {len(self.graph.keyframes)} keyframes; {self.counter.summary()}; "
-                               f"{self.odometry.summary()}")
+                               f"{'; '.join(odometry.summary() for odometry in self.odometry_inputs)}")
         return saved
 
 

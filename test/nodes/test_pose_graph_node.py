@@ -377,7 +377,8 @@ def test_pose_graph_node_refuses_a_broken_graph_file(tmp_path: Path, content: by
 
 def test_pose_graph_node_names_later_sessions_odometry_frames() -> None:
     from aefabmap_ros.errors import ConfigError
-    from aefabmap_ros.nodes.pose_graph_node import session_frame, session_trajectory_path
+    from aefabmap_ros.nodes.graph_view import session_frame
+    from aefabmap_ros.nodes.pose_graph_node import session_trajectory_path
 
     assert session_frame("odom_{robot}_{session}", ("rover", 2)) == "odom_rover_2"
     assert session_trajectory_path(Path("out/keyframes.tum"), ("rover", 3)) == Path("out/keyframes.rover.session3.tum")
@@ -416,3 +417,74 @@ def gtsam_pose_x(x: float) -> Any:
     import gtsam
 
     return gtsam.Pose3(gtsam.Rot3(), np.array([x, 0.0, 0.0]))
+
+
+def _robot_closure(query: Any, query_index: int, place: Any, place_index: int) -> Any:
+    """A LoopClosure of the true relative pose between two robots' frames (test/backend/test_robots.py)."""
+    from test.backend.test_robots import closure
+
+    true = closure(query, query_index, place, place_index)
+    message = _session_closure(true.query_ns, true.place_ns, true.query_to_place, query[1], place[1])
+    message.query_robot, message.matched_robot = query[0], place[0]
+    return message
+
+
+def test_pose_graph_node_takes_every_robots_odometry_and_puts_them_on_one_map(tmp_path: Path) -> None:
+    """robots r1, r2: each one's odometry on its own topic (fed here through the callbacks, routed by robot), each
+    one's session named by its posteriors; r2's own loop leaves r2 off the map (no map -> odom for it), the closure
+    between the robots puts it on: r2/odom at r2's true offset, and the trajectory file holds both robots."""
+    from test.backend.test_robots import END, R1, R2, r2_stamp
+    from test.backend.test_sessions import b_odometry, b_offset
+
+    trajectory_file = tmp_path / "keyframes.tum"
+    node = PoseGraphNode(parameter_overrides=[Parameter("robots", value=["r1", "r2"]),
+                                              Parameter("trajectory_file", value=str(trajectory_file))])
+    try:
+        assert [odometry.topic for odometry in node.odometry_inputs] == ["/r1/aefabmap/odom", "/r2/aefabmap/odom"]
+        assert node.graph.robot == "r1"  # the first robot's first session anchors the map
+        transforms: list[Any] = []
+        _captured_paths(node)
+        node.tf_publisher.publish = transforms.append
+        for index, pose in enumerate(square_truth()):
+            node._on_odometry(_odometry(index, pose), robot="r1")
+            message = _odometry(index, b_odometry()[index])
+            message.header.stamp = time_from_ns(r2_stamp(index))
+            node._on_odometry(message, robot="r2")
+        for robot, stamp_ns in (("r1", stamp(0)), ("r2", r2_stamp(0))):
+            posterior = msg.PlacePosterior(query_id=0, robot=robot, session=0)
+            posterior.header.stamp = time_from_ns(stamp_ns)
+            node._on_posterior(posterior)
+        assert node.graph.current_session("r1") == R1 and node.graph.current_session("r2") == R2
+        assert len(node.graph.sessions[R2].odometry) == END + 1  # r2's odometry, kept until its session was named
+
+        node._on_loop_closure(_robot_closure(R2, END, R2, 2))
+        assert node.counter.counts["added"] == 1 and transforms == []  # neither robot is on the map yet
+        node._on_loop_closure(_robot_closure(R1, END, R1, 2))
+        (message,) = transforms
+        assert [transform.child_frame_id for transform in message.transforms] == ["r1/odom"]  # r2's withheld
+        node._on_loop_closure(_robot_closure(R2, 10, R1, 31))
+        assert node.counter.counts["added"] == 3
+        frames = {transform.child_frame_id: transform for transform in transforms[-1].transforms}
+        assert sorted(frames) == ["r1/odom", "r2/odom"]
+        assert {transform.header.frame_id for transform in frames.values()} == {"map"}
+        moved = frames["r2/odom"].transform.translation
+        assert np.allclose([moved.x, moved.y, moved.z], b_offset().translation(), atol=1e-3)
+        still = frames["r1/odom"].transform.translation
+        assert np.allclose([still.x, still.y, still.z], 0.0, atol=1e-3)
+        assert not any(key.startswith("dropped_") for key in node.counter.counts)
+
+        # r2 relocated: its new session's first posterior moves r2's odometry from then on, r1's stays.
+        posterior = msg.PlacePosterior(query_id=90, robot="r2", session=1)
+        posterior.header.stamp = time_from_ns(r2_stamp(70))
+        node._on_posterior(posterior)
+        assert node.graph.current_session("r2") == ("r2", 1) and node.graph.current_session("r1") == R1
+        assert node.graph.sessions[("r2", 1)].odometry.samples()[0] == [r2_stamp(i) for i in range(70, END + 1)]
+        assert node.graph.sessions[R1].odometry.last_ns == stamp(END)
+        assert node.close()
+    finally:
+        node.destroy_node()
+    stamps_s = [float(line.split()[0]) for line in trajectory_file.read_text().splitlines()]
+    expected_ns = sorted([stamp(0), stamp(2), stamp(31), stamp(END), r2_stamp(0), r2_stamp(2), r2_stamp(10),
+                          r2_stamp(END)])
+    assert stamps_s == pytest.approx([stamp_ns / 1e9 for stamp_ns in expected_ns])
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["keyframes.tum"]  # no session left off the map
