@@ -14,7 +14,7 @@ Several robots and a base station (docs/fleet.md): ``robot_side`` starts a robot
 ``/<robot>`` -- feature_node, quantizer_node (its words onto ``aefabmap/robot_words``) and feature_server_node,
 which sends the base the words of every frame and the features of the frames it asks for; ``base`` starts the
 base station's fabmap_node (one map, ``robots``), verifier_node (the robots' frames on request) and, with
-``backend``, pose_graph_node. Neither flag: the single host, as always.
+``backend``, pose_graph_node (every robot's odometry, ``robots``). Neither flag: the single host, as always.
 """
 
 from __future__ import annotations
@@ -234,11 +234,11 @@ def base_nodes(options: SuiteOptions) -> list[NodeLaunch]:
     if options.verify:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
         nodes.append(NodeLaunch(VERIFIER_NODE, {**store, **sensors, **robots}, {**extra, **published}))
-    if options.backend:  # the example backend follows the first robot's odometry (docs/fleet.md)
+    if options.backend:  # every robot's odometry, /<robot>/aefabmap/odom; the first robot's holds the map frame
         first = options.robots[0]
         graph = {"graph_file": str(backend_graph_path(Path(options.map_file)))} if options.map_file else {}
-        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/aefabmap/odom"}  # the server's
-        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": first},
+        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/aefabmap/odom"}  # not read with robots
+        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": first, **robots},
                                 {**extra, **odometry, **published}))
     return nodes
 

@@ -86,3 +86,13 @@ def test_without_a_map_the_backend_keeps_its_graph_in_memory() -> None:
     options = SuiteOptions(model_dir="/m", backend=True)
     assert "graph_file" not in _parameters(options, "pose_graph_node")
     assert "robot" not in _parameters(options, "fabmap_node")
+
+
+def test_the_base_stations_backend_takes_every_robots_odometry() -> None:
+    """--base --robots A,B --backend: pose_graph_node gets the robots (each one's /<robot>/aefabmap/odom), the first
+    of them as its own robot (its first session anchors the map), and the graph file beside the map; a single host's
+    backend gets no robots."""
+    base = _parameters(SuiteOptions(model_dir="/m", base=True, robots=("robot1", "robot2"), backend=True,
+                                    map_file="/maps/o.npz"), "pose_graph_node")
+    assert base == {"graph_file": "/maps/o.graph.npz", "robot": "robot1", "robots": "[robot1,robot2]"}
+    assert "robots" not in _parameters(SuiteOptions(model_dir="/m", backend=True), "pose_graph_node")
