@@ -9,15 +9,18 @@ Layout (format_version 1)::
                               files {name: sha256} of every other file
     vocabulary.npz            the quantizer's arrays (centres / centroids ...)
     pca.npz                   PCA + [0, 1] scaling (autoencoder vocabularies)
-    autoencoder.pt            the autoencoder's state_dict (autoencoder vocabularies)
+    encoder.npz               the MLP encoder that quantizes (autoencoder vocabularies that have one)
+    network.npz               the convolutional autoencoder's state_dict arrays (when it is the autoencoder;
+                              folders not yet converted hold them as autoencoder.pt, torch's file)
     chow_liu_tree.npy         (4, V) float64 [parent; marginal; p(z|parent=1); p(z|parent=0)] (optional)
     new_place_samples.npz     scipy.sparse CSR (S, V) binary training observations (optional)
 
 The *vocabulary id* (``Model.vocabulary_id``; the key ``model_id`` of metadata.json, kept for
 the directories already written) is a short sha256 over the vocabulary-defining contents (PCA,
-vocabulary arrays, autoencoder weights: the values, not the file bytes), so two models quantize
-the same way iff they have the same id; maps and messages carry it (``vocabulary_id``) to refuse
-data from another vocabulary. Saving is atomic: the directory is written beside the target and renamed into
+vocabulary arrays, autoencoder weights: the values, with their names, dtypes and shapes, not the file
+bytes), so two models quantize the same way iff they have the same id, and it stays the same when the
+weights move from torch's file to numpy's (``convert.py``); maps and messages carry it (``vocabulary_id``)
+to refuse data from another vocabulary. Saving is atomic: the directory is written beside the target and renamed into
 place; an existing model directory is replaced only once the new one is complete.
 """
 
@@ -39,17 +42,27 @@ import numpy as np
 import scipy.sparse
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
-from aefabmap_ros.features.extraction import FeatureConfig, descriptor_length
+from aefabmap_ros.features.extraction import FeatureConfig
 from aefabmap_ros.io.digests import file_sha256
 from aefabmap_ros.io.npz_files import npz_bytes, read_npz
+from aefabmap_ros.model.files import (
+    FORMAT_VERSION,
+    METADATA,
+    NEW_PLACE_SAMPLES,
+    TREE,
+    VOCABULARY,
+    check_descriptor_dim,
+    check_model_files,
+    check_samples,
+    check_tree,
+    feature_config_of,
+    load_samples,
+    load_tree,
+    write_file,
+)
 from aefabmap_ros.vocabulary.base import Quantizer, StoredVocabulary, VocabularyConfig
-from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, runtime_module
 
-FORMAT_VERSION = 1
-METADATA = "metadata.json"
-VOCABULARY = "vocabulary.npz"
-TREE = "chow_liu_tree.npy"
-NEW_PLACE_SAMPLES = "new_place_samples.npz"
 VOCABULARY_ID_LENGTH = 16
 
 
@@ -120,7 +133,7 @@ def save_model(directory: Path, model: Model) -> None:
     try:
         files = _write_contents(tmp, model)
         metadata = _metadata(model, files)
-        _write_file(tmp / METADATA, json.dumps(metadata, indent=2, sort_keys=True).encode() + b"\n")
+        write_file(tmp / METADATA, json.dumps(metadata, indent=2, sort_keys=True).encode() + b"\n")
         _replace_dir(tmp, directory)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -135,24 +148,24 @@ def _check_consistent(model: Model) -> None:
     if model.quantizer.kind != model.vocabulary_config.kind:
         raise ModelError(f"quantizer kind {model.quantizer.kind!r} != vocabulary_config.kind "
                          f"{model.vocabulary_config.kind!r}")
-    _check_descriptor_dim(model.feature_config, model.quantizer.descriptor_dim, "quantizer")
-    _check_tree(model.tree_matrix, model.quantizer.size, "tree_matrix")
-    _check_samples(model.new_place_samples, model.quantizer.size, "new_place_samples")
+    check_descriptor_dim(model.feature_config, model.quantizer.descriptor_dim, "quantizer")
+    check_tree(model.tree_matrix, model.quantizer.size, "tree_matrix")
+    check_samples(model.new_place_samples, model.quantizer.size, "new_place_samples")
 
 
 def _write_contents(tmp: Path, model: Model) -> dict[str, str]:
     quantizer = model.quantizer
-    _write_file(tmp / VOCABULARY, npz_bytes(quantizer.to_arrays()))
+    write_file(tmp / VOCABULARY, npz_bytes(quantizer.to_arrays()))
     for name, content in quantizer.other_files().items():
-        _write_file(tmp / name, content)
+        write_file(tmp / name, content)
     if model.tree_matrix is not None:
         buffer = io.BytesIO()
         np.save(buffer, np.asarray(model.tree_matrix, np.float64))
-        _write_file(tmp / TREE, buffer.getvalue())
+        write_file(tmp / TREE, buffer.getvalue())
     if model.new_place_samples is not None:
         buffer = io.BytesIO()
         scipy.sparse.save_npz(buffer, scipy.sparse.csr_matrix(model.new_place_samples, dtype=np.uint8))
-        _write_file(tmp / NEW_PLACE_SAMPLES, buffer.getvalue())
+        write_file(tmp / NEW_PLACE_SAMPLES, buffer.getvalue())
     return {path.name: file_sha256(path) for path in sorted(tmp.iterdir())}
 
 
@@ -188,13 +201,6 @@ def _jsonable(provenance: dict[str, object]) -> dict[str, Any]:
     return result
 
 
-def _write_file(path: Path, data: bytes) -> None:
-    with open(path, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-
-
 def _replace_dir(tmp: Path, directory: Path) -> None:
     """Rename the finished temp dir to ``directory``; an existing one is moved aside first, then removed."""
     old: Path | None = None
@@ -224,30 +230,13 @@ def _replace_dir(tmp: Path, directory: Path) -> None:
 # ---------------------------------------------------------------------------------------------- load
 
 
-def check_model_files(directory: Path) -> dict[str, Any]:
-    """A model directory's metadata, once it and every file it lists are there with their checksums: what a
-    launcher checks before it starts the nodes, without loading a vocabulary (torch) itself. ModelError names
-    what is missing or wrong; the contents are checked by ``load_model``."""
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise ModelError(f"model directory {directory} does not exist or is not a directory")
-    metadata = _read_metadata(directory)
-    for name, expected in metadata["files"].items():
-        path = directory / name
-        if not path.is_file():
-            raise ModelError(f"model file {path} is missing")
-        if file_sha256(path) != expected:
-            raise ModelError(f"checksum mismatch for {path}: the file is corrupt or was changed after saving")
-    return metadata
-
-
 def load_model(directory: Path) -> Model:
     """Load and validate a model directory; ModelError names what is missing or wrong."""
     directory = Path(directory)
     metadata = check_model_files(directory)
     files = metadata["files"]
+    feature_config = feature_config_of(directory, metadata)
     try:
-        feature_config = FeatureConfig.from_dict(metadata["feature_config"])
         vocabulary_config = VocabularyConfig.from_dict(metadata["vocabulary_config"])
     except (ConfigError, TypeError) as error:
         raise ModelError(f"{directory / METADATA}: invalid configuration: {error}") from error
@@ -257,11 +246,11 @@ def load_model(directory: Path) -> Model:
         raise ModelError(f"dimension mismatch in {directory}: metadata says vocabulary size {vocab['size']}, "
                          f"{VOCABULARY} has {quantizer.size} words")
     try:
-        _check_descriptor_dim(feature_config, quantizer.descriptor_dim, f"{directory / VOCABULARY}")
+        check_descriptor_dim(feature_config, quantizer.descriptor_dim, f"{directory / VOCABULARY}")
     except ModelError as error:
         raise ModelError(f"dimension mismatch: {error}") from error
-    tree = _load_tree(directory / TREE, quantizer.size) if TREE in files else None
-    samples = _load_samples(directory / NEW_PLACE_SAMPLES, quantizer.size) if NEW_PLACE_SAMPLES in files else None
+    tree = load_tree(directory / TREE, quantizer.size) if TREE in files else None
+    samples = load_samples(directory / NEW_PLACE_SAMPLES, quantizer.size) if NEW_PLACE_SAMPLES in files else None
     vocabulary_id = compute_vocabulary_id(quantizer)
     if vocabulary_id != metadata["model_id"]:
         raise ModelError(f"checksum mismatch in {directory}: contents hash to vocabulary id {vocabulary_id}, "
@@ -271,32 +260,6 @@ def load_model(directory: Path) -> Model:
         quantizer=quantizer, tree_matrix=tree, new_place_samples=samples,
         provenance=dict(metadata.get("provenance") or {}), created_utc=str(metadata.get("created_utc", "")),
     )
-
-
-def _read_metadata(directory: Path) -> dict[str, Any]:
-    path = directory / METADATA
-    if not path.is_file():
-        raise ModelError(f"model file {path} is missing (is {directory} a model directory?)")
-    try:
-        metadata = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ModelError(f"cannot read {path}: {error}") from error
-    if not isinstance(metadata, dict):
-        raise ModelError(f"{path} does not hold a JSON object")
-    version = metadata.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ModelError(f"{path}: format_version {version!r} is not supported (this build reads "
-                         f"format_version {FORMAT_VERSION})")
-    required = ("model_id", "feature_config", "vocabulary_config", "vocabulary", "files")
-    missing = [key for key in required if key not in metadata]
-    if missing:
-        raise ModelError(f"{path} lacks the key(s) {missing}")
-    if not isinstance(metadata["files"], dict) or VOCABULARY not in metadata["files"]:
-        raise ModelError(f"{path}: 'files' must list {VOCABULARY} with its checksum")
-    vocab = metadata["vocabulary"]
-    if not isinstance(vocab, dict) or not {"kind", "size", "descriptor_dim"} <= set(vocab):
-        raise ModelError(f"{path}: 'vocabulary' must give kind, size and descriptor_dim")
-    return metadata
 
 
 def _load_quantizer(directory: Path, metadata: dict[str, Any], files: dict[str, str]) -> Quantizer:
@@ -312,7 +275,7 @@ def _load_quantizer(directory: Path, metadata: dict[str, Any], files: dict[str, 
         return directory / name
 
     try:
-        quantizer: Quantizer = kind_module(kind).load_quantizer(StoredVocabulary(arrays, metadata, listed_file))
+        quantizer: Quantizer = runtime_module(kind).load_quantizer(StoredVocabulary(arrays, metadata, listed_file))
     except KeyError as error:
         raise ModelError(f"{directory / VOCABULARY} lacks the array {error}") from error
     except (DataError, ConfigError) as error:
@@ -320,42 +283,5 @@ def _load_quantizer(directory: Path, metadata: dict[str, Any], files: dict[str, 
     return quantizer
 
 
-def _check_descriptor_dim(feature_config: FeatureConfig, descriptor_dim: int, where: str) -> None:
-    expected = descriptor_length(feature_config)
-    if descriptor_dim != expected:
-        raise ModelError(f"{where} is for {descriptor_dim}-d descriptors but feature type "
-                         f"{feature_config.type!r} gives {expected}-d")
-
-
-def _check_tree(tree: np.ndarray | None, size: int, where: str) -> None:
-    if tree is None:
-        return
-    if tree.shape != (4, size):
-        raise ModelError(f"dimension mismatch: {where} has shape {tree.shape}, expected (4, {size})")
-    if not np.all(np.isfinite(tree)):
-        raise ModelError(f"{where} contains NaN or infinity")
-
-
-def _check_samples(samples: scipy.sparse.csr_matrix | None, size: int, where: str) -> None:
-    if samples is None:
-        return
-    if samples.ndim != 2 or samples.shape[1] != size:
-        raise ModelError(f"dimension mismatch: {where} has shape {samples.shape}, expected (S, {size})")
-
-
-def _load_tree(path: Path, size: int) -> np.ndarray:
-    try:
-        tree = np.load(path, allow_pickle=False)
-    except Exception as error:
-        raise ModelError(f"cannot read {path}: {error}") from error
-    _check_tree(tree, size, str(path))
-    return np.asarray(tree, np.float64)
-
-
-def _load_samples(path: Path, size: int) -> scipy.sparse.csr_matrix:
-    try:
-        samples = scipy.sparse.load_npz(path).tocsr()
-    except Exception as error:
-        raise ModelError(f"cannot read {path}: {error}") from error
-    _check_samples(samples, size, str(path))
-    return scipy.sparse.csr_matrix(samples)
+__all__ = ["FORMAT_VERSION", "METADATA", "NEW_PLACE_SAMPLES", "TREE", "VOCABULARY", "VOCABULARY_ID_LENGTH", "Model",
+           "check_model_files", "compute_vocabulary_id", "load_model", "save_model"]

@@ -6,6 +6,9 @@ as ``dropped_busy``). feature_node drops camera frames at its door too, but when
 the slower stage (the paper's autoencoder network behind a fast feature extractor) the frames
 feature_node passes would otherwise queue here and the delay from image to posterior would grow
 without bound. With it off (bag replay without lockstep) every message is quantized, in order.
+
+Quantizing is numpy (matrix products and an argmin, ``vocabulary/kmeans.py``, ``vocabulary/autoencoder.py``):
+the node imports neither torch nor faiss nor scikit-learn, which only training needs (docs/runtime.md).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from typing import Any
 import numpy as np
 from aefabmap_msgs.msg import BagOfWords, Features
 from rclpy.node import Node
+from threadpoolctl import threadpool_limits
 
 from aefabmap_ros.errors import AefabmapError, ConfigError
 from aefabmap_ros.model.directory import load_model
@@ -29,7 +33,6 @@ from aefabmap_ros.nodes.common import (
 )
 from aefabmap_ros.nodes.frame_gate import FrameHandOff
 from aefabmap_ros.nodes.messages import bag_of_words_to_message, message_to_features
-from aefabmap_ros.vocabulary.autoencoder import limit_torch_threads
 from aefabmap_ros.vocabulary.base import bag_of_words
 
 
@@ -38,20 +41,20 @@ class QuantizerNode(Node):
         super().__init__("quantizer_node", **node_kwargs)
         model_dir = declare_parameter(self, "model_dir", "", "Model directory (from aefabmap_train). Required.")
         depth = declare_parameter(self, "queue_depth", 100, "Queue depth of subscriptions and publications.")
-        torch_threads = declare_parameter(
-            self, "torch_threads", 0,
-            "Threads of torch's CPU pool for the autoencoder quantizer (0 = torch's default, which follows "
-            "OMP_NUM_THREADS; aefabmap_launch sets that to this process's share of the cores).",
+        blas_threads = declare_parameter(
+            self, "blas_threads", 0,
+            "Threads of the BLAS pool the quantizer's matrix products run on (0 = the library's default, which "
+            "follows OPENBLAS_NUM_THREADS; aefabmap_launch sets that to this process's share of the cores).",
         )
         drop_when_busy = declare_parameter(
             self, "drop_when_busy", True,
             "Quantize only the newest features message: one arriving while quantization is busy replaces "
             "the one waiting (counted, never queued; a live camera). false: every message, in order (bag replay).",
         )
-        if torch_threads < 0:
-            raise ConfigError(f"quantizer_node: parameter torch_threads={torch_threads} must be >= 0")
-        if torch_threads > 0:
-            limit_torch_threads(torch_threads)
+        if blas_threads < 0:
+            raise ConfigError(f"quantizer_node: parameter blas_threads={blas_threads} must be >= 0")
+        if blas_threads > 0:
+            threadpool_limits(blas_threads, user_api="blas")  # for the process: the node's one pool
         if not model_dir:
             raise ConfigError("quantizer_node: parameter model_dir is required (a directory made by aefabmap_train)")
         model = load_model(model_dir)  # at start-up, never in a callback

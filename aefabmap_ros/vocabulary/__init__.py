@@ -1,8 +1,14 @@
 """Visual vocabularies: the ``Quantizer`` protocol and ``train_vocabulary`` (``base``), the settings of
-each kind (``config``), the registry of kinds (``kinds``), k-means, PCA, the autoencoders (``autoencoder``,
-trained by ``autoencoder_training`` with ``training_checkpoint``), the numpy MLP encoder that quantizes
-(``mlp_encoder``) and the distillation of the paper's network into one (``distilled``). A new vocabulary
-kind is a module here plus a line in ``kinds``."""
+each kind (``config``) and the registry of kinds (``kinds``).
 
-__all__ = ["autoencoder", "autoencoder_training", "base", "config", "distilled", "kinds", "kmeans", "mlp_encoder",
-           "pca", "training_checkpoint"]
+What the nodes run, numpy only: the k-means quantizer (``kmeans``), the autoencoder quantizer
+(``autoencoder``) with its encoders, the MLP (``mlp_encoder``) and the paper's convolutional network
+(``conv_encoder``), the nearest-centre search (``nearest``), PCA (``pca``), and the reader of network
+weights still in torch's format (``legacy_weights``, torch imported only for such a folder).
+What trains them, with torch, faiss and scikit-learn: ``kmeans_training``, ``autoencoder_training`` with
+the torch networks (``autoencoder_network``), the distillation (``distilled``) and the resumable state
+(``training_checkpoint``). A new vocabulary kind is a runtime and a training module plus a line in ``kinds``."""
+
+__all__ = ["autoencoder", "autoencoder_network", "autoencoder_training", "base", "config", "conv_encoder", "distilled",
+           "kinds", "kmeans", "kmeans_training", "legacy_weights", "mlp_encoder", "nearest", "pca",
+           "training_checkpoint"]

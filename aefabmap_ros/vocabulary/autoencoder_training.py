@@ -1,4 +1,5 @@
-"""Training of the autoencoder vocabulary (``autoencoder.py`` holds the network and the quantizer).
+"""Training of the autoencoder vocabulary (``autoencoder_network.py`` holds the torch networks,
+``autoencoder.py`` the numpy quantizer the training returns and the nodes run).
 
 1. PCA of the descriptors, scaled to [0, 1] (``pca.py``).
 2. Pre-training of the autoencoder (``ae_network``: the MLP, or the paper's convolutional network) with
@@ -38,9 +39,9 @@ from tqdm import tqdm
 
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.features.descriptors import kind_of
-from aefabmap_ros.vocabulary.autoencoder import (
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder_network import (
     Autoencoder,
-    AutoencoderQuantizer,
     ConvAutoencoder,
     MlpAutoencoder,
     embed_rows,
@@ -48,8 +49,9 @@ from aefabmap_ros.vocabulary.autoencoder import (
     target_distribution,
 )
 from aefabmap_ros.vocabulary.config import VocabularyConfig
+from aefabmap_ros.vocabulary.conv_encoder import ConvEncoder
 from aefabmap_ros.vocabulary.distilled import DistillOptions, distill_student
-from aefabmap_ros.vocabulary.kmeans import cluster_means, kmeans, nearest, reseed_empty
+from aefabmap_ros.vocabulary.kmeans_training import cluster_means, kmeans, nearest, reseed_empty
 from aefabmap_ros.vocabulary.mlp_encoder import MlpEncoder
 from aefabmap_ros.vocabulary.pca import PCA, fit_match_projection, fit_pca
 from aefabmap_ros.vocabulary.training_checkpoint import Checkpoint, fingerprint
@@ -70,7 +72,7 @@ def _torch_settings(num_threads: int) -> Iterator[None]:
         torch.use_deterministic_algorithms(previous_deterministic)
 
 
-def train_autoencoder_quantizer(
+def train_quantizer(
     descriptors: np.ndarray,
     options: VocabularyConfig,
     *,
@@ -128,18 +130,18 @@ def train_autoencoder_quantizer(
 
 
 def _quantizing_encoders(model: Autoencoder, x_all: np.ndarray, z_all: np.ndarray, centres: np.ndarray,
-                         options: VocabularyConfig) -> tuple[ConvAutoencoder | None, MlpEncoder | None,
+                         options: VocabularyConfig) -> tuple[ConvEncoder | None, MlpEncoder | None,
                                                              dict[str, float]]:
-    """What the vocabulary keeps to quantize with: the convolutional network (None for the MLP, whose
-    decoder is not needed), the MLP encoder (the MLP's own, or a student distilled from the network),
-    and the distillation's record (empty without one)."""
+    """What the vocabulary keeps to quantize with, as numpy arrays: the convolutional network (None for the
+    MLP, whose decoder is not needed), the MLP encoder (the MLP's own, or a student distilled from the
+    network), and the distillation's record (empty without one)."""
     if isinstance(model, MlpAutoencoder):
         return None, model.numpy_encoder(), {}
     assert isinstance(model, ConvAutoencoder)
     if options.ae_student_hidden == 0:
-        return model, None, {}
+        return model.numpy_network(), None, {}
     student, info = _distill(x_all, z_all, centres, options, teacher=functools.partial(embed_rows, model))
-    return model, student, info
+    return model.numpy_network(), student, info
 
 
 def new_autoencoder(options: VocabularyConfig) -> Autoencoder:

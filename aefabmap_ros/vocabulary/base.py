@@ -1,8 +1,10 @@
 """Vocabulary training and use: the common ``Quantizer`` protocol, ``train_vocabulary``, bag-of-words.
 
-Two kinds (``VocabularyConfig.kind``, ``config.py``; registered in ``kinds.py``):
-- ``"autoencoder"``: the paper's self-supervised quantizer (``autoencoder.py``).
-- ``"kmeans"``: the classic FAB-MAP 2 / BoW baseline (``kmeans.py``).
+Two kinds (``VocabularyConfig.kind``, ``config.py``; registered in ``kinds.py``), each quantized in numpy by
+one module and trained by another:
+- ``"autoencoder"``: the paper's self-supervised quantizer (``autoencoder.py``; ``autoencoder_training.py``).
+- ``"kmeans"``: the classic FAB-MAP 2 / BoW baseline (``kmeans.py``; ``kmeans_training.py``).
+``train_vocabulary`` imports the training module of the kind it trains, so importing this module costs no torch.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 from aefabmap_ros.errors import DataError
 from aefabmap_ros.features.descriptors import kind_of
 from aefabmap_ros.vocabulary.config import VocabularyConfig
-from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, kind_module
+from aefabmap_ros.vocabulary.kinds import VOCABULARY_KINDS, training_module
 
 
 @runtime_checkable
@@ -96,7 +98,7 @@ def train_vocabulary(
                         f"{descriptors.shape[0]}")
     if descriptors.dtype == np.float64:
         descriptors = descriptors.astype(np.float32)
-    quantizer: Quantizer = kind_module(config.kind).train_quantizer(
+    quantizer: Quantizer = training_module(config.kind).train_quantizer(
         descriptors, config, pairs=pairs, progress=progress, work_dir=work_dir)
     return quantizer
 

@@ -5,17 +5,23 @@ the encoder half of the MLP autoencoder (``ae_network: mlp``, trained directly) 
 the paper's convolutional network (``distilled.py``); either way the model directory stores its four
 arrays and quantizing needs no torch. Per descriptor it costs P*H + H*E multiply-adds, plus K*E for the
 centre search, against k-means' K*D (P = E = 64, H = 256, K = 1000, SIFT D = 128: 97k against 128k).
+
+torch is imported only inside the two functions that make or read a torch network (``mlp_network``,
+``MlpEncoder.from_torch``), which training alone calls: a node imports this module without torch.
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from torch import nn
 
 from aefabmap_ros.errors import DataError
+
+if TYPE_CHECKING:
+    from torch import nn
 
 # The arrays of an MLP encoder as the model directory stores them, in this order.
 MLP_ARRAYS = ("w1", "b1", "w2", "b2")
@@ -93,6 +99,8 @@ class MlpEncoder:
     @classmethod
     def from_torch(cls, network: nn.Sequential) -> MlpEncoder:
         """From ``mlp_network``'s layers (torch stores Linear weights as (out, in))."""
+        from torch import nn
+
         first, second = network[0], network[2]
         if not isinstance(first, nn.Linear) or not isinstance(second, nn.Linear):
             raise DataError("an MLP encoder is Linear, ReLU, Linear (see mlp_network)")
@@ -102,6 +110,8 @@ class MlpEncoder:
 
 def mlp_network(input_dim: int, hidden_dim: int, embedding_dim: int) -> nn.Sequential:
     """The torch form of ``MlpEncoder`` (for training), P -> H (ReLU) -> E."""
+    from torch import nn
+
     return nn.Sequential(nn.Linear(input_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, embedding_dim))
 
 
@@ -119,7 +129,6 @@ class CentreSearch:
         """(N, E + 1) embeddings with a trailing column of ones -> (N,) int64 nearest centre."""
         result: np.ndarray = np.argmin(z_with_one @ self.matrix, axis=1).astype(np.int64)
         return result
-
 
 
 __all__ = ["MLP_ARRAYS", "CentreSearch", "MlpEncoder", "mlp_network"]

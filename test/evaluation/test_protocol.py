@@ -28,7 +28,7 @@ from aefabmap_ros.features.extraction import FeatureConfig, Features
 from aefabmap_ros.model.directory import Model
 from aefabmap_ros.verification.geometric import VerificationConfig
 from aefabmap_ros.vocabulary.base import VocabularyConfig
-from aefabmap_ros.vocabulary.kmeans import train_kmeans_quantizer
+from aefabmap_ros.vocabulary.kmeans_training import train_kmeans_quantizer
 from test.conftest import require_shared
 from test.fabmap.oracles import fabmap_score_matrices
 

@@ -1,16 +1,15 @@
 """Tests for the model directory (aefabmap_ros/model/directory.py)."""
 
-import io
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.sparse
-import torch
 
 from aefabmap_ros.errors import ModelError
 from aefabmap_ros.features.extraction import FeatureConfig
+from aefabmap_ros.io.npz_files import npz_bytes
 from aefabmap_ros.model.directory import (
     METADATA,
     TREE,
@@ -21,8 +20,8 @@ from aefabmap_ros.model.directory import (
     save_model,
 )
 from aefabmap_ros.vocabulary.autoencoder import (
-    AUTOENCODER,
     ENCODER_FILE,
+    NETWORK_FILE,
     PCA_FILE,
     STUDENT_FILE,
     AutoencoderQuantizer,
@@ -107,7 +106,7 @@ def test_student_is_stored_and_part_of_the_vocabulary_id(ae_quantizer: Quantizer
     nudged = MlpEncoder(arrays["w1"], arrays["b1"], arrays["w2"], arrays["b2"] + np.float32(1e-3))
     assert compute_vocabulary_id(ae_quantizer.with_encoder(nudged)) != compute_vocabulary_id(ae_quantizer)
     save_model(tmp_path / "m", _model(ae_quantizer))
-    assert (tmp_path / "m" / ENCODER_FILE).is_file() and (tmp_path / "m" / AUTOENCODER).is_file()
+    assert (tmp_path / "m" / ENCODER_FILE).is_file() and (tmp_path / "m" / NETWORK_FILE).is_file()
     loaded = load_model(tmp_path / "m").quantizer
     assert isinstance(loaded, AutoencoderQuantizer) and loaded.encoder is not None
     for name, array in arrays.items():
@@ -150,7 +149,7 @@ def test_mlp_autoencoder_folder_has_no_network_and_quantizes_as_trained(tmp_path
     trained = train_vocabulary(_descriptors(), config, progress=False)
     assert isinstance(trained, AutoencoderQuantizer) and trained.network is None and trained.encoder is not None
     save_model(tmp_path / "mlp", _model(trained))
-    assert (tmp_path / "mlp" / ENCODER_FILE).is_file() and not (tmp_path / "mlp" / AUTOENCODER).exists()
+    assert (tmp_path / "mlp" / ENCODER_FILE).is_file() and not (tmp_path / "mlp" / NETWORK_FILE).exists()
     loaded = load_model(tmp_path / "mlp")
     assert loaded.vocabulary_id == compute_vocabulary_id(trained)
     x = _descriptors(4)
@@ -159,7 +158,7 @@ def test_mlp_autoencoder_folder_has_no_network_and_quantizes_as_trained(tmp_path
 
 def test_autoencoder_folder_without_any_encoder_is_refused(saved_ae: Path) -> None:
     metadata = json.loads((saved_ae / METADATA).read_text())
-    for name in (ENCODER_FILE, AUTOENCODER):
+    for name in (ENCODER_FILE, NETWORK_FILE):
         del metadata["files"][name]
     (saved_ae / METADATA).write_text(json.dumps(metadata))
     with pytest.raises(ModelError, match="autoencoder vocabulary without an encoder"):
@@ -187,7 +186,7 @@ def test_save_replaces_existing_model_atomically(ae_quantizer: Quantizer, km_qua
     save_model(target, _model(ae_quantizer))
     save_model(target, _model(km_quantizer))
     assert load_model(target).quantizer.kind == "kmeans"
-    assert not (target / AUTOENCODER).exists()
+    assert not (target / NETWORK_FILE).exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]  # no temp dirs left
 
 
@@ -240,8 +239,8 @@ def _refresh_checksum(directory: Path, name: str) -> None:
 def test_missing_directory_and_files(saved_ae: Path, tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="does not exist"):
         load_model(tmp_path / "nowhere")
-    (saved_ae / AUTOENCODER).unlink()
-    with pytest.raises(ModelError, match=f"{AUTOENCODER} is missing"):
+    (saved_ae / NETWORK_FILE).unlink()
+    with pytest.raises(ModelError, match=f"{NETWORK_FILE} is missing"):
         load_model(saved_ae)
     (saved_ae / METADATA).unlink()
     with pytest.raises(ModelError, match=f"{METADATA} is missing"):
@@ -277,32 +276,35 @@ def test_vocabulary_id_mismatch(saved_ae: Path) -> None:
 
 
 def test_corrupt_weights(saved_ae: Path) -> None:
-    (saved_ae / AUTOENCODER).write_bytes(b"\x80\x02 definitely not torch")
-    _refresh_checksum(saved_ae, AUTOENCODER)
-    with pytest.raises(ModelError, match=r"cannot load autoencoder weights .* corrupt"):
+    (saved_ae / NETWORK_FILE).write_bytes(b"PK\x03\x04 not an archive")
+    _refresh_checksum(saved_ae, NETWORK_FILE)
+    with pytest.raises(ModelError, match=rf"cannot read .*{NETWORK_FILE}"):
         load_model(saved_ae)
 
 
 def test_non_finite_weights(saved_ae: Path) -> None:
-    state = torch.load(saved_ae / AUTOENCODER, weights_only=True)
-    first = next(iter(state))
-    state[first] = torch.full_like(state[first], float("nan"))
-    torch.save(state, saved_ae / AUTOENCODER)
-    _refresh_checksum(saved_ae, AUTOENCODER)
-    with pytest.raises(ModelError, match="NaN"):
+    arrays = dict(np.load(saved_ae / NETWORK_FILE))
+    first = sorted(arrays)[0]
+    arrays[first] = np.full_like(arrays[first], np.nan)
+    np.savez(saved_ae / NETWORK_FILE, **arrays)
+    _refresh_checksum(saved_ae, NETWORK_FILE)
+    with pytest.raises(ModelError, match=f"{first} contains NaN"):
         load_model(saved_ae)
 
 
 def test_weights_of_other_dimensions(saved_ae: Path) -> None:
     other = train_vocabulary(_descriptors(), VocabularyConfig(size=V, pca_dim=12, ae_embedding_dim=4, ae_epochs=1,
                                                               ae_network="conv"), progress=False)
-    assert isinstance(other, AutoencoderQuantizer)
-    buffer = io.BytesIO()
-    assert other.network is not None
-    torch.save(other.network.state_dict(), buffer)
-    (saved_ae / AUTOENCODER).write_bytes(buffer.getvalue())
-    _refresh_checksum(saved_ae, AUTOENCODER)
-    with pytest.raises(ModelError, match="dimension mismatch: autoencoder weights"):
+    assert isinstance(other, AutoencoderQuantizer) and other.network is not None
+    (saved_ae / NETWORK_FILE).write_bytes(npz_bytes(other.network.to_arrays()))
+    _refresh_checksum(saved_ae, NETWORK_FILE)
+    with pytest.raises(ModelError, match=r"dimension mismatch .*the network maps 12 -> 4 but the PCA gives 8"):
+        load_model(saved_ae)
+    arrays = other.network.to_arrays()
+    del arrays["decoder.9.bias"]
+    (saved_ae / NETWORK_FILE).write_bytes(npz_bytes(arrays))
+    _refresh_checksum(saved_ae, NETWORK_FILE)
+    with pytest.raises(ModelError, match=r"not the convolutional autoencoder's: missing \['decoder.9.bias'\]"):
         load_model(saved_ae)
 
 

@@ -241,18 +241,15 @@ def test_quantizer_node_words_are_the_same_from_byte_and_float_sift(revisit_data
         node.destroy_node()
 
 
-def test_quantizer_node_caps_torch_threads_from_its_parameter(revisit_data: RevisitData) -> None:
-    import torch
+def test_quantizer_node_caps_blas_threads_from_its_parameter(revisit_data: RevisitData) -> None:
+    from threadpoolctl import threadpool_info, threadpool_limits
 
-    before = torch.get_num_threads()
-    try:
-        node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), torch_threads=1))
+    with threadpool_limits(None):  # every limit the node sets is undone on leaving
+        node = QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), blas_threads=1))
         node.destroy_node()
-        assert torch.get_num_threads() == 1
-        with pytest.raises(ConfigError, match="torch_threads=-1"):
-            QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), torch_threads=-1))
-    finally:
-        torch.set_num_threads(before)
+        assert {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"} == {1}
+        with pytest.raises(ConfigError, match="blas_threads=-1"):
+            QuantizerNode(parameter_overrides=_params(model_dir=str(revisit_data.model_dir), blas_threads=-1))
 
 
 def _words(word_ids: list[int], sec: int, vocabulary_id: str, size: int = 400) -> Any:

@@ -7,7 +7,7 @@ from aefabmap_ros.errors import DataError
 from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
 from aefabmap_ros.vocabulary.autoencoder_training import _centroids_of_empty_words
 from aefabmap_ros.vocabulary.base import VocabularyConfig, train_vocabulary
-from aefabmap_ros.vocabulary.kmeans import cluster_means
+from aefabmap_ros.vocabulary.kmeans_training import cluster_means
 
 
 def _two_words_seen_twice(points: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

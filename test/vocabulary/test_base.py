@@ -11,8 +11,9 @@ from sklearn.metrics import normalized_mutual_info_score
 
 from aefabmap_ros.errors import ConfigError, DataError, ModelError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
-from aefabmap_ros.vocabulary.autoencoder import (
-    AutoencoderQuantizer,
+from aefabmap_ros.vocabulary import autoencoder, conv_encoder
+from aefabmap_ros.vocabulary.autoencoder import AutoencoderQuantizer
+from aefabmap_ros.vocabulary.autoencoder_network import (
     ConvAutoencoder,
     MlpAutoencoder,
     student_t,
@@ -26,7 +27,8 @@ from aefabmap_ros.vocabulary.base import (
     train_vocabulary,
     word_usage,
 )
-from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer, kmeans, reseed_empty
+from aefabmap_ros.vocabulary.kmeans import KMeansQuantizer
+from aefabmap_ros.vocabulary.kmeans_training import kmeans, reseed_empty
 from aefabmap_ros.vocabulary.training_checkpoint import CHECKPOINT_NAME, Checkpoint
 
 K_TRUE = 8
@@ -113,28 +115,20 @@ def test_soft_assignment_rows_are_distributions(ae_quantizer: Quantizer,
     np.testing.assert_array_equal(q.argmax(axis=1), ae_quantizer.quantize(blobs[0][:50]))
 
 
-def test_autoencoder_encodes_padded_batches_of_few_shapes(blobs: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
-    """Each image brings a different number of features; the paper's convolutional encoder (the setting without
-    an MLP encoder) must see few distinct batch shapes (oneDNN keeps a compiled primitive per shape: unbounded
-    memory otherwise), with the words unchanged."""
+def test_network_quantizes_each_row_whatever_the_batch(blobs: tuple[np.ndarray, np.ndarray, np.ndarray],
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The paper's convolutional network (the setting without an MLP encoder) quantizes in numpy, in chunks of
+    rows: a row's word does not depend on the rows quantized with it, nor on where the chunks end."""
     network = train_vocabulary(blobs[0], _small_ae(ae_network="conv", ae_student_hidden=0, ae_epochs=1),
                                progress=False)
     assert isinstance(network, AutoencoderQuantizer) and network.network is not None and network.encoder is None
-    seen: list[int] = []
-    encode = network.network.encode
-
-    def counting_encode(x: torch.Tensor) -> torch.Tensor:
-        seen.append(x.shape[0])
-        return encode(x)
-
-    network.network.encode = counting_encode  # type: ignore[method-assign]
-    try:
-        words = {n: network.quantize(blobs[0][:n]) for n in (1, 255, 257, 600)}
-    finally:
-        del network.network.encode
-    assert seen == [256, 256, 512, 768]
-    for n, ids in words.items():  # the unpadded soft assignment agrees row for row
-        np.testing.assert_array_equal(ids, network.soft_assign(blobs[0][:n]).argmax(axis=1))
+    whole = network.quantize(blobs[0])
+    monkeypatch.setattr(autoencoder, "QUANTIZE_BATCH", 300)
+    monkeypatch.setattr(conv_encoder, "EMBED_ROWS", 7)
+    np.testing.assert_array_equal(network.quantize(blobs[0]), whole)
+    for n in (1, 255, 257, 600):
+        np.testing.assert_array_equal(network.quantize(blobs[0][:n]), whole[:n])
+        np.testing.assert_array_equal(network.soft_assign(blobs[0][:n]).argmax(axis=1), whole[:n])
 
 
 def test_empty_input_gives_empty_words(ae_quantizer: Quantizer) -> None:
@@ -256,6 +250,14 @@ def test_student_t_and_target_distribution_match_formulas() -> None:
     qn = q.numpy()
     w = qn**2 / qn.sum(0)
     np.testing.assert_allclose(p, w / w.sum(1, keepdims=True), rtol=1e-6)
+
+
+def test_numpy_soft_assignment_is_the_torch_one() -> None:
+    rng = np.random.default_rng(0)
+    z, mu = rng.normal(size=(40, 6)).astype(np.float32), rng.normal(size=(9, 6)).astype(np.float32)
+    for alpha in (1.0, 2.5):
+        expected = student_t(torch.from_numpy(z), torch.from_numpy(mu), alpha).numpy()
+        np.testing.assert_allclose(autoencoder.student_t(z, mu, alpha), expected, rtol=1e-5, atol=1e-7)
 
 
 def test_autoencoder_shapes_and_finite_output() -> None:
