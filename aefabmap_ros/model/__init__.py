@@ -1,5 +1,5 @@
 """The model directory the nodes load (vocabulary + Chow-Liu tree + feature settings): its layout, saving and
-full loading (``directory``), its files read without a vocabulary (``files``), and the training that writes it
-(``training``)."""
+full loading (``directory``), its files read without a vocabulary (``files``), the part each node loads
+(``parts``), and the training that writes it (``training``)."""
 
-__all__ = ["directory", "files", "training"]
+__all__ = ["directory", "files", "parts", "training"]

@@ -34,7 +34,7 @@ from std_msgs.msg import Header
 from aefabmap_ros.errors import AefabmapError, ConfigError, ImageTooLargeError
 from aefabmap_ros.features.extraction import FeatureConfig, extract_features
 from aefabmap_ros.io.image_messages import image_message_to_gray
-from aefabmap_ros.model.directory import load_model
+from aefabmap_ros.model.parts import load_feature_config
 from aefabmap_ros.nodes.common import (
     DropCounter,
     declare_config,
@@ -91,7 +91,7 @@ class FeatureNode(Node):
         self.thumbnail_width = _declare_thumbnail_width(self)
         self.frame_views_cpu_s = 0.0  # what the frame views cost this node: the live view's share of it
         parameter_config = declare_config(self, FeatureConfig)
-        self.config = load_model(model_dir).feature_config if model_dir else parameter_config
+        self.config = load_feature_config(model_dir) if model_dir else parameter_config  # not the vocabulary
         self.counter = DropCounter(self)
         self.publisher = self.create_publisher(Features, "aefabmap/features", pipeline_qos(depth))
         self.frame_view_publisher = self.create_publisher(FrameView, FRAME_VIEWS_TOPIC, pipeline_qos(depth))
