@@ -31,6 +31,7 @@ CONSOLE_SCRIPTS = [
     "aefabmap_view = aefabmap_ros.cli.view:main",
     "aefabmap_words = aefabmap_ros.cli.words:main",
     "aefabmap_map = aefabmap_ros.cli.map:main",
+    "aefabmap_model = aefabmap_ros.cli.model:main",
 ]
 
 setup(
