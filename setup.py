@@ -1,10 +1,19 @@
 """ament_python package definition of aefabmap_ros (also a plain pip-installable package)."""
 
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "aefabmap_ros"
+
+
+def pinned(requirements: str) -> list[str]:
+    """The requirement lines of a requirements file beside this one (none where it is absent)."""
+    path = Path(__file__).parent / requirements
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return [line.split("#")[0].strip() for line in lines if line.split("#")[0].strip()]
+
 
 # Console scripts: every node and tool. Nodes are also runnable with `ros2 run aefabmap_ros <name>`.
 CONSOLE_SCRIPTS = [
@@ -48,6 +57,9 @@ setup(
     # The YAML files are package data too: the CLIs find them beside the code in every kind of install.
     package_data={PACKAGE: ["config/*.yaml", "config/*.xml", "config/*.json", "py.typed"]},
     install_requires=["setuptools"],
+    # Training, evaluation and tests (torch, faiss, scikit-learn, ...): pip install -e ".[train]". What the nodes
+    # need, the ROS wheels included, is requirements-runtime.txt (scripts/setup.sh installs both).
+    extras_require={"train": pinned("requirements-train.txt")},
     zip_safe=True,
     maintainer="aefabmap_ros developers",
     maintainer_email="aefabmap@example.org",

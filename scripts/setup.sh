@@ -5,11 +5,19 @@
 #
 # Idempotent: each stage records a hash of its inputs in .venv/.aefabmap-stamps/ and is skipped
 # when the inputs have not changed, so a second run takes seconds and changes nothing.
+#
+# requirements.txt is everything: requirements-runtime.txt (what runs on the robot) and requirements-train.txt
+# (torch, faiss, scikit-learn, evaluation and test tools). A robot's install without training:
+#   AEFABMAP_REQUIREMENTS=requirements-runtime.txt AEFABMAP_VENV=/opt/aefabmap scripts/setup.sh
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 VENV=${AEFABMAP_VENV:-$ROOT/.venv}
 STAMPS=$VENV/.aefabmap-stamps
+REQUIREMENTS=${AEFABMAP_REQUIREMENTS:-requirements.txt}
+[[ $REQUIREMENTS = /* ]] || REQUIREMENTS=$ROOT/$REQUIREMENTS
+# Every requirements file: requirements.txt includes the other two, so a change in either is a change.
+REQUIREMENT_FILES=("$ROOT/requirements.txt" "$ROOT/requirements-runtime.txt" "$ROOT/requirements-train.txt")
 
 log() { printf '[setup] %s\n' "$*"; }
 die() { printf 'ERROR: %s\n' "$*" >&2; exit 1; }
@@ -59,10 +67,11 @@ create_venv() {
 
 install_requirements() {
   local hash
-  hash=$(inputs_hash "$ROOT/requirements.txt")
+  [ -f "$REQUIREMENTS" ] || die "no requirements file $REQUIREMENTS (AEFABMAP_REQUIREMENTS)"
+  hash=$( (printf '%s\n' "$REQUIREMENTS"; cat "${REQUIREMENT_FILES[@]}") | sha256sum | cut -d' ' -f1)
   stage_done requirements "$hash" && return 0
-  log "installing pinned dependencies (first run: about 2 minutes)"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$ROOT/requirements.txt"
+  log "installing pinned dependencies from $(basename "$REQUIREMENTS") (first run: about 2 minutes)"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$REQUIREMENTS"
   mark_done requirements "$hash"
 }
 
@@ -83,7 +92,7 @@ patch_rosidl_py_exports() {
 # and it imports. Usage: build_interface_package NAME SOURCE_DIR
 build_interface_package() {
   local name=$1 source=$2 hash build_dir=$ROOT/build/$1
-  hash=$(inputs_hash "$ROOT/requirements.txt" "$source/CMakeLists.txt" "$source/package.xml" "$source"/msg/*.msg)
+  hash=$(inputs_hash "$ROOT/requirements-runtime.txt" "$source/CMakeLists.txt" "$source/package.xml" "$source"/msg/*.msg)
   if stage_done "messages-$name" "$hash" && "$VENV/bin/python" -c "import $name.msg" 2>/dev/null; then
     return 0
   fi
