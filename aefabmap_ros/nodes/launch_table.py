@@ -235,11 +235,9 @@ def base_nodes(options: SuiteOptions) -> list[NodeLaunch]:
         store = {"store_dir": str(verifier_store_path(Path(options.map_file)))} if options.map_file else {}
         nodes.append(NodeLaunch(VERIFIER_NODE, {**store, **sensors, **robots}, {**extra, **published}))
     if options.backend:  # every robot's odometry, /<robot>/aefabmap/odom; the first robot's holds the map frame
-        first = options.robots[0]
         graph = {"graph_file": str(backend_graph_path(Path(options.map_file)))} if options.map_file else {}
-        odometry = {"odom": options.odom_topic or f"{robot_namespace(first)}/aefabmap/odom"}  # not read with robots
-        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": first, **robots},
-                                {**extra, **odometry, **published}))
+        nodes.append(NodeLaunch(BACKEND_NODE, {**sensors, **graph, "robot": options.robots[0], **robots},
+                                {**extra, **published}))
     return nodes
 
 

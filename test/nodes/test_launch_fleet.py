@@ -37,7 +37,8 @@ def test_the_base_runs_one_map_and_the_verifier_for_every_robot() -> None:
         == "[robot1,robot2]"
     assert nodes["verifier_node"].parameters["store_dir"] == "/maps/o.features"
     assert nodes["pose_graph_node"].parameters["robot"] == "robot1"
-    assert nodes["pose_graph_node"].remaps == {"odom": "/robot1/aefabmap/odom"}  # as robot1's server thins it
+    assert nodes["pose_graph_node"].parameters["robots"] == "[robot1,robot2]"  # each /<robot>/aefabmap/odom
+    assert nodes["pose_graph_node"].remaps == {}
     assert all(not node.namespace for node in nodes.values())
     raw = _by_name(SuiteOptions(model_dir="/m", base=True, robots=("robot1",), verify=False))
     assert list(raw) == ["fabmap_node"] and raw["fabmap_node"].remaps == {"loop_closure_candidates": "loop_closures"}
