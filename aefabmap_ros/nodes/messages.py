@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from aefabmap_ros.errors import DataError, VocabularyMismatchError
-from aefabmap_ros.fabmap.recognizer import Candidate, Recognition
+from aefabmap_ros.fabmap.recognition import Candidate, Recognition
 from aefabmap_ros.fabmap.sessions import Session
 from aefabmap_ros.features import extraction as core_features
 from aefabmap_ros.io.message_values import covariance_problem, pose_problem, stamp_problem
