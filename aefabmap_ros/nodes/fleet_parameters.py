@@ -14,11 +14,12 @@ from rclpy.node import Node
 from aefabmap_ros.errors import ConfigError
 from aefabmap_ros.nodes.launch_table import parse_robots
 
+FRAMES_OF_ROBOTS = ("Robots whose frames this node takes, each from its own namespace /<robot>/... (several "
+                    "robots, docs/fleet.md); [] = one robot, this node's own topics.")
 
-def declare_robots(node: Node) -> list[str]:
+
+def declare_robots(node: Node, description: str = FRAMES_OF_ROBOTS) -> list[str]:
     """Declare and read ``robots`` (dynamically typed: an empty list in YAML has no element type)."""
-    description = ("Robots whose frames this node takes, each from its own namespace /<robot>/... (several "
-                   "robots, docs/fleet.md); [] = one robot, this node's own topics.")
     try:
         node.declare_parameter("robots", [], ParameterDescriptor(description=description, dynamic_typing=True))
     except Exception as exc:  # rclpy's parameter exceptions

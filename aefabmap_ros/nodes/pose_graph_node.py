@@ -61,7 +61,6 @@ from aefabmap_msgs.msg import LoopClosure, PlacePosterior
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMessage
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from aefabmap_ros.backend.graph_file import load_graph, save_graph
@@ -86,11 +85,11 @@ from aefabmap_ros.nodes.common import (
     node_callback,
     run_node,
 )
+from aefabmap_ros.nodes.fleet_parameters import declare_robots as declare_fleet_robots
 from aefabmap_ros.nodes.fleet_parameters import robot_topic
 from aefabmap_ros.nodes.future_stamps import FutureStamps
 from aefabmap_ros.nodes.graph_view import GraphView, MapToOdom, session_frame
 from aefabmap_ros.nodes.gtsam_poses import extrinsic_to_gtsam, gtsam_to_poses, loop_closure_pose, pose_to_gtsam
-from aefabmap_ros.nodes.launch_table import parse_robots
 from aefabmap_ros.nodes.messages import (
     header_stamp_problem,
     loop_closure_pose_problem,
@@ -115,14 +114,10 @@ def session_trajectory_path(trajectory_file: Path, session_id: SessionId) -> Pat
 
 
 def declare_robots(node: Node) -> list[str]:
-    """Parameter ``robots`` (a string array, dynamically typed: YAML's ``[]`` has no element type)."""
-    description = ("Robots whose odometry this node takes, each on /<robot>/aefabmap/odom as its feature server "
-                   "thins it (a base station, docs/fleet.md); [] = one robot, robot, on odom.")
-    try:
-        node.declare_parameter("robots", [], ParameterDescriptor(description=description, dynamic_typing=True))
-    except Exception as exc:  # rclpy's parameter exceptions
-        raise ConfigError(f"parameter 'robots': {exc}") from exc
-    return parse_robots(node.get_parameter("robots").value, "pose_graph_node: parameter robots")
+    """Parameter ``robots``: the robots whose odometry this node takes."""
+    return declare_fleet_robots(node, "Robots whose odometry this node takes, each on /<robot>/aefabmap/odom as "
+                                "its feature server thins it (a base station, docs/fleet.md); [] = one robot, robot, "
+                                "on odom.")
 
 
 class PoseGraphNode(Node):

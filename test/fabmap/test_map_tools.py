@@ -8,15 +8,13 @@ import pytest
 import scipy.sparse as sp
 
 from aefabmap_ros.errors import DataError, VocabularyMismatchError
-from aefabmap_ros.fabmap.chowliu import ChowLiuTree
 from aefabmap_ros.fabmap.config import FabMapConfig
 from aefabmap_ros.fabmap.map_file import read_map_unchecked_vocabulary, write_map
 from aefabmap_ros.fabmap.map_tools import map_summary, merge_maps, remove_session
 from aefabmap_ros.fabmap.recognizer import PlaceRecognizer
+from test.fabmap.test_recognizer import SAMPLES, V, _tree
 
-V = 40
 VOCABULARY = "vocab-a"
-SAMPLES = sp.csr_matrix(np.random.default_rng(9).random((15, V)) < 0.25)
 PLACE_KEYS = ("word_indptr", "word_indices", "place_stamps_ns", "place_frames", "place_sessions", "session_robots",
               "session_first_queries")
 CONFIGS = {
@@ -25,15 +23,6 @@ CONFIGS = {
     # the nodes' defaults: keyframing (overlap, seconds) decides which frames become places
     "keyframes": FabMapConfig(add_policy="all", motion_model=False, top_k=100),
 }
-
-
-def _tree(seed: int = 0) -> ChowLiuTree:
-    """A random Chow-Liu tree over V words (as test_recognizer builds its model)."""
-    rng = np.random.default_rng(seed)
-    parent = np.array([0] + [int(rng.integers(0, q)) for q in range(1, V)])
-    probs = rng.uniform(0.05, 0.6, size=(3, V))
-    probs[1:, 0] = probs[0, 0]
-    return ChowLiuTree(parent, probs[0], probs[1], probs[2])
 
 
 def _walk(n: int, seed: int) -> list[np.ndarray]:
