@@ -70,7 +70,7 @@ class KeyframeGraph(FactorGraph):
         for session in (query,) if query is place else (query, place):
             if not session.keyframes and session.odometry.first_ns is not None:
                 # A session's first keyframe, at its first odometry pose; a prior there holds its graph (map ==
-                # odom for the first session). One that joins another graph now needs none: the closure places it.
+                # odom for the first session). One that joins another graph needs none: the closure places it.
                 self._new_keyframe(session, session.odometry.first_ns, records, values, removed,
                                    prior=session.id != moving)
         keys = []

@@ -33,7 +33,7 @@ two graphs joins them: it is taken on the verifier's word (no odometry links two
 cannot apply), the moved graph loses its prior and all its keyframes are moved, rigidly, onto the other's
 frame through the closure (query keyframe = place keyframe * closure^-1) before iSAM2 sees them. Closures
 between two sessions of one graph are gated like any other (``PoseGraph._tie_distance`` has the drift bound).
-Closures and odometry that name no session are session ("", 0): a single-session graph, as before sessions.
+Closures and odometry that name no session are session ("", 0): a single-session graph.
 
 Keyframe poses are ``T_map_base``; ``map_to_odom`` is what a TF broadcaster publishes so that
 ``map -> odom -> base`` puts the robot on the optimised trajectory. No ROS import: gtsam and numpy only.

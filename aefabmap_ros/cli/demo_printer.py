@@ -138,7 +138,7 @@ class ClosurePrinter:
 
 
 def session_tag(query: tuple[str, int], matched: tuple[str, int]) -> str:
-    """'' for a closure of a map's only session (as before sessions); else '  [session 1 -> 0]'."""
+    """'' for a closure of a map's only session; else '  [session 1 -> 0]'."""
     if query == matched == ("", 0):
         return ""
     return f"  [session {'/'.join(filter(None, (query[0], str(query[1]))))} -> " \

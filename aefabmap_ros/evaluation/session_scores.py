@@ -36,7 +36,7 @@ def session_name(session: SessionId) -> str:
 
 
 def closure_sessions(message: Any) -> tuple[SessionId, SessionId]:
-    """(query session, matched session) of a LoopClosure; ('', 0) for a recording made before sessions."""
+    """(query session, matched session) of a LoopClosure; ('', 0) for a recording without session fields."""
     return ((str(getattr(message, "query_robot", "")), int(getattr(message, "query_session", 0))),
             (str(getattr(message, "matched_robot", "")), int(getattr(message, "matched_session", 0))))
 

@@ -22,7 +22,7 @@ def detection_from_message(message: LoopClosure) -> Detection:
 def posterior_from_message(message: PlacePosterior) -> Posterior:
     """A PlacePosterior whose candidate arrays are of one length (``messages.posterior_problem`` checked)."""
     count = len(message.place_ids)
-    # A publisher that predates sessions sends none: every place is then in session 0 of robot ''.
+    # A publisher that sends no sessions: every place is then in session 0 of robot ''.
     sessions = list(message.place_sessions) if len(message.place_sessions) else [0] * count
     robots = list(message.place_robots) if len(message.place_robots) else [""] * count
     candidates = tuple(

@@ -171,7 +171,7 @@ def posterior_problem(message: PlacePosterior) -> str | None:
     and its probabilities in [0, 1]. None when they can."""
     lengths = {name: len(getattr(message, name))
                for name in ("place_ids", "place_stamps", "probabilities", "log_likelihoods")}
-    # Sessions and robots per candidate: absent (a publisher that predates sessions) or one per candidate.
+    # Sessions and robots per candidate: absent (a publisher that sends none) or one per candidate.
     lengths.update({name: len(getattr(message, name)) for name in ("place_sessions", "place_robots")
                     if len(getattr(message, name))})
     what = f"PlacePosterior of query {message.query_id}"
