@@ -158,6 +158,14 @@ def _wait_for(log: Path, text: str, process: subprocess.Popen[bytes], timeout_s:
         time.sleep(0.2)
 
 
+def stop_saving(processes: list[subprocess.Popen[bytes]]) -> None:
+    """Ctrl-C each launcher and recorder, newest first, and wait while the nodes save their map, features and
+    graph: the launcher ends a node that does not stop (it kills it past its stop timeout), so this returns."""
+    for process in reversed(processes):
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=STOP_WRITING_CAP_S + 60)
+
+
 def _stop(process: subprocess.Popen[bytes], grace_s: float = 20.0) -> None:
     """Stop a child still running: SIGINT first, so aefabmap_launch stops its own node processes
     (a SIGKILL would orphan them), then SIGKILL if it does not exit within ``grace_s``."""
@@ -219,10 +227,7 @@ def run_online(args: argparse.Namespace, model: Path, test: Path) -> Path:
                   f"{', '.join(COMPANION_TOPICS)}", flush=True)
             _replay(args, test)
             printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
-            for process in reversed(processes):
-                process.send_signal(signal.SIGINT)
-                # The launcher ends a node that does not stop (it kills it past its stop timeout): wait for that.
-                process.wait(timeout=STOP_WRITING_CAP_S + 60)
+            stop_saving(processes)
     except subprocess.CalledProcessError as exc:
         raise AefabmapError(f"replay failed (exit {exc.returncode})") from exc
     finally:

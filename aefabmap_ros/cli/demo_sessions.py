@@ -90,8 +90,7 @@ def _replay(args: argparse.Namespace, sequence: Path) -> None:
 def run_session(args: argparse.Namespace, model: Path, folder: Path, name: str, stamps: np.ndarray,
                 gt: np.ndarray) -> SessionRun:
     """One session: the nodes on the map, its bag replayed, everything stopped (and saved) again."""
-    from aefabmap_ros.cli.demo import _stop
-    from aefabmap_ros.cli.launch import STOP_WRITING_CAP_S
+    from aefabmap_ros.cli.demo import _stop, stop_saving
 
     logs = folder / "logs" / name
     logs.mkdir(parents=True)
@@ -114,9 +113,7 @@ def run_session(args: argparse.Namespace, model: Path, folder: Path, name: str, 
             print(f"    session {name.upper()}: nodes up (logs in {logs}); replaying its {frames} images", flush=True)
             _replay(args, sequence)
             printer.wait_until_quiet(idle_s=3.0 if args.live else 1.0, at_most_s=120.0)
-            for process in reversed(processes):
-                process.send_signal(2)  # SIGINT: the map, the features and the graph are saved
-                process.wait(timeout=STOP_WRITING_CAP_S + 60)
+            stop_saving(processes)
     except subprocess.CalledProcessError as exc:
         raise AefabmapError(f"replay of session {name.upper()} failed (exit {exc.returncode})") from exc
     finally:
