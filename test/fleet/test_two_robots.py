@@ -40,6 +40,7 @@ from aefabmap_ros.datasets.synth.config import SynthConfig
 from aefabmap_ros.datasets.synth.renderer import PinholeCamera, camera_effects, render_view_and_depth
 from aefabmap_ros.datasets.synth.trajectory import drive_route, poses_from_headings, smooth_series
 from aefabmap_ros.datasets.synth.world import build_world
+from test.nodes.test_across_hosts import Host, _ip
 from test.revisit_fixture import RevisitData
 from test.ros_processes import LoggedProcess
 
@@ -62,21 +63,6 @@ feature_server_node:
   ros__parameters:
     max_features: {max_features}
 """
-
-
-@dataclass(frozen=True)
-class Host:
-    namespace: str
-    interface: str  # its end of the link (a robot's veth; the base's bridge)
-    address: str
-
-    @property
-    def prefix(self) -> list[str]:
-        return ["ip", "netns", "exec", self.namespace]
-
-
-def _ip(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10)
 
 
 def _setup(robots: list[Host], base: Host) -> None:

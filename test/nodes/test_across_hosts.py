@@ -29,7 +29,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 @dataclass(frozen=True)
 class Host:
     namespace: str
-    interface: str
+    interface: str  # its end of the link (a robot's veth; a base's bridge)
     address: str
 
     @property
