@@ -161,9 +161,8 @@ class FabMapNode(Node):
         """
         stamps = self.recognizer.place_stamps_ns
         if robot is not None and len(stamps):  # several robots: each robot's own places order its frames
-            sessions = self.recognizer.sessions
-            place_robots = np.array([sessions[int(number)].robot for number in self.recognizer.place_sessions])
-            stamps = np.where(place_robots == robot, stamps, -1)
+            robot_sessions = np.array([session.robot == robot for session in self.recognizer.sessions])
+            stamps = np.where(robot_sessions[self.recognizer.place_sessions], stamps, -1)
         newest, beyond = newest_stamp_up_to(stamps, self.future_stamps.limit_ns())
         if beyond:
             named = ", ".join(f"place {i} at {stamps[i] / 1e9:.0f} s" for i in beyond[:5])
